@@ -1,0 +1,40 @@
+# Denoiser training-data pipeline. `make dataset` and `make test` set themselves up.
+SHELL := /bin/bash
+PY := .venv/bin/python
+CONFIG ?= configs/default.yaml
+OUT ?=
+SCHEDULER ?=
+WORKERS ?=
+export DENOISE_DATA ?= $(CURDIR)/data
+
+.PHONY: setup dataset test test-fast bench train report preview contact-sheet clean-data help
+
+help:            ## list targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
+
+setup:           ## create .venv, install dependencies (CPU torch without a GPU) and libLLVM >= 16
+	@bash scripts/setup.sh
+
+dataset: setup   ## build the dataset of CONFIG (default: configs/default.yaml) on a LocalCluster or SCHEDULER
+	$(PY) -m pipeline dataset --config $(CONFIG) $(if $(OUT),--out $(OUT)) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(WORKERS),--workers $(WORKERS))
+
+test: setup      ## the whole test suite
+	$(PY) -m pytest -q tests
+
+bench: setup     ## benchmarks that print figures
+	$(PY) -m pipeline bench
+
+train: setup     ## train MODEL (default layer) on STORE
+	$(PY) -m training train --model $(or $(MODEL),layer) --store $(or $(STORE),data/default.zarr) --out $(or $(RUN),data/runs/$(or $(MODEL),layer))
+
+report: setup    ## evaluate RUNS on STORE and write a report
+	$(PY) -m training report --runs $(or $(RUNS),data/runs/*) --store $(or $(STORE),data/default.zarr) --out $(or $(REPORT),data/report)
+
+preview: setup   ## render a preview of one scene: SEED, KIND
+	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr
+
+contact-sheet: setup ## the README's contact sheet of 16 random scenes
+	$(PY) -m scene_gen contact-sheet --count 16 --res 160 --spp 64 --out docs/contact_sheet.png
+
+clean-data:      ## remove generated data (stores, renders, checkpoints)
+	rm -rf data

@@ -1,0 +1,13 @@
+"""Errors raised by scene generation."""
+
+
+class SceneGenError(Exception):
+    """Base class of every scene_gen error."""
+
+
+class SpecError(SceneGenError, ValueError):
+    """A SceneSpec (or one of its parts) is invalid; the message names the field."""
+
+
+class MeshError(SceneGenError, RuntimeError):
+    """A mesh could not be built or loaded (the message names the file or mesh kind)."""
