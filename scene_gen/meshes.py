@@ -1,0 +1,590 @@
+"""Meshes for generated scenes: procedural shapes, decimation to a triangle budget, user models.
+
+``build(spec)`` turns a :class:`scene_gen.spec.MeshSpec` into a :class:`MeshData`. It is a pure
+function of the spec (same spec -> identical vertex/face bytes, in any process) and is cached per
+process by the spec's JSON. Canonical meshes are centred at the origin and fit the cube
+``[-1, 1]^3`` (largest half-extent 1, +Y is "up" for shapes with an axis); the object's
+``Transform`` scales and places them. ``room`` meshes come from ``scene_gen.rooms`` as they are.
+
+Shading data is derived the same way for every kind (``_finish``): vertices are split along sharp
+edges (dihedral angle above ``crease_deg``, default 40) so boxes stay boxy and spheres stay smooth;
+vertex normals are the corner-angle-weighted mean of the face normals of their smooth patch; UVs
+are a box (six-axis) projection of the position, split along the projection seams.
+
+Kinds (``spec.MESH_KINDS``) and their ``params`` (all optional unless stated):
+
+=========  ===================================================================================
+sphere     ``subdivisions`` (icosphere level, 0..6, default 3)
+box        ``extents`` (3 floats, default [2, 2, 2])
+cylinder   ``radius`` (1), ``height`` (2), ``sections`` (32)
+capsule    ``radius`` (0.5), ``height`` (1, between cap centres), ``sections`` (24)
+cone       ``radius`` (1), ``height`` (2), ``sections`` (32)
+torus      ``major_radius`` (1), ``minor_radius`` (0.3), ``major_sections`` (48), ``minor_sections`` (24)
+revolve    ``profile`` ([[r, y], ...], r >= 0; else random vase-like from the seed), ``sections`` (48)
+extrude    ``outline`` ([[x, z], ...] star-shaped around the origin; else random from the seed),
+           ``height`` (random), ``bevel`` (0 = none; fraction of the height, < 0.5)
+blob       ``subdivisions`` (4), ``bumps`` (number of random bumps, 6), ``amplitude`` (0.35),
+           ``smooth_steps`` (Taubin iterations, 10); shape from the seed
+boolean    two ``children``; ``op`` in union|difference|intersection (default difference);
+           second operand scaled by ``b_scale`` and moved by ``b_offset`` (random from the seed)
+plane      ``resolution`` (grid cells per side, 1), ``bend`` (0..1: the back half, z < 0, curves up
+           to height ``bend``, a photo-studio backdrop); lies on y = 0 facing +Y, not normalised
+room       ``scene_gen.rooms.build_room_mesh(params)``, returned without normalisation
+file       ``path`` (required: OBJ/PLY/GLB/GLTF/STL), ``up`` ('y' or 'z', default 'y')
+=========  ===================================================================================
+
+``spec.triangle_budget > 0`` decimates with pymeshlab's quadric edge collapse (topology, normals
+and boundaries preserved) to at most that many triangles; :func:`triangle_budget` picks the budget
+from an object's projected size.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from scene_gen.errors import MeshError, SpecError
+from scene_gen.spec import MESH_KINDS, MeshSpec
+
+log = logging.getLogger(__name__)
+
+MODEL_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
+CACHE_SIZE = 512
+CREASE_DEG = 40.0
+
+
+class BrokenModelWarning(UserWarning):
+    """A user model file could not be loaded and was skipped (the message names the file)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MeshData:
+    """A triangle mesh ready for Mitsuba.
+
+    vertices (float32, N×3), faces (int32, M×3, counter-clockwise seen from outside),
+    normals (float32, N×3 unit vectors, or None), uv (float32, N×2, or None).
+    Arrays are read-only: results are shared through the cache.
+    """
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    uv: np.ndarray | None = None
+
+    def __post_init__(self):
+        v = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        f = np.ascontiguousarray(self.faces, dtype=np.int32)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise MeshError(f"MeshData.vertices must be N×3, got shape {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3:
+            raise MeshError(f"MeshData.faces must be M×3, got shape {f.shape}")
+        arrays = {"vertices": v, "faces": f}
+        for name, cols in (("normals", 3), ("uv", 2)):
+            a = getattr(self, name)
+            if a is not None:
+                a = np.ascontiguousarray(a, dtype=np.float32)
+                if a.shape != (len(v), cols):
+                    raise MeshError(f"MeshData.{name} must be {len(v)}×{cols}, got shape {a.shape}")
+            arrays[name] = a
+        for name, a in arrays.items():
+            if a is not None:
+                a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    @property
+    def num_triangles(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(float32, 2×3): per-axis minimum and maximum of the vertices."""
+        if len(self.vertices) == 0:
+            return np.zeros((2, 3), np.float32)
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+    def digest(self) -> str:
+        """SHA-256 of all array bytes (vertices, faces, normals, uv): equal digest, equal mesh."""
+        import hashlib
+        h = hashlib.sha256()
+        for a in (self.vertices, self.faces, self.normals, self.uv):
+            h.update(b"-" if a is None else a.tobytes())
+        return h.hexdigest()
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+
+def build(spec: MeshSpec) -> MeshData:
+    """The mesh of ``spec`` (deterministic, cached per process by the spec's JSON).
+
+    Raises ``SpecError`` for parameters out of range (naming ``mesh.params.<name>``) and
+    ``MeshError`` when a mesh cannot be made (naming the kind, or the file for ``file``).
+    """
+    if not isinstance(spec, MeshSpec):
+        raise SpecError(f"meshes.build expects a MeshSpec, got {type(spec).__name__}")
+    return _build_cached(_spec_key(spec))
+
+
+def decimate(mesh: MeshData, max_triangles: int, *, crease_deg: float = CREASE_DEG) -> MeshData:
+    """``mesh`` reduced to at most ``max_triangles`` triangles by quadric edge collapse.
+
+    Coincident vertices are merged first (seams do not block collapses); normals and UVs are
+    derived again as in :func:`build`. Meshes already within budget are returned unchanged.
+    """
+    if not isinstance(max_triangles, (int, np.integer)) or max_triangles < 1:
+        raise SpecError(f"max_triangles must be an integer >= 1, got {max_triangles!r}")
+    if mesh.num_triangles <= max_triangles:
+        return mesh
+    v, f = _merge(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64))
+    v, f = _decimate_vf(v, f, int(max_triangles))
+    return _finish(v, f, crease_deg=crease_deg)
+
+
+def triangle_budget(projected_radius_px: float, *, tris_per_px: float = 0.5, min: int = 32,
+                    max: int = 20000) -> int:
+    """Triangle budget for an object whose bounding sphere projects to a disc of that radius (px).
+
+    ``tris_per_px`` triangles per pixel of the disc's area (pi r^2), clamped to [min, max];
+    non-decreasing in the radius. A radius of 0 (or an object behind the camera) gets ``min``.
+    """
+    r = float(projected_radius_px)
+    if not math.isfinite(r) or r < 0:
+        raise SpecError(f"projected_radius_px must be a finite number >= 0, got {projected_radius_px!r}")
+    if not (tris_per_px > 0 and math.isfinite(tris_per_px)):
+        raise SpecError(f"tris_per_px must be > 0, got {tris_per_px!r}")
+    if not (1 <= min <= max):
+        raise SpecError(f"triangle budget bounds need 1 <= min <= max, got min={min}, max={max}")
+    n = tris_per_px * math.pi * r * r
+    if n >= max:
+        return int(max)
+    return int(np.clip(math.ceil(n), min, max))
+
+
+def scan_model_folder(path: str | os.PathLike) -> list[str]:
+    """Loadable user models (OBJ/PLY/GLB/GLTF/STL) under ``path``, recursively, sorted.
+
+    Every file is loaded once; a broken one (unreadable, no triangles, non-finite or flat) is
+    skipped with a :class:`BrokenModelWarning` naming it. A missing folder raises ``MeshError``.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise MeshError(f"model folder {str(root)!r} does not exist or is not a folder")
+    good = []
+    for p in sorted(root.rglob("*")):
+        if not p.is_file() or p.suffix.lower() not in MODEL_SUFFIXES:
+            continue
+        try:
+            _load_user_file(str(p), _file_stamp(str(p)))
+        except MeshError as e:
+            msg = f"skipping broken model file {str(p)!r}: {e}"
+            log.warning(msg)
+            warnings.warn(msg, BrokenModelWarning, stacklevel=2)
+            continue
+        good.append(str(p))
+    return good
+
+
+def cache_clear() -> None:
+    """Empty the per-process mesh caches (tests, long-lived workers that load new files)."""
+    _build_cached.cache_clear()
+    _geometry_cached.cache_clear()
+    _load_user_file.cache_clear()
+
+
+# --------------------------------------------------------------------------------------------
+# build pipeline: geometry (canonical, float64) -> decimation -> shading data
+
+def _spec_key(spec: MeshSpec) -> str:
+    return json.dumps(spec.to_dict(), sort_keys=True, allow_nan=False, separators=(",", ":"))
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _build_cached(key: str) -> MeshData:
+    spec = MeshSpec.from_dict(json.loads(key))
+    if spec.kind == "room":
+        mesh = _room(spec)
+        if spec.triangle_budget and mesh.num_triangles > spec.triangle_budget:
+            mesh = decimate(mesh, spec.triangle_budget)
+        return mesh
+    v, f = _geometry(spec)
+    if spec.triangle_budget and len(f) > spec.triangle_budget:
+        v, f = _decimate_vf(v, f, spec.triangle_budget)
+    crease = _param(spec, "crease_deg", CREASE_DEG, 0.0, 180.0)
+    return _finish(v, f, crease_deg=crease)
+
+
+def _geometry(spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical geometry (float64 N×3, int64 M×3), merged vertices, outward winding."""
+    v, f = _geometry_cached(_spec_key(dataclasses.replace(spec, triangle_budget=0)))
+    return v.copy(), f.copy()
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _geometry_cached(key: str) -> tuple[np.ndarray, np.ndarray]:
+    spec = MeshSpec.from_dict(json.loads(key))
+    maker = _MAKERS.get(spec.kind)
+    if maker is None:  # pragma: no cover - MeshSpec validates the kind
+        raise MeshError(f"mesh kind {spec.kind!r} has no builder (known: {MESH_KINDS})")
+    try:
+        v, f = maker(spec)
+    except (MeshError, SpecError):
+        raise
+    except Exception as e:  # a library failure inside a builder
+        raise MeshError(f"building mesh kind {spec.kind!r} failed: {type(e).__name__}: {e}") from e
+    v, f = _clean(np.asarray(v, np.float64), np.asarray(f, np.int64))
+    if len(f) == 0:
+        raise MeshError(f"mesh kind {spec.kind!r} produced no triangles (params {dict(spec.params)})")
+    if spec.kind != "plane":
+        v = _normalise(v)
+    return v, f
+
+
+def _rng(spec: MeshSpec) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([spec.seed, MESH_KINDS.index(spec.kind)]))
+
+
+def _param(spec: MeshSpec, name: str, default, lo: float, hi: float, *, integer: bool = False):
+    v = spec.params.get(name, default)
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if integer:
+        ok = ok and float(v).is_integer()
+    if not ok or not (lo <= v <= hi):
+        kind = "an integer" if integer else "a number"
+        raise SpecError(f"mesh.params.{name} ({spec.kind}) must be {kind} in [{lo}, {hi}], got {v!r}")
+    return int(v) if integer else float(v)
+
+
+def _points(spec: MeshSpec, name: str, cols: int, min_rows: int) -> np.ndarray | None:
+    v = spec.params.get(name)
+    if v is None:
+        return None
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros((0,))
+    if a.ndim != 2 or a.shape[1] != cols or len(a) < min_rows or not np.isfinite(a).all():
+        raise SpecError(f"mesh.params.{name} ({spec.kind}) must be a list of >= {min_rows} "
+                        f"finite [{', '.join('xyz'[:cols])}] points, got {v!r}")
+    return a
+
+
+def _z_up_to_y_up(v: np.ndarray) -> np.ndarray:
+    """Rotate -90° about x: the old +Z axis becomes +Y (a proper rotation keeps the winding)."""
+    return np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+
+
+def _tm(v, f):
+    import trimesh
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+
+# --- primitives ---------------------------------------------------------------------------
+
+def _sphere(spec):
+    import trimesh
+    m = trimesh.creation.icosphere(subdivisions=_param(spec, "subdivisions", 3, 0, 6, integer=True))
+    return m.vertices, m.faces
+
+
+def _box(spec):
+    import trimesh
+    ext = np.asarray(spec.params.get("extents", (2.0, 2.0, 2.0)), np.float64)
+    if ext.shape != (3,) or not np.isfinite(ext).all() or (ext <= 0).any():
+        raise SpecError(f"mesh.params.extents (box) must be 3 numbers > 0, got {spec.params.get('extents')!r}")
+    m = trimesh.creation.box(extents=ext)
+    return m.vertices, m.faces
+
+
+def _cylinder(spec):
+    import trimesh
+    m = trimesh.creation.cylinder(radius=_param(spec, "radius", 1.0, 1e-3, 1e3),
+                                  height=_param(spec, "height", 2.0, 1e-3, 1e3),
+                                  sections=_param(spec, "sections", 32, 3, 512, integer=True))
+    return _z_up_to_y_up(m.vertices), m.faces
+
+
+def _capsule(spec):
+    import trimesh
+    n = _param(spec, "sections", 24, 4, 256, integer=True)
+    m = trimesh.creation.capsule(height=_param(spec, "height", 1.0, 0.0, 1e3),
+                                 radius=_param(spec, "radius", 0.5, 1e-3, 1e3), count=[n, n])
+    return _z_up_to_y_up(m.vertices), m.faces
+
+
+def _cone(spec):
+    import trimesh
+    m = trimesh.creation.cone(radius=_param(spec, "radius", 1.0, 1e-3, 1e3),
+                              height=_param(spec, "height", 2.0, 1e-3, 1e3),
+                              sections=_param(spec, "sections", 32, 3, 512, integer=True))
+    return _z_up_to_y_up(m.vertices), m.faces
+
+
+def _torus(spec):
+    import trimesh
+    R = _param(spec, "major_radius", 1.0, 1e-3, 1e3)
+    r = _param(spec, "minor_radius", 0.3, 1e-3, 1e3)
+    if r >= R:
+        raise SpecError(f"mesh.params.minor_radius (torus) must be < major_radius {R}, got {r}")
+    m = trimesh.creation.torus(R, r, major_sections=_param(spec, "major_sections", 48, 3, 512, integer=True),
+                               minor_sections=_param(spec, "minor_sections", 24, 3, 512, integer=True))
+    return _z_up_to_y_up(m.vertices), m.faces
+
+
+def _plane(spec):
+    n = _param(spec, "resolution", 1, 1, 512, integer=True)
+    bend = _param(spec, "bend", 0.0, 0.0, 1.0)
+    if bend > 0:
+        n = np.maximum(n, 16)
+    t = np.linspace(-1.0, 1.0, n + 1)
+    x, z = np.meshgrid(t, t, indexing="xy")          # x varies along columns, z along rows
+    y = bend * np.maximum(0.0, -z) ** 2
+    v = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    i = np.arange(n)[None, :] + (n + 1) * np.arange(n)[:, None]   # lower-left corner per cell
+    a, b, c, d = i, i + 1, i + n + 1, i + n + 2      # a=(x0,z0) b=(x1,z0) c=(x0,z1) d=(x1,z1)
+    # counter-clockwise seen from +Y: (a, c, b) and (b, c, d)
+    f = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return v, f
+
+
+_MAKERS = {
+    "sphere": _sphere, "box": _box, "cylinder": _cylinder, "capsule": _capsule, "cone": _cone,
+    "torus": _torus, "plane": _plane,
+}
+
+
+def _room(spec: MeshSpec) -> MeshData:
+    try:
+        from scene_gen import rooms
+    except ImportError as e:
+        raise MeshError(f"mesh kind 'room' needs scene_gen.rooms: {e}") from e
+    mesh = rooms.build_room_mesh(dict(spec.params))
+    if not isinstance(mesh, MeshData):
+        raise MeshError(f"rooms.build_room_mesh returned {type(mesh).__name__}, expected MeshData")
+    return mesh
+
+
+# --------------------------------------------------------------------------------------------
+# geometry helpers
+
+def _clean(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop degenerate (zero-area or repeated-index) faces and unreferenced vertices."""
+    if len(f) == 0:
+        return v[:0], f
+    if not np.isfinite(v).all():
+        raise MeshError("mesh has non-finite vertex coordinates")
+    if f.min() < 0 or f.max() >= len(v):
+        raise MeshError("mesh faces index vertices out of range")
+    tri = v[f]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    scale = max(float(np.ptp(v, axis=0).max()), 1e-30)
+    keep = (area2 > 1e-12 * scale * scale) & (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    f = f[keep]
+    used = np.unique(f)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[f]
+
+
+def _merge(v: np.ndarray, f: np.ndarray, decimals: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices with equal (rounded) positions; keeps the first of each group's order."""
+    q = np.round(v, decimals)
+    _, first, inv = np.unique(q, axis=0, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    order = np.argsort(first, kind="stable")       # new ids in order of first appearance
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return v[first[order]], rank[inv][f]
+
+
+def _normalise(v: np.ndarray) -> np.ndarray:
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    half = float((hi - lo).max()) / 2.0
+    if not half > 0:
+        raise MeshError("mesh has zero extent")
+    return (v - (lo + hi) / 2.0) / half
+
+
+def _face_normals(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    return n / np.maximum(length, 1e-300)[:, None], length / 2.0
+
+
+def _corner_angles(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    tri = v[f]
+    out = np.empty(f.shape)
+    for k in range(3):
+        a = tri[:, (k + 1) % 3] - tri[:, k]
+        b = tri[:, (k + 2) % 3] - tri[:, k]
+        na = np.linalg.norm(a, axis=1)
+        nb = np.linalg.norm(b, axis=1)
+        c = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-300)
+        out[:, k] = np.arccos(np.clip(c, -1.0, 1.0))
+    return out
+
+
+def _smooth_patches(v: np.ndarray, f: np.ndarray, fn: np.ndarray, crease_deg: float) -> np.ndarray:
+    """Label per face: faces joined by edges whose dihedral angle is below ``crease_deg``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    m = len(f)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    face_of = np.tile(np.arange(m), 3)
+    key = np.sort(e, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    ks, fs = key[order], face_of[order]
+    same = (ks[1:] == ks[:-1]).all(axis=1)         # consecutive equal edges: adjacent faces
+    fa, fb = fs[:-1][same], fs[1:][same]
+    cos = np.einsum("ij,ij->i", fn[fa], fn[fb])
+    smooth = cos >= math.cos(math.radians(crease_deg))
+    g = coo_matrix((np.ones(int(smooth.sum())), (fa[smooth], fb[smooth])), shape=(m, m))
+    _, labels = connected_components(g, directed=False)
+    return labels
+
+
+def _finish(v: np.ndarray, f: np.ndarray, *, crease_deg: float = CREASE_DEG) -> MeshData:
+    """Split vertices along creases and box-projection seams; derive unit normals and UVs."""
+    v, f = _clean(np.asarray(v, np.float64), np.asarray(f, np.int64))
+    if len(f) == 0:
+        raise MeshError("mesh has no triangles left after removing degenerate faces")
+    fn, _ = _face_normals(v, f)
+    patch = _smooth_patches(v, f, fn, crease_deg)
+    # one normal per (vertex, smooth patch): corner-angle-weighted face normals
+    vc = f * (int(patch.max()) + 1) + patch[:, None]
+    vc_keys, vc_inv = np.unique(vc.ravel(), return_inverse=True)
+    w = _corner_angles(v, f).ravel()
+    acc = np.zeros((len(vc_keys), 3))
+    np.add.at(acc, vc_inv, fn.repeat(3, axis=0) * w[:, None])
+    length = np.linalg.norm(acc, axis=1)
+    corner_fn = fn.repeat(3, axis=0)
+    first = np.zeros(len(vc_keys), np.int64)
+    first[vc_inv[::-1]] = np.arange(len(vc_inv))[::-1]   # a corner of each key (for fallbacks)
+    bad = length < 1e-12
+    acc[bad] = corner_fn[first[bad]]
+    vc_normal = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+    # box projection: dominant axis and sign of the face normal (6 groups)
+    axis = np.argmax(np.abs(fn), axis=1)
+    sign = np.take_along_axis(fn, axis[:, None], axis=1)[:, 0] >= 0
+    group = axis * 2 + sign
+    key = vc_inv.reshape(-1, 3) * 6 + group[:, None]
+    keys, inv = np.unique(key.ravel(), return_inverse=True)
+    new_f = inv.reshape(-1, 3)
+    rep = np.zeros(len(keys), np.int64)
+    rep[inv[::-1]] = np.arange(len(inv))[::-1]
+    corner_vertex = f.ravel()[rep]
+    pos = v[corner_vertex]
+    nrm = vc_normal[vc_inv[rep]]
+    g = (keys % 6)
+    ax, sg = g // 2, (g % 2) * 2 - 1
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre, half = (lo + hi) / 2.0, max(float((hi - lo).max()) / 2.0, 1e-30)
+    p = (pos - centre) / half                       # [-1, 1] box coordinates
+    b, c = (ax + 1) % 3, (ax + 2) % 3
+    rows = np.arange(len(p))
+    u = 0.5 + 0.5 * sg * p[rows, b]
+    t = 0.5 + 0.5 * p[rows, c]
+    uv = np.stack([u, t], axis=1)
+    return MeshData(vertices=pos, faces=new_f, normals=nrm, uv=uv)
+
+
+def _decimate_vf(v: np.ndarray, f: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric edge collapse to <= budget faces (pymeshlab); falls back to unconstrained topology."""
+    import pymeshlab
+    if len(f) <= budget:
+        return v, f
+    target = budget
+    for attempt in range(4):
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+        ms.meshing_decimation_quadric_edge_collapse(
+            targetfacenum=int(target), qualitythr=0.3, preserveboundary=True, boundaryweight=2.0,
+            preservenormal=True, preservetopology=attempt < 2, optimalplacement=True,
+            planarquadric=True, autoclean=True)
+        m = ms.current_mesh()
+        nv, nf = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+        nv, nf = _clean(nv, nf)
+        if len(nf) <= budget and len(nf) > 0:
+            return nv, nf
+        target = max(1, int(target * budget / max(len(nf), 1) * 0.9))
+    raise MeshError(f"decimation could not reach {budget} triangles (from {len(f)}; last {len(nf)})")
+
+
+# --------------------------------------------------------------------------------------------
+# user models
+
+def _file_stamp(path: str) -> tuple[int, int]:
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise MeshError(f"model file {path!r} cannot be read: {e.strerror}") from e
+    return st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=64)
+def _load_user_file(path: str, stamp: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float64 N×3, faces int64 M×3) of a model file, scene graphs flattened."""
+    import trimesh
+    if Path(path).suffix.lower() not in MODEL_SUFFIXES:
+        raise MeshError(f"model file {path!r}: unsupported format (use {', '.join(MODEL_SUFFIXES)})")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(path, process=False)
+    except Exception as e:
+        raise MeshError(f"model file {path!r} cannot be loaded: {type(e).__name__}: {e}") from e
+    if isinstance(loaded, trimesh.Scene):
+        try:
+            geoms = loaded.dump(concatenate=False)
+        except Exception as e:
+            raise MeshError(f"model file {path!r}: its scene graph cannot be flattened: {e}") from e
+    else:
+        geoms = [loaded]
+    parts = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces) > 0]
+    if not parts:
+        raise MeshError(f"model file {path!r} holds no triangles")
+    vs, fs, off = [], [], 0
+    for g in parts:
+        vs.append(np.asarray(g.vertices, np.float64))
+        fs.append(np.asarray(g.faces, np.int64) + off)
+        off += len(g.vertices)
+    v, f = np.concatenate(vs), np.concatenate(fs)
+    if not np.isfinite(v).all():
+        raise MeshError(f"model file {path!r} has non-finite vertex coordinates")
+    if f.min() < 0 or f.max() >= len(v):
+        raise MeshError(f"model file {path!r} has faces that index missing vertices")
+    v, f = _merge(v, f)
+    v, f = _clean(v, f)
+    if len(f) == 0 or float(np.ptp(v, axis=0).max()) <= 0:
+        raise MeshError(f"model file {path!r} has only degenerate triangles")
+    v.setflags(write=False)
+    f.setflags(write=False)
+    return v, f
+
+
+def _file(spec):
+    path = spec.params.get("path")
+    if not isinstance(path, str) or not path:
+        raise SpecError("mesh.params.path (file) must name a model file")
+    up = spec.params.get("up", "y")
+    if up not in ("y", "z"):
+        raise SpecError(f"mesh.params.up (file) must be 'y' or 'z', got {up!r}")
+    v, f = _load_user_file(path, _file_stamp(path))
+    v = v.copy()
+    if up == "z":
+        v = _z_up_to_y_up(v)
+    return v, f.copy()
+
+
+_MAKERS["file"] = _file
