@@ -1,0 +1,238 @@
+"""SceneSpec → Mitsuba scene dictionary. The only module that speaks Mitsuba's dict syntax.
+
+Conventions (shared with the renderer):
+- Each object is a shape under its ``name`` key, so ``shape.id() == object.name``. Meshes are baked
+  in world space (scale, rotate XYZ-Euler in degrees, translate, plus ``velocity * tau`` for moving
+  objects) and handed to Mitsuba as ``mi.Mesh`` objects; nothing touches the disk.
+- ``tau`` is time in frames (see ``scene_gen.spec``); by default the start of the frame's exposure.
+- Cameras: ``perspective`` without defocus, ``thinlens`` with it; ``fov`` on the x axis (Mitsuba's
+  default ``fov_axis``); a box pixel filter so a pixel is the plain mean of its samples.
+- Integrator: ``path`` with ``max_depth = spec.max_depth + 1`` (``spec.max_depth`` counts bounces)
+  and Russian roulette off (``rr_depth`` past ``max_depth``), as in the layer paper.
+- Roughness in a MaterialSpec is perceptual; microfacet ``alpha = roughness ** 2``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
+
+TEXTURE_SIZE = 256
+PROBE_HEIGHT = 256
+
+
+def _mi():
+    from pipeline.variant import mitsuba
+    return mitsuba()
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry
+def rotation_matrix(angles_deg) -> np.ndarray:
+    """R = Rz @ Ry @ Rx for XYZ Euler angles in degrees (x applied first)."""
+    ax, ay, az = (math.radians(a) for a in angles_deg)
+    cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def object_matrix(t: Transform) -> np.ndarray:
+    """4x4 object-to-world matrix (float64) of a Transform at rest (no motion)."""
+    m = np.eye(4)
+    m[:3, :3] = rotation_matrix(t.rotate) @ np.diag(t.scale)
+    m[:3, 3] = t.translate
+    return m
+
+
+def offset_at(obj: ObjectSpec, tau: float) -> np.ndarray:
+    """World-space displacement of a moving object at time ``tau`` (frames)."""
+    if not obj.moving:
+        return np.zeros(3)
+    return np.asarray(obj.velocity, np.float64) * float(tau)
+
+
+def world_mesh(obj: ObjectSpec, tau: float = 0.0):
+    """(vertices float32 N×3, faces uint32 M×3, normals float32 N×3 | None, uv float32 N×2 | None) in world space."""
+    from scene_gen import meshes
+
+    md = meshes.build(obj.mesh)
+    m = object_matrix(obj.transform)
+    v = md.vertices.astype(np.float64) @ m[:3, :3].T + m[:3, 3] + offset_at(obj, tau)
+    n = None
+    if md.normals is not None:
+        nt = np.linalg.inv(m[:3, :3]).T
+        n = md.normals.astype(np.float64) @ nt.T
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        n = n.astype(np.float32)
+    return v.astype(np.float32), md.faces.astype(np.uint32), n, md.uv
+
+
+def _mesh_object(mi, obj: ObjectSpec, tau: float, bsdf, emitter):
+    v, f, n, uv = world_mesh(obj, tau)
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    if emitter is not None:
+        props["emitter"] = emitter
+    mesh = mi.Mesh(obj.name, len(v), len(f), props=props, has_vertex_normals=n is not None,
+                   has_vertex_texcoords=uv is not None)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(v.ravel())
+    p["faces"] = mi.UInt32(f.ravel())
+    if n is not None:
+        p["vertex_normals"] = mi.Float(n.ravel())
+    if uv is not None:
+        p["vertex_texcoords"] = mi.Float(np.asarray(uv, np.float32).ravel())
+    p.update()
+    return mesh
+
+
+# ---------------------------------------------------------------------------------------------
+# materials
+def _rgb(c) -> dict:
+    return {"type": "rgb", "value": [float(x) for x in c]}
+
+
+def _base(mi, mat: MaterialSpec):
+    """The base/diffuse reflectance slot: a bitmap texture when the material has one."""
+    if mat.texture is None:
+        return _rgb(mat.base_color)
+    from scene_gen.textures import make_texture
+
+    tex = make_texture(mat.texture, TEXTURE_SIZE)
+    s = float(mat.texture.uv_scale)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(tex)), "raw": True,
+            "filter_type": "bilinear", "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([s, s, 1.0])}
+
+
+def bsdf_dict(mat: MaterialSpec, mi=None) -> dict:
+    """Mitsuba BSDF dict of a MaterialSpec (two-sided where the BSDF is opaque)."""
+    mi = mi or _mi()
+    p = mat.params
+    alpha = max(mat.roughness ** 2, 1e-3)
+    k = mat.kind
+    if k == "diffuse":
+        d = {"type": "diffuse", "reflectance": _base(mi, mat)}
+    elif k in ("conductor", "roughconductor"):
+        d = {"type": k, "material": p.get("material", "none"), "specular_reflectance": _rgb(mat.specular_color)}
+        if k == "roughconductor":
+            d.update(distribution="ggx", alpha=alpha)
+    elif k in ("dielectric", "roughdielectric", "thindielectric"):
+        d = {"type": k, "int_ior": float(p.get("int_ior", 1.5)), "ext_ior": 1.0,
+             "specular_transmittance": _rgb(p.get("transmittance", (1.0, 1.0, 1.0)))}
+        if k == "roughdielectric":
+            d.update(distribution="ggx", alpha=alpha)
+        return d  # dielectrics are two-sided by nature
+    elif k in ("plastic", "roughplastic"):
+        d = {"type": k, "diffuse_reflectance": _base(mi, mat), "int_ior": float(p.get("int_ior", 1.5)),
+             "nonlinear": bool(p.get("nonlinear", False))}
+        if k == "roughplastic":
+            d.update(distribution="ggx", alpha=alpha)
+    elif k == "principled":
+        d = {"type": "principled", "base_color": _base(mi, mat), "roughness": float(mat.roughness),
+             "metallic": float(p.get("metallic", 0.0)), "specular": float(p.get("specular", 0.5)),
+             "clearcoat": float(p.get("clearcoat", 0.0)), "clearcoat_gloss": float(p.get("clearcoat_gloss", 0.9)),
+             "spec_trans": float(p.get("spec_trans", 0.0)), "anisotropic": float(p.get("anisotropic", 0.0)),
+             "sheen": float(p.get("sheen", 0.0))}
+        return d  # principled handles both sides itself
+    elif k == "blend":
+        a, b = mat.children
+        return {"type": "blendbsdf", "weight": float(p.get("weight", 0.5)),
+                "a": bsdf_dict(a, mi), "b": bsdf_dict(b, mi)}
+    else:  # pragma: no cover - MaterialSpec validates kinds
+        raise ValueError(f"unknown material kind {k!r}")
+    return {"type": "twosided", "material": d} if k != "blend" else d
+
+
+# ---------------------------------------------------------------------------------------------
+# lights and camera
+def light_dict(light: LightSpec, mi=None) -> dict:
+    mi = mi or _mi()
+    p = light.params
+    if light.kind == "point":
+        return {"type": "point", "position": [float(x) for x in p["position"]], "intensity": _rgb(p["intensity"])}
+    if light.kind == "constant":
+        return {"type": "constant", "radiance": _rgb(p.get("radiance", (1.0, 1.0, 1.0)))}
+    if light.kind == "envmap":
+        from scene_gen.probes import make_probe
+
+        probe = make_probe(dict(p.get("probe", {})), PROBE_HEIGHT)
+        return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(probe)), "scale": float(p.get("scale", 1.0)),
+                "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], float(p.get("rotation", 0.0)))}
+    if light.kind == "sunsky":
+        d = {"type": "sunsky", "sun_direction": [float(x) for x in p["sun_direction"]],
+             "turbidity": float(p.get("turbidity", 3.0)), "albedo": float(p.get("albedo", 0.3)),
+             "sun_scale": float(p.get("sun_scale", 1.0)), "sky_scale": float(p.get("sky_scale", 1.0))}
+        return d
+    raise ValueError(f"light kind {light.kind!r} is attached to shapes, not a standalone emitter")
+
+
+def camera_to_world(cam: CameraSpec) -> np.ndarray:
+    """4x4 camera-to-world (float64) with Mitsuba's look-at convention (+z forward, +y up, +x left)."""
+    o, t, up = (np.asarray(x, np.float64) for x in (cam.origin, cam.target, cam.up))
+    d = t - o
+    d /= np.linalg.norm(d)
+    left = np.cross(up, d)
+    if np.linalg.norm(left) < 1e-9:  # up parallel to the view direction: pick another up
+        left = np.cross(np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 0.0, 1.0]), d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
+
+
+def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None) -> dict:
+    mi = mi or _mi()
+    w, h = res
+    d = {"type": "thinlens" if cam.defocus else "perspective", "fov": float(cam.fov), "fov_axis": "x",
+         "near_clip": 1e-3, "far_clip": 1e5, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
+         "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
+                  "rfilter": {"type": "box"}, "sample_border": False},
+         "sampler": {"type": "independent"}}
+    if cam.defocus:
+        d.update(aperture_radius=float(cam.aperture_radius), focus_distance=float(cam.focus_distance))
+    return d
+
+
+def integrator_dict(spec: SceneSpec) -> dict:
+    depth = spec.max_depth + 1
+    return {"type": "path", "max_depth": depth, "rr_depth": depth + 1, "hide_emitters": False}
+
+
+# ---------------------------------------------------------------------------------------------
+def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 256), tau: float | None = None) -> dict:
+    """The Mitsuba scene dict of ``spec`` at ``frame`` with objects at time ``tau`` (default: ``frame``)."""
+    mi = _mi()
+    if isinstance(res, int):
+        res = (res, res)
+    w, h = int(res[0]), int(res[1])
+    if w <= 0 or h <= 0:
+        from scene_gen.errors import SpecError
+        raise SpecError(f"resolution must be positive, got {w}x{h}")
+    tau = float(frame if tau is None else tau)
+    cam = spec.camera(frame)
+    d: dict[str, Any] = {"type": "scene", "integrator": integrator_dict(spec), "sensor": sensor_dict(cam, (w, h), mi)}
+    for obj in spec.objects:
+        bsdf = mi.load_dict(bsdf_dict(obj.material, mi))
+        emitter = None
+        if obj.emitter_radiance is not None:
+            emitter = mi.load_dict({"type": "area", "radiance": _rgb(obj.emitter_radiance)})
+        d[obj.name] = _mesh_object(mi, obj, tau, bsdf, emitter)
+    for i, light in enumerate(spec.lights):
+        d[f"light_{i:02d}_{light.kind}"] = light_dict(light, mi)
+    return d
+
+
+def load(spec: SceneSpec, frame: int = 0, res: tuple[int, int] | int = (256, 256), tau: float | None = None):
+    """``mi.load_dict(scene_dict(...))``."""
+    return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau))
+
+
+def material_table(spec: SceneSpec) -> dict[str, tuple[tuple[float, float, float], float]]:
+    """object name → (specular colour, roughness), the per-shape features the renderer records."""
+    return {o.name: (o.material.specular_color, o.material.roughness) for o in spec.objects}
