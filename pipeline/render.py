@@ -1,0 +1,568 @@
+"""The per-sample renderer: one frame of a SceneSpec → the arrays of ``stores.contract``.
+
+``render_frame(spec, frame, cfg) -> dict`` returns every name of ``FRAME_ARRAYS`` (shapes with
+H, W = ``cfg.res[1], cfg.res[0]``, S = ``cfg.spp``, L = ``cfg.layer_levels``), ``meta`` (the keys of
+``FRAME_META``) and, when ``cfg.oracle_spp > 0``, ``oracle`` (float32, HWC): plain ``mi.render``.
+
+What is rendered (all with the scene's ``path`` integrator: ``spec.max_depth`` bounces, no Russian
+roulette, box pixel filter, built by ``scene_gen.to_mitsuba``):
+
+- **Inputs** (``radiance`` float32 HWS3, ``features`` float32 HWS17): one drjit wavefront of
+  W·H·S samples (split in row chunks of at most ``cfg.max_wavefront`` lanes). Each sample draws
+  its film position uniformly inside its pixel, a lens sample and a wavelength sample from an
+  ``independent`` sampler, builds the ray with ``sensor.sample_ray_differential``, takes the
+  radiance from ``integrator.sample`` (times the ray weight) and the features from
+  ``scene.ray_intersect`` of the same ray. A pixel's mean is therefore the same estimator as
+  ``mi.render``'s. Features (``stores.contract.FEATURE_NAMES``): world shading normal, distance
+  along the ray, diffuse albedo (``eval_diffuse_reflectance``, clipped to [0, 1]), specular colour
+  and roughness from the hit object's ``MaterialSpec`` (a table keyed by shape), motion, CoC,
+  lens position on the unit disk (Mitsuba camera axes: +x left, +y up), time. All 0 on a miss,
+  except motion (the environment's motion under the camera change) and CoC (its limit at infinite
+  depth, ``A W / (2 F tan(fov/2))``).
+- **Sample layers** (``layers`` float32 LHWC): ``mi.render(scene, spp=2**n)`` for n < L, one
+  independent seed each.
+- **Reference** (``reference``, ``reference_stderr`` float32 HWC): ``cfg.ref_passes`` passes of
+  ``ref_spp / ref_passes`` spp, each ``mi.render`` with its own seed; the stored value is the mean
+  of the pass means and the standard error is the batch-means estimate ``sqrt(var(pass means) /
+  passes)`` (ddof 1), per pixel and channel. With ``ref_target_rel_stderr`` the passes stop once at
+  least ``ref_min_passes`` are done and the image's relative standard error (below) is under the
+  target; ``meta['reference_spp']`` and ``meta['reference_rel_stderr']`` record what was achieved.
+  Relative standard error of an image: the mean over pixels of ``stderr_Y / (mean_Y + 0.01)``, Y the
+  Rec. 709 luminance.
+- **Guides** (float32, HWC): per-pixel means of the input samples' albedo, normal (not
+  renormalised), depth and motion; ``camera_to_world`` and ``world_to_clip`` (float64 4x4, see
+  ``pipeline.camera`` for the conventions).
+
+Time, motion blur and motion vectors. Time ``t`` in [0, 1) is the fraction of the shutter: the
+scene time is ``tau = frame + spec.shutter * t`` (frames). Mitsuba has no moving geometry inside one
+render, so a scene with ``spec.has_motion`` is rendered in time *slices*: the vertex positions of
+each moving object are set for the slice's time (``mi.traverse`` + ``update``) and that slice's share
+of the samples is rendered. Inputs use ``g = gcd(cfg.time_slices, spp)`` slices with jittered
+stratified times ``t_k = (k + u_k) / g`` (samples ``s`` of every pixel in slice ``k = s // (S/g)``,
+so samples are ordered by time); each layer likewise with its own jitter (1 spp: one uniform time);
+the reference uses one time per pass, a randomly shifted van der Corput sequence (stratified for
+any prefix, so an early stop stays unbiased). The ``time`` feature is the slice time ``t_k``, i.e.
+the time the geometry was actually at. A scene without ``has_motion`` renders in one pass at
+``tau = frame`` and its ``time`` feature is 0.
+
+Motion vectors (``motion_x``, ``motion_y``, pixels): ``p_prev - p_cur``, where ``p_cur`` is the
+pinhole projection of the sample's primary hit point ``x`` with this frame's camera, and ``p_prev``
+the projection of the same surface point one frame earlier (``x - velocity`` of the hit object,
+velocity in world units per frame) with the previous frame's camera. Rule for the first frame of a
+clip and for stills: the previous camera is the frame's own camera (the camera is taken to be at
+rest before the clip) and objects still move back by one frame. Environment hits project the ray
+direction (a point at infinity). Points behind the previous camera get motion 0. Motion vectors do
+not follow reflections or refraction (they describe the primary hit). They are computed for every
+scene (cheap); without moving objects or cameras they are exactly 0.
+
+Circle of confusion (``coc``): signed radius in pixels, ``pipeline.camera.coc_pixels`` (0 at the
+focus distance, + behind focus, - in front); 0 everywhere without defocus (no lens sampling:
+``lens_u = lens_v = 0``).
+
+NaN and Inf rule (counted in ``meta``, never written silently):
+- inputs: a sample whose radiance has a NaN gets radiance 0; +-Inf radiance components are clamped
+  to +-``cfg.max_value`` (1e8); non-finite features are set to 0. ``nonfinite_inputs`` counts the
+  samples with any non-finite radiance or feature value.
+- layers: ``mi.render`` only returns pixel means, so a pixel with a NaN becomes 0 and Inf is
+  clamped; ``nonfinite_layers`` counts such pixels over all layers.
+- reference: a pass's NaN pixel is left out of that pixel's batch means (the pixel keeps its other
+  passes), Inf is clamped; ``nonfinite_reference`` counts such pixel-passes.
+
+Seeds: every sampler seed is ``stream_seed(spec.seed, frame, stream, *index, cfg.seed_offset)``
+from ``np.random.SeedSequence``: inputs, each layer, each reference pass, time jitter and the oracle
+are distinct streams, so no two renders share a seed and the same (spec, frame, cfg) gives identical
+bytes (up to ``meta['render_seconds']``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time as _time
+from dataclasses import dataclass, fields
+from typing import Callable
+
+import numpy as np
+
+from pipeline import camera as cam_geom
+from pipeline.errors import ConfigError, RenderError
+from scene_gen.spec import SceneSpec
+from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META, NUM_FEATURES
+
+# Sampler streams (the third entry of every seed's SeedSequence).
+STREAM_INPUTS, STREAM_LAYER, STREAM_REFERENCE, STREAM_ORACLE, STREAM_TIME = 1, 2, 3, 4, 5
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+REL_STDERR_EPS = 0.01
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How to render a frame. Validated at construction (the message names the field and range)."""
+    res: tuple[int, int] = (256, 256)        # (W, H) in pixels; an int means square
+    spp: int = 8                             # input samples per pixel (S)
+    layer_levels: int = 6                    # sample layers of 1, 2, 4, ... 2**(L-1) spp
+    ref_spp: int = 4096                      # reference samples per pixel (at most; 0 = no reference)
+    ref_passes: int = 32                     # batch means: ref_spp is split into this many passes
+    ref_min_passes: int = 16                 # passes before an early stop may happen
+    ref_target_rel_stderr: float | None = None   # early stop once the relative standard error is below
+    time_slices: int = 4                     # time slices per render for scenes with moving objects
+    threads: int = 0                         # drjit threads (0 = leave as is)
+    seed_offset: int = 0                     # extra SeedSequence entropy (0 = the dataset default)
+    max_value: float = 1e8                   # +-Inf radiance is clamped to this
+    oracle_spp: int = 0                      # > 0: also render plain mi.render at this spp ('oracle')
+    max_wavefront: int = 1 << 21             # lanes per drjit wavefront of the input loop
+
+    def __post_init__(self):
+        res = self.res
+        if isinstance(res, int) and not isinstance(res, bool):
+            res = (res, res)
+        if not (isinstance(res, (tuple, list)) and len(res) == 2 and all(isinstance(r, int) and r > 0 for r in res)):
+            raise ConfigError(f"render.res must be a positive int or (W, H) of positive ints, got {self.res!r}")
+        object.__setattr__(self, "res", (int(res[0]), int(res[1])))
+
+        def need(name, ok, rng):
+            if not ok:
+                raise ConfigError(f"render.{name} must be {rng}, got {getattr(self, name)!r}")
+
+        def is_int(v):
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        need("spp", is_int(self.spp) and 1 <= self.spp <= 4096, "an integer in [1, 4096]")
+        need("layer_levels", is_int(self.layer_levels) and 0 <= self.layer_levels <= 12, "an integer in [0, 12]")
+        need("ref_passes", is_int(self.ref_passes) and 2 <= self.ref_passes <= 65536, "an integer in [2, 65536]")
+        need("ref_spp", is_int(self.ref_spp) and self.ref_spp >= 0
+             and (self.ref_spp == 0 or (self.ref_spp >= self.ref_passes and self.ref_spp % self.ref_passes == 0)),
+             f"0 or a positive multiple of ref_passes ({self.ref_passes})")
+        need("ref_min_passes", is_int(self.ref_min_passes) and 2 <= self.ref_min_passes <= self.ref_passes,
+             f"an integer in [2, ref_passes={self.ref_passes}]")
+        t = self.ref_target_rel_stderr
+        need("ref_target_rel_stderr", t is None or (isinstance(t, (int, float)) and math.isfinite(t) and t > 0),
+             "None or a number > 0")
+        need("time_slices", is_int(self.time_slices) and 1 <= self.time_slices <= 1024, "an integer in [1, 1024]")
+        need("threads", is_int(self.threads) and 0 <= self.threads <= 1024, "an integer in [0, 1024] (0 = default)")
+        need("seed_offset", is_int(self.seed_offset) and self.seed_offset >= 0, "an integer >= 0")
+        need("max_value", isinstance(self.max_value, (int, float)) and math.isfinite(self.max_value)
+             and self.max_value > 0, "a finite number > 0")
+        need("oracle_spp", is_int(self.oracle_spp) and self.oracle_spp >= 0, "an integer >= 0")
+        need("max_wavefront", is_int(self.max_wavefront) and self.max_wavefront >= 1024, "an integer >= 1024")
+
+    @property
+    def width(self) -> int:
+        return self.res[0]
+
+    @property
+    def height(self) -> int:
+        return self.res[1]
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["res"] = list(self.res)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RenderConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ConfigError(f"render: unknown field(s) {sorted(unknown)}; known: {sorted(names)}")
+        d = dict(d)
+        if isinstance(d.get("res"), list):
+            d["res"] = tuple(d["res"])
+        return cls(**d)
+
+
+def stream_seed(scene_seed: int, frame: int, stream: int, *index: int, offset: int = 0) -> int:
+    """A sampler seed in [0, 2**31) for one stream of one frame (``np.random.SeedSequence``)."""
+    ss = np.random.SeedSequence([int(scene_seed), int(frame), int(stream), *map(int, index), int(offset)])
+    return int(ss.generate_state(1, np.uint32)[0] >> 1)
+
+
+def _rng(spec: SceneSpec, frame: int, cfg: RenderConfig, *index: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(
+        [int(spec.seed), int(frame), STREAM_TIME, *map(int, index), int(cfg.seed_offset)]))
+
+
+def _van_der_corput(n: int) -> np.ndarray:
+    out = np.zeros(n)
+    for i in range(n):
+        f, x, k = 0.5, 0.0, i
+        while k:
+            x += f * (k & 1)
+            k >>= 1
+            f *= 0.5
+        out[i] = x
+    return out
+
+
+def slice_times(rng: np.random.Generator, slices: int) -> np.ndarray:
+    """Jittered stratified times in [0, 1) (float64, ``slices``): ``(k + u_k) / slices``."""
+    return np.minimum((np.arange(slices) + rng.random(slices)) / slices, np.nextafter(1.0, 0.0))
+
+
+class FrameScene:
+    """A loaded Mitsuba scene of one frame plus what the renderer needs around it.
+
+    ``set_time(t)`` moves the moving objects to ``tau = frame + shutter * t``; the per-shape tables
+    (index 0 = no hit) hold specular colour (float64, N×3), roughness (N) and velocity (N×3).
+    """
+
+    def __init__(self, spec: SceneSpec, frame: int, cfg: RenderConfig,
+                 on_scene_loaded: Callable | None = None):
+        from pipeline.variant import mitsuba
+        from scene_gen import to_mitsuba
+
+        self.mi = mi = mitsuba(threads=cfg.threads or None)
+        import drjit as dr
+        self.dr = dr
+        self.spec, self.frame, self.cfg = spec, int(frame), cfg
+        self.cam = spec.camera(frame)
+        self.prev_cam = spec.camera(frame - 1) if frame > 0 else self.cam
+        self.scene = to_mitsuba.load(spec, frame, cfg.res)
+        if on_scene_loaded is not None:
+            on_scene_loaded(self.scene)
+        self.sensor = self.scene.sensors()[0]
+        self.integrator = self.scene.integrator()
+        self.sampler = mi.load_dict({"type": "independent"})
+        self.has_motion = bool(spec.has_motion)
+        self.has_defocus = bool(self.cam.defocus)
+        self.camera_to_world = cam_geom.camera_to_world(self.cam)
+        self.world_to_clip = cam_geom.world_to_clip(self.cam, cfg.res)
+        self.prev_world_to_clip = cam_geom.world_to_clip(self.prev_cam, cfg.res)
+        self._check_sensor()
+
+        shapes = self.scene.shapes()
+        ids = np.asarray(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), np.int64).ravel()
+        if len(ids) != len(shapes):
+            raise RenderError("scene.shapes() and scene.shapes_dr() disagree")
+        self._order = np.argsort(ids)
+        self._sorted_ids = ids[self._order]
+        by_name = {o.name: o for o in spec.objects}
+        n = len(shapes) + 1
+        self.specular = np.zeros((n, 3))
+        self.roughness = np.zeros(n)
+        self.velocity = np.zeros((n, 3))
+        for i, s in enumerate(shapes):
+            o = by_name.get(s.id())
+            if o is None:
+                continue
+            self.specular[i + 1] = o.material.specular_color
+            self.roughness[i + 1] = o.material.roughness
+            if o.velocity is not None:
+                self.velocity[i + 1] = o.velocity
+        self._params = None
+        self._base = {}
+        self._time = 0.0
+        if self.has_motion:
+            self._params = mi.traverse(self.scene)
+            for o in spec.objects:
+                if o.moving:
+                    key = f"{o.name}.vertex_positions"
+                    if key not in self._params:
+                        raise RenderError(f"moving object {o.name!r} has no {key!r} parameter in the Mitsuba scene")
+                    self._base[o.name] = np.array(self._params[key], np.float64).reshape(-1, 3)
+
+    def _check_sensor(self):
+        m = np.array(self.sensor.world_transform().matrix, np.float64).reshape(4, 4)
+        if not np.allclose(m, self.camera_to_world, atol=1e-4 * max(1.0, np.abs(self.camera_to_world).max())):
+            raise RenderError("the Mitsuba sensor's to_world differs from pipeline.camera.camera_to_world: "
+                              "scene_gen.to_mitsuba and pipeline.camera disagree on camera conventions")
+        x_fov = float(np.ravel(self.mi.traverse(self.sensor)["x_fov"])[0])
+        if abs(x_fov - self.cam.fov) > 1e-3:
+            raise RenderError(f"sensor x_fov {x_fov} differs from camera.fov {self.cam.fov} (fov_axis must be 'x')")
+
+    def tau(self, t) -> np.ndarray | float:
+        """Scene time in frames of shutter fraction(s) ``t``."""
+        return self.frame + self.spec.shutter * np.asarray(t, np.float64)
+
+    def set_time(self, t: float) -> None:
+        """Put the moving objects where they are at shutter fraction ``t`` (no-op without motion)."""
+        if not self.has_motion or t == self._time:
+            return
+        dtau = self.spec.shutter * float(t)
+        for o in self.spec.objects:
+            if o.moving:
+                v = self._base[o.name] + np.asarray(o.velocity, np.float64) * dtau
+                self._params[f"{o.name}.vertex_positions"] = self.mi.Float(v.astype(np.float32).ravel())
+        self._params.update()
+        self._time = float(t)
+
+    def shape_index(self, registry_ids: np.ndarray) -> np.ndarray:
+        """Table index (int64, 0 = no hit) of drjit shape registry ids (0 = no hit)."""
+        ids = np.asarray(registry_ids, np.int64)
+        pos = np.clip(np.searchsorted(self._sorted_ids, ids), 0, len(self._sorted_ids) - 1)
+        found = (self._sorted_ids[pos] == ids) & (ids != 0)
+        return np.where(found, self._order[pos] + 1, 0)
+
+
+# ------------------------------------------------------------------------------------------------
+# inputs
+def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float) -> dict:
+    """One wavefront: ``rows`` pixel rows from ``row0``, ``s_per`` samples a pixel, at shutter time ``t``.
+
+    Returns numpy arrays of N = rows·W·s_per lanes (pixel-major, then sample).
+    """
+    mi, dr = fs.mi, fs.dr
+    W, H = fs.cfg.res
+    n = rows * W * s_per
+    sampler = fs.sampler
+    sampler.seed(seed, n)
+    idx = dr.arange(mi.UInt32, n)
+    pix = idx // s_per
+    px = mi.Float(pix % W)
+    py = mi.Float(pix // W + row0)
+    film = (mi.Point2f(px, py) + sampler.next_2d()) * mi.ScalarPoint2f(1.0 / W, 1.0 / H)
+    ap = sampler.next_2d()
+    wav = sampler.next_1d()
+    ray, weight = fs.sensor.sample_ray_differential(float(fs.tau(t)), wav, film, ap)
+    si = fs.scene.ray_intersect(ray)
+    hit = si.is_valid()
+    albedo = si.bsdf(ray).eval_diffuse_reflectance(si, hit)
+    L, _valid, _ = fs.integrator.sample(fs.scene, sampler, ray, None, True)
+    L = L * weight
+    sid = dr.reinterpret_array(mi.UInt32, si.shape)
+    lens = mi.warp.square_to_uniform_disk_concentric(ap)
+    depth = dr.select(hit, si.t, 0.0)
+    out = dict(L=L, n=si.sh_frame.n, p=si.p, d=ray.d, depth=depth, albedo=albedo, sid=sid, lens=lens,
+               hit=hit, film=film)
+    dr.eval(*out.values())
+    res = {}
+    for k, v in out.items():
+        a = np.asarray(v)
+        if a.ndim == 2 and a.shape[0] in (2, 3) and a.shape[1] == n:
+            a = a.T
+        res[k] = a
+    return res
+
+
+def _features(fs: FrameScene, tr: dict, t: float) -> np.ndarray:
+    """The 17 features (float64, N×17) of traced lanes at shutter time ``t``."""
+    cfg = fs.cfg
+    W, H = cfg.res
+    hit = tr["hit"].astype(bool)
+    n = len(hit)
+    f = np.zeros((n, NUM_FEATURES))
+    g = FEATURE_GROUPS
+    f[:, g["normal"]] = np.where(hit[:, None], tr["n"], 0.0)
+    f[:, g["depth"]] = np.where(hit, tr["depth"], 0.0)[:, None]
+    f[:, g["albedo"]] = np.clip(np.where(hit[:, None], tr["albedo"], 0.0), 0.0, 1.0)
+    idx = np.where(hit, fs.shape_index(tr["sid"]), 0)
+    f[:, g["specular"]] = fs.specular[idx]
+    f[:, g["roughness"]] = fs.roughness[idx][:, None]
+    # Motion: world point (w=1) on hits, direction (w=0) at infinity on misses.
+    pts = np.where(hit[:, None], tr["p"], tr["d"]).astype(np.float64)
+    w = hit.astype(np.float64)
+    cur = cam_geom.project_pixels(fs.world_to_clip, pts, cfg.res, w)
+    prev_pts = pts - fs.velocity[idx] * w[:, None]       # one frame earlier (velocity per frame)
+    prev = cam_geom.project_pixels(fs.prev_world_to_clip, prev_pts, cfg.res, w)
+    mv = prev - cur
+    f[:, g["motion"]] = np.where(np.isfinite(mv), mv, 0.0)
+    if fs.has_defocus:
+        z = np.where(hit, cam_geom.camera_depth(fs.cam, tr["p"]), np.inf)
+        f[:, g["coc"]] = cam_geom.coc_pixels(fs.cam, z, W)[:, None]
+        f[:, g["lens"]] = tr["lens"]
+    f[:, g["time"]] = t if fs.has_motion else 0.0
+    return f
+
+
+def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per-sample inputs: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17), non-finite count.
+
+    ``sample_hook(radiance, features)`` (float64 N×3, N×17 arrays of one wavefront, modified in place)
+    runs before the NaN/Inf rule; tests use it to inject values.
+    """
+    cfg, spec, frame = fs.cfg, fs.spec, fs.frame
+    W, H = cfg.res
+    S = cfg.spp
+    slices = math.gcd(cfg.time_slices, S) if fs.has_motion else 1
+    s_per = S // slices
+    times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
+    rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
+    radiance = np.zeros((H, W, S, 3), np.float32)
+    features = np.zeros((H, W, S, NUM_FEATURES), np.float32)
+    bad_total = 0
+    for k, t in enumerate(times):
+        fs.set_time(float(t))
+        for c, row0 in enumerate(range(0, H, rows_per)):
+            rows = min(rows_per, H - row0)
+            seed = stream_seed(spec.seed, frame, STREAM_INPUTS, k, c, offset=cfg.seed_offset)
+            tr = _trace(fs, seed, row0, rows, s_per, float(t))
+            L = tr["L"].astype(np.float64)
+            F = _features(fs, tr, float(t))
+            if sample_hook is not None:
+                sample_hook(L, F)
+            L, F, bad = sanitize_samples(L, F, cfg.max_value)
+            bad_total += bad
+            sl = np.s_[row0:row0 + rows, :, k * s_per:(k + 1) * s_per]
+            radiance[sl] = L.reshape(rows, W, s_per, 3)
+            features[sl] = F.reshape(rows, W, s_per, NUM_FEATURES)
+    return radiance, features, bad_total
+
+
+def sanitize_samples(L: np.ndarray, F: np.ndarray, max_value: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Apply the NaN/Inf rule to samples (N×3 radiance, N×17 features); returns (L, F, count)."""
+    nan_l = np.isnan(L).any(axis=1)
+    bad = ~np.isfinite(L).all(axis=1) | ~np.isfinite(F).all(axis=1)
+    count = int(bad.sum())
+    if count:
+        L = np.where(nan_l[:, None], 0.0, L)
+        L = np.clip(L, -max_value, max_value)
+        F = np.where(np.isfinite(F), F, 0.0)
+    return L, F, count
+
+
+def _sanitize_image(img: np.ndarray, max_value: float) -> tuple[np.ndarray, int]:
+    """NaN pixel → 0, Inf → clamp; returns (image, number of pixels touched)."""
+    bad = ~np.isfinite(img).all(axis=-1)
+    n = int(bad.sum())
+    if n:
+        img = np.where(np.isnan(img).any(axis=-1, keepdims=True), 0.0, img)
+        img = np.clip(img, -max_value, max_value)
+    return img, n
+
+
+def _mi_render(fs: FrameScene, spp: int, seed: int) -> np.ndarray:
+    img = fs.mi.render(fs.scene, spp=int(spp), seed=int(seed))
+    return np.asarray(img, np.float64)[..., :3]
+
+
+def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices: int | None = None) -> np.ndarray:
+    """Plain ``mi.render`` mean (float64, HWC) of ``spp`` samples, time-sliced when the scene moves."""
+    cfg = fs.cfg
+    slices = math.gcd(max_slices or cfg.time_slices, spp) if fs.has_motion else 1
+    times = slice_times(_rng(fs.spec, fs.frame, cfg, stream, index), slices) if fs.has_motion else np.zeros(1)
+    acc = 0.0
+    for k, t in enumerate(times):
+        fs.set_time(float(t))
+        acc = acc + _mi_render(fs, spp // slices, stream_seed(fs.spec.seed, fs.frame, stream, index, k,
+                                                                offset=cfg.seed_offset))
+    return acc / slices
+
+
+def render_layers(fs: FrameScene) -> tuple[np.ndarray, int]:
+    """Sample layers (float32, LHWC): layer n is the mean of 2**n independent samples; non-finite count."""
+    W, H = fs.cfg.res
+    out = np.zeros((fs.cfg.layer_levels, H, W, 3), np.float32)
+    bad = 0
+    for lvl in range(fs.cfg.layer_levels):
+        img, b = _sanitize_image(render_sliced(fs, 2 ** lvl, STREAM_LAYER, lvl), fs.cfg.max_value)
+        out[lvl] = img
+        bad += b
+    return out, bad
+
+
+def rel_stderr(mean: np.ndarray, stderr: np.ndarray) -> float:
+    """Mean over pixels of ``stderr_Y / (mean_Y + 0.01)`` (Y: Rec. 709 luminance); HWC inputs."""
+    y = np.abs(mean @ LUMA)
+    e = stderr @ LUMA
+    return float(np.mean(e / (y + REL_STDERR_EPS))) if y.size else 0.0
+
+
+def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float, int]:
+    """Reference mean and standard error (float32, HWC each), spp taken, relative stderr, non-finite count."""
+    cfg = fs.cfg
+    W, H = cfg.res
+    if cfg.ref_spp == 0:
+        z = np.zeros((H, W, 3), np.float32)
+        return z, z.copy(), 0, 0.0, 0
+    passes = cfg.ref_passes
+    pass_spp = cfg.ref_spp // passes
+    shift = _rng(fs.spec, fs.frame, cfg, STREAM_REFERENCE).random()
+    times = np.minimum((_van_der_corput(passes) + shift) % 1.0, np.nextafter(1.0, 0.0))
+    cnt = np.zeros((H, W, 1))
+    s1 = np.zeros((H, W, 3))
+    s2 = np.zeros((H, W, 3))
+    bad = 0
+    done = 0
+    mean = std = None
+    for p in range(passes):
+        fs.set_time(float(times[p]) if fs.has_motion else 0.0)
+        img = _mi_render(fs, pass_spp, stream_seed(fs.spec.seed, fs.frame, STREAM_REFERENCE, p,
+                                                   offset=cfg.seed_offset))
+        nan = np.isnan(img).any(axis=-1, keepdims=True)
+        b = ~np.isfinite(img).all(axis=-1)
+        bad += int(b.sum())
+        img = np.where(nan, 0.0, np.clip(img, -cfg.max_value, cfg.max_value))
+        ok = (~nan).astype(np.float64)
+        cnt += ok
+        s1 += img * ok
+        s2 += img * img * ok
+        done = p + 1
+        if cfg.ref_target_rel_stderr is not None and done >= cfg.ref_min_passes and done < passes:
+            mean, std = _batch_stats(cnt, s1, s2)
+            if rel_stderr(mean, std) <= cfg.ref_target_rel_stderr:
+                break
+    mean, std = _batch_stats(cnt, s1, s2)
+    return (mean.astype(np.float32), std.astype(np.float32), done * pass_spp, rel_stderr(mean, std), bad)
+
+
+def _batch_stats(cnt, s1, s2):
+    n = np.maximum(cnt, 1.0)
+    mean = s1 / n
+    var = np.maximum(s2 - n * mean * mean, 0.0) / np.maximum(cnt - 1.0, 1.0)
+    stderr = np.where(cnt > 1, np.sqrt(var / n), 0.0)
+    return mean, stderr
+
+
+def render_oracle(fs: FrameScene, spp: int) -> np.ndarray:
+    """Plain ``mi.render`` (float32, HWC) at ``spp``; time-sliced (up to 16 slices) when the scene moves."""
+    img, _ = _sanitize_image(render_sliced(fs, spp, STREAM_ORACLE, 0, max_slices=16), fs.cfg.max_value)
+    return img.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *,
+                 on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None) -> dict:
+    """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``.
+
+    ``on_scene_loaded(scene)`` may modify the freshly loaded ``mi.Scene`` (tests inject NaN emitters
+    with it); ``sample_hook`` see :func:`render_inputs`. Raises ``RenderError`` / ``ConfigError``.
+    """
+    cfg = cfg or RenderConfig()
+    if not isinstance(cfg, RenderConfig):
+        raise ConfigError(f"cfg must be a RenderConfig, got {type(cfg).__name__}")
+    if not isinstance(frame, int) or not 0 <= frame < spec.num_frames:
+        raise RenderError(f"frame {frame!r} out of range: the scene has {spec.num_frames} frame(s)")
+    t0 = _time.perf_counter()
+    fs = FrameScene(spec, frame, cfg, on_scene_loaded)
+    radiance, features, bad_in = render_inputs(fs, sample_hook)
+    layers, bad_layers = render_layers(fs)
+    ref, ref_err, ref_spp, ref_rel, bad_ref = render_reference(fs)
+    out = {
+        "radiance": radiance,
+        "features": features,
+        "layers": layers,
+        "reference": ref,
+        "reference_stderr": ref_err,
+        "guides_albedo": features[..., FEATURE_GROUPS["albedo"]].mean(axis=2),
+        "guides_normal": features[..., FEATURE_GROUPS["normal"]].mean(axis=2),
+        "guides_depth": features[..., FEATURE_GROUPS["depth"]].mean(axis=2),
+        "guides_motion": features[..., FEATURE_GROUPS["motion"]].mean(axis=2),
+        "camera_to_world": fs.camera_to_world.astype(np.float64),
+        "world_to_clip": fs.world_to_clip.astype(np.float64),
+    }
+    if cfg.oracle_spp > 0:
+        out["oracle"] = render_oracle(fs, cfg.oracle_spp)
+    fs.set_time(0.0)
+    for k, (_, dtype) in FRAME_ARRAYS.items():
+        out[k] = np.ascontiguousarray(out[k], dtype=dtype)
+    out["meta"] = {
+        "scene_json": spec.to_json(),
+        "scene_seed": int(spec.seed),
+        "frame": int(frame),
+        "num_frames": int(spec.num_frames),
+        "has_motion": bool(fs.has_motion),
+        "has_defocus": bool(fs.has_defocus),
+        "nonfinite_inputs": int(bad_in),
+        "nonfinite_layers": int(bad_layers),
+        "nonfinite_reference": int(bad_ref),
+        "reference_spp": int(ref_spp),
+        "reference_rel_stderr": float(ref_rel),
+        "render_seconds": float(_time.perf_counter() - t0),
+    }
+    assert set(out["meta"]) == set(FRAME_META)
+    return out
+
+
+def expected_shapes(cfg: RenderConfig) -> dict[str, tuple[tuple[int, ...], str]]:
+    """``FRAME_ARRAYS`` with H, W, S, L filled in for ``cfg``."""
+    dims = {"H": cfg.height, "W": cfg.width, "S": cfg.spp, "L": cfg.layer_levels}
+    return {k: (tuple(dims.get(d, d) for d in shape), dtype) for k, (shape, dtype) in FRAME_ARRAYS.items()}
