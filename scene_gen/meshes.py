@@ -225,9 +225,9 @@ def _build_cached(key: str) -> MeshData:
 
 
 def _geometry(spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Canonical geometry (float64 N×3, int64 M×3), merged vertices, outward winding."""
-    v, f = _geometry_cached(_spec_key(dataclasses.replace(spec, triangle_budget=0)))
-    return v.copy(), f.copy()
+    """Canonical geometry (float64 N×3, int64 M×3, read-only, cached), merged vertices, outward
+    winding; the triangle budget does not enter (decimated variants share it)."""
+    return _geometry_cached(_spec_key(dataclasses.replace(spec, triangle_budget=0)))
 
 
 @functools.lru_cache(maxsize=CACHE_SIZE)
@@ -242,12 +242,21 @@ def _geometry_cached(key: str) -> tuple[np.ndarray, np.ndarray]:
         raise
     except Exception as e:  # a library failure inside a builder
         raise MeshError(f"building mesh kind {spec.kind!r} failed: {type(e).__name__}: {e}") from e
-    v, f = _clean(np.asarray(v, np.float64), np.asarray(f, np.int64))
+    v, f = _clean(*_merge(np.asarray(v, np.float64), np.asarray(f, np.int64)))
     if len(f) == 0:
         raise MeshError(f"mesh kind {spec.kind!r} produced no triangles (params {dict(spec.params)})")
     if spec.kind != "plane":
         v = _normalise(v)
+        if _signed_volume(v, f) < 0:     # closed meshes wind counter-clockwise seen from outside
+            f = f[:, ::-1].copy()
+    v.setflags(write=False)
+    f.setflags(write=False)
     return v, f
+
+
+def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
+    t = v[f]
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
 
 
 def _rng(spec: MeshSpec) -> np.random.Generator:
@@ -361,6 +370,138 @@ _MAKERS = {
     "sphere": _sphere, "box": _box, "cylinder": _cylinder, "capsule": _capsule, "cone": _cone,
     "torus": _torus, "plane": _plane,
 }
+
+
+# --- profiles, outlines, blobs, booleans ----------------------------------------------------
+
+def _revolve(spec):
+    import trimesh
+    from scene_gen.profiles import random_revolve_profile
+    prof = _points(spec, "profile", 2, 2)
+    if prof is None:
+        prof = random_revolve_profile(_rng(spec))
+    elif (prof[:, 0] < 0).any():
+        raise SpecError("mesh.params.profile (revolve) radii (first column) must be >= 0")
+    else:   # close the surface on the axis at both ends
+        if prof[0, 0] > 0:
+            prof = np.concatenate([[[0.0, prof[0, 1]]], prof])
+        if prof[-1, 0] > 0:
+            prof = np.concatenate([prof, [[0.0, prof[-1, 1]]]])
+    n = _param(spec, "sections", 48, 3, 512, integer=True)
+    m = trimesh.creation.revolve(prof, sections=n)
+    return _z_up_to_y_up(m.vertices), m.faces
+
+
+def _extrude(spec):
+    from scene_gen.profiles import random_outline
+    rng = _rng(spec)
+    outline = _points(spec, "outline", 2, 3)
+    if outline is None:
+        outline = random_outline(rng)
+    ang = np.unwrap(np.arctan2(outline[:, 1], outline[:, 0]))
+    steps = np.diff(np.concatenate([ang, [ang[0] + 2 * np.pi * np.sign(ang[-1] - ang[0] or 1)]]))
+    rad = np.linalg.norm(outline, axis=1)
+    if (rad <= 0).any() or not ((steps > 0).all() or (steps < 0).all()) \
+            or abs(abs(ang[-1] - ang[0]) + abs(steps[-1]) - 2 * np.pi) > 1e-6:
+        raise SpecError("mesh.params.outline (extrude) must be star-shaped around the origin "
+                        "(points at monotone angles going once around)")
+    height = _param(spec, "height", float(rng.uniform(0.15, 1.5)), 1e-3, 1e3)
+    bevel = _param(spec, "bevel", 0.0, 0.0, 0.49) * height
+    k = len(outline)
+    if bevel > 0:
+        inset = np.maximum(rad - bevel, 0.5 * rad) / rad
+        layers = [(-height / 2, inset), (-height / 2 + bevel, 1.0), (height / 2 - bevel, 1.0), (height / 2, inset)]
+    else:
+        layers = [(-height / 2, 1.0), (height / 2, 1.0)]
+    ring = []
+    for y, s in layers:
+        p = outline * np.asarray(s, np.float64).reshape(-1, 1)
+        ring.append(np.stack([p[:, 0], np.full(k, y), p[:, 1]], axis=1))
+    v = np.concatenate(ring + [[[0.0, -height / 2, 0.0], [0.0, height / 2, 0.0]]])
+    cb, ct = len(v) - 2, len(v) - 1
+    i = np.arange(k)
+    j = (i + 1) % k
+    faces = []
+    for L in range(len(layers) - 1):
+        a, b, c, d = L * k + i, L * k + j, (L + 1) * k + i, (L + 1) * k + j
+        faces += [np.stack([a, d, b], 1), np.stack([a, c, d], 1)]
+    top = (len(layers) - 1) * k
+    faces += [np.stack([np.full(k, cb), i, j], 1), np.stack([np.full(k, ct), top + j, top + i], 1)]
+    return v, np.concatenate(faces)
+
+
+def _blob(spec):
+    import pymeshlab
+    import trimesh
+    rng = _rng(spec)
+    sub = _param(spec, "subdivisions", 4, 1, 6, integer=True)
+    bumps = _param(spec, "bumps", 6, 0, 64, integer=True)
+    amp = _param(spec, "amplitude", 0.35, 0.0, 1.0)
+    steps = _param(spec, "smooth_steps", 10, 0, 200, integer=True)
+    ico = trimesh.creation.icosphere(subdivisions=sub)
+    d = np.asarray(ico.vertices, np.float64)
+    r = np.ones(len(d))
+    for _ in range(bumps):       # Gaussian bumps (and dents) on the sphere
+        c = rng.normal(size=3)
+        c /= np.linalg.norm(c)
+        kappa = rng.uniform(2.0, 12.0)
+        r += amp * rng.uniform(-0.6, 1.0) * np.exp(kappa * (d @ c - 1.0))
+    for _ in range(3):           # low-frequency waves
+        e = rng.normal(size=3)
+        e /= np.linalg.norm(e)
+        r += 0.3 * amp * np.sin(rng.uniform(1.0, 4.0) * (d @ e) + rng.uniform(0, 2 * np.pi))
+    v = d * np.clip(r, 0.35, None)[:, None]
+    f = np.asarray(ico.faces)
+    if steps:
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+        ms.apply_coord_taubin_smoothing(stepsmoothnum=steps)
+        v = ms.current_mesh().vertex_matrix().astype(np.float64)
+    return v, f
+
+
+BOOLEAN_OPS = ("union", "difference", "intersection")
+
+
+def _boolean(spec):
+    import pymeshlab
+    import trimesh
+    rng = _rng(spec)
+    op = spec.params.get("op", "difference")
+    if op not in BOOLEAN_OPS:
+        raise SpecError(f"mesh.params.op (boolean) must be one of {BOOLEAN_OPS}, got {op!r}")
+    for c in spec.children:
+        if c.kind in ("plane", "room"):
+            raise SpecError(f"boolean children must be closed solids, got {c.kind!r}")
+    # defaults: a smaller second operand that overlaps the first (intersections: a larger one
+    # shifted further, so that neither operand simply contains the other)
+    lo, hi = ((0.9, 1.3), (0.4, 0.8)) if op == "intersection" else ((0.4, 0.9), (0.2, 0.8))
+    scale = _param(spec, "b_scale", float(rng.uniform(*lo)), 1e-3, 10.0)
+    direction = rng.normal(size=3)
+    offset = direction / np.linalg.norm(direction) * rng.uniform(*hi)
+    off = spec.params.get("b_offset", offset.tolist())
+    off = np.asarray(off, np.float64)
+    if off.shape != (3,) or not np.isfinite(off).all():
+        raise SpecError(f"mesh.params.b_offset (boolean) must be 3 finite numbers, got {spec.params.get('b_offset')!r}")
+    (va, fa), (vb, fb) = (_geometry(c) for c in spec.children)
+    a = trimesh.Trimesh(va, fa, process=False)
+    b = trimesh.Trimesh(vb * scale + off, fb, process=False)
+    fn = {"union": trimesh.boolean.union, "difference": trimesh.boolean.difference,
+          "intersection": trimesh.boolean.intersection}[op]
+    out = fn([a, b], engine="manifold", check_volume=False)
+    v, f = np.asarray(out.vertices, np.float64), np.asarray(out.faces, np.int64)
+    if len(f) == 0:
+        raise MeshError(f"boolean {op} of {spec.children[0].kind} and {spec.children[1].kind} is empty")
+    if spec.params.get("remesh", False):   # isotropic remeshing evens out the slivers of the cut
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+        ms.meshing_isotropic_explicit_remeshing(iterations=3, targetlen=pymeshlab.PercentageValue(2.5))
+        m = ms.current_mesh()
+        v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    return v, f
+
+
+_MAKERS.update({"revolve": _revolve, "extrude": _extrude, "blob": _blob, "boolean": _boolean})
 
 
 def _room(spec: MeshSpec) -> MeshData:
