@@ -1,0 +1,341 @@
+"""Reading a store: frames, metadata, crops, splits and clips (numpy only).
+
+``open_store(path)`` returns a :class:`Store`. Image reads go through a fast path on local stores:
+each frame of an image array is one shard file, and a crop reads the shard index and only the inner
+chunks it touches (``os.pread`` + Blosc), bypassing zarr-python's per-chunk async machinery (5x
+faster on crops; results are identical to zarr's, see tests). Other stores (URLs, unexpected
+codecs) fall back to zarr slicing.
+
+Splits are by scene, never by frame: ``split_of_clip(clip_id)`` hashes the clip (scene) id with
+BLAKE2b into [0, 1) and compares with the store's split fractions (root ``config['split']``, default
+train 0.8 / val 0.1 / test 0.1), so every frame of a scene lands in the same split on every machine.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+
+import numpy as np
+
+from stores import schema
+from stores.contract import FRAME_ARRAYS, FRAME_META
+from stores.errors import (CropSizeError, FrameIndexError, IncompleteFrameError, SampleCountError,
+                           SplitError, StoreLayoutError)
+from stores.schema import ARRAY_BY_PATH, ARRAY_BY_SOURCE, StoreLayout
+
+DEFAULT_SPLIT = {"train": 0.8, "val": 0.1, "test": 0.1}
+_EMPTY = 2 ** 64 - 1
+
+
+def split_of_clip(clip_id: int, fractions: dict | None = None) -> str:
+    """The split (``train``/``val``/``test`` or the keys of ``fractions``, in order) of a clip/scene id."""
+    fractions = DEFAULT_SPLIT if fractions is None else fractions
+    total = float(sum(fractions.values()))
+    if total <= 0 or any(v < 0 for v in fractions.values()):
+        raise SplitError(f"split fractions must be >= 0 with a positive sum, got {fractions!r}")
+    digest = hashlib.blake2b(str(int(clip_id)).encode(), digest_size=8).digest()
+    u = int.from_bytes(digest, "little") / 2.0 ** 64
+    acc = 0.0
+    names = list(fractions)
+    for name in names:
+        acc += fractions[name] / total
+        if u < acc:
+            return name
+    return names[-1]
+
+
+class _ShardReader:
+    """Direct reader of one sharded image array on a local store (see module docstring)."""
+
+    def __init__(self, array_dir: str, meta: dict, dims: tuple[str, ...]):
+        shard = meta["codecs"][0]["configuration"]
+        self.dir = array_dir
+        self.inner = tuple(shard["chunk_shape"])
+        self.shards = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
+        self.shape = tuple(meta["shape"])
+        self.dtype = np.dtype(meta["data_type"])
+        self.fill = meta.get("fill_value", 0) or 0
+        self.iy, self.ix = dims.index("y"), dims.index("x")
+        self.ny = self.shards[self.iy] // self.inner[self.iy]
+        self.nx = self.shards[self.ix] // self.inner[self.ix]
+        names = [c["name"] for c in shard["codecs"]]
+        self.blosc = "blosc" in names
+        self.sep = meta["chunk_key_encoding"].get("configuration", {}).get("separator", "/")
+
+    @staticmethod
+    def applicable(meta: dict) -> bool:
+        try:
+            codecs = meta["codecs"]
+            if len(codecs) != 1 or codecs[0]["name"] != "sharding_indexed":
+                return False
+            conf = codecs[0]["configuration"]
+            names = [c["name"] for c in conf["codecs"]]
+            inner_ok = names in (["bytes"], ["bytes", "blosc"])
+            endian = conf["codecs"][0].get("configuration", {}).get("endian", "little") == "little"
+            index_ok = [c["name"] for c in conf["index_codecs"]] == ["bytes", "crc32c"]
+            key_ok = meta["chunk_key_encoding"]["name"] == "default"
+            return inner_ok and endian and index_ok and key_ok and conf.get("index_location", "end") == "end"
+        except (KeyError, IndexError, TypeError):
+            return False
+
+    def read(self, frame: int, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis, storage dtype."""
+        from numcodecs import blosc
+        ndim = len(self.shape)
+        key = self.sep.join(["c", str(frame)] + ["0"] * (ndim - 1))
+        inner = list(self.inner[1:])
+        out_shape = list(self.shape[1:])
+        iy, ix = self.iy - 1, self.ix - 1
+        out_shape[iy], out_shape[ix] = y1 - y0, x1 - x0
+        out = np.empty(out_shape, self.dtype)
+        ty, tx = inner[iy], inner[ix]
+        path = os.path.join(self.dir, *key.split("/")) if self.sep == "/" else os.path.join(self.dir, key)
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            out[...] = self.fill
+            return out
+        try:
+            size = os.fstat(fd).st_size
+            n = self.ny * self.nx
+            idx = np.frombuffer(os.pread(fd, n * 16, size - n * 16 - 4), "<u8").reshape(self.ny, self.nx, 2)
+            for cy in range(y0 // ty, (y1 - 1) // ty + 1):
+                for cx in range(x0 // tx, (x1 - 1) // tx + 1):
+                    ys, ye = max(y0, cy * ty), min(y1, (cy + 1) * ty)
+                    xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
+                    dst = [slice(None)] * len(out_shape)
+                    dst[iy], dst[ix] = slice(ys - y0, ye - y0), slice(xs - x0, xe - x0)
+                    off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
+                    if off == _EMPTY:
+                        out[tuple(dst)] = self.fill
+                        continue
+                    buf = os.pread(fd, nbytes, off)
+                    if self.blosc:
+                        buf = blosc.decompress(buf)
+                    chunk = np.frombuffer(buf, self.dtype).reshape(inner)
+                    src = [slice(None)] * len(out_shape)
+                    src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
+                    out[tuple(dst)] = chunk[tuple(src)]
+        finally:
+            os.close(fd)
+        return out
+
+
+class Store:
+    """A read-only view of a store. Cheap to pickle (re-opens lazily in each process)."""
+
+    def __init__(self, path, *, fast: bool = True):
+        self.path = path
+        self.fast = fast
+        self._local = None
+        self.root, self.layout = schema.open_group(path, mode="r")
+        self._init_local()
+
+    def _init_local(self):
+        self._fast_readers: dict[str, _ShardReader] = {}
+        self._lock = threading.Lock()
+        p = self.path
+        if self.fast and isinstance(p, (str, os.PathLike)) and "://" not in os.fspath(p):
+            self._local = os.fspath(p)
+        self._meta_cache = None
+
+    def __getstate__(self):
+        return {"path": self.path, "fast": self.fast}
+
+    def __setstate__(self, state):
+        self.__init__(state["path"], fast=state["fast"])
+
+    # ---------------------------------------------------------------- metadata
+    @property
+    def num_frames(self) -> int:
+        return int(self.root["status/complete"].shape[0])
+
+    @property
+    def attrs(self) -> dict:
+        return dict(self.root.attrs)
+
+    @property
+    def config(self) -> dict:
+        return self.attrs.get("config", {})
+
+    @property
+    def schema_version(self) -> int:
+        return int(self.attrs["schema_version"])
+
+    @property
+    def split_fractions(self) -> dict:
+        cfg = self.config
+        split = cfg.get("split") if isinstance(cfg, dict) else None
+        return dict(split) if isinstance(split, dict) and split else dict(DEFAULT_SPLIT)
+
+    def refresh(self) -> None:
+        """Forget cached per-frame metadata (after frames were written by another process)."""
+        self.root, self.layout = schema.open_group(self.path, mode="r")
+        self._meta_cache = None
+
+    def _meta_table(self) -> dict:
+        if self._meta_cache is None:
+            table = {}
+            for key in list(FRAME_META) + ["clip_id"]:
+                table[key] = self.root[f"frames/{key}"][:]
+            table["complete"] = np.asarray(self.root["status/complete"][:], bool)
+            table["error"] = self.root["status/error"][:]
+            self._meta_cache = table
+        return self._meta_cache
+
+    def complete_mask(self) -> np.ndarray:
+        """``complete (bool, F)``."""
+        return self._meta_table()["complete"].copy()
+
+    def complete_frames(self) -> list[int]:
+        return [int(i) for i in np.nonzero(self._meta_table()["complete"])[0]]
+
+    def incomplete_frames(self) -> list[int]:
+        return [int(i) for i in np.nonzero(~self._meta_table()["complete"])[0]]
+
+    def _check_index(self, i: int) -> int:
+        if not (0 <= int(i) < self.num_frames):
+            raise FrameIndexError(f"frame index {i} is outside 0..{self.num_frames - 1}")
+        return int(i)
+
+    def _check_complete(self, i: int) -> None:
+        if not bool(self.root["status/complete"][i]):
+            err = str(self.root["status/error"][i])
+            why = f" (last error: {err})" if err else " (never finished, or its writer stopped mid-frame)"
+            raise IncompleteFrameError(f"frame {i} of {os.fspath(self.path)!s} is incomplete{why}")
+
+    def frames_meta(self, i: int) -> dict:
+        """``FRAME_META`` of frame ``i`` plus ``clip_id``, ``complete``, ``error`` and the camera matrices
+        ``camera_to_world``/``world_to_clip`` (float64, 44). Python scalars."""
+        i = self._check_index(i)
+        t = self._meta_table()
+        out = {}
+        for key, typ in FRAME_META.items():
+            out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
+        out["clip_id"] = int(t["clip_id"][i])
+        out["complete"] = bool(t["complete"][i])
+        out["error"] = str(t["error"][i])
+        out["camera_to_world"] = np.asarray(self.root["frames/camera_to_world"][i])
+        out["world_to_clip"] = np.asarray(self.root["frames/world_to_clip"][i])
+        return out
+
+    # ---------------------------------------------------------------- images
+    def _reader(self, path: str):
+        if self._local is None:
+            return None
+        with self._lock:
+            r = self._fast_readers.get(path)
+            if r is None:
+                arr = self.root[path]
+                meta = arr.metadata.to_dict()
+                if not _ShardReader.applicable(meta):
+                    self._fast_readers[path] = False
+                    return None
+                r = _ShardReader(os.path.join(self._local, *path.split("/")), meta, ARRAY_BY_PATH[path].dims)
+                self._fast_readers[path] = r
+        return r or None
+
+    def _check_crop(self, crop) -> tuple[int, int, int, int]:
+        H, W = self.layout.height, self.layout.width
+        if crop is None:
+            return 0, 0, H, W
+        y, x, h, w = (int(v) for v in crop)
+        if h < 1 or w < 1 or h > H or w > W:
+            raise CropSizeError(f"crop {h}x{w} does not fit the {H}x{W} frames (need 1 <= h <= {H}, 1 <= w <= {W})")
+        if y < 0 or x < 0 or y + h > H or x + w > W:
+            raise CropSizeError(f"crop at (y={y}, x={x}) of {h}x{w} leaves the {H}x{W} frame")
+        return y, x, h, w
+
+    def read_array(self, path: str, i: int, crop=None, *, check_complete: bool = True) -> np.ndarray:
+        """One frame of image array ``path`` in storage layout without the frame axis, e.g.
+        ``inputs/radiance -> (float32, rgb·h·w·sample)`` (log16 decoded), cropped to
+        ``crop = (y, x, h, w)``. Features come back as stored (float16 unless float32 was chosen)."""
+        i = self._check_index(i)
+        if check_complete:
+            self._check_complete(i)
+        spec = ARRAY_BY_PATH[path]
+        y, x, h, w = self._check_crop(crop)
+        r = self._reader(path) if spec.image else None
+        if r is not None:
+            a = r.read(i, y, y + h, x, x + w)
+        else:
+            sel = [i] + [slice(None)] * (len(spec.dims) - 1)
+            if spec.image:
+                sel[spec.dims.index("y")] = slice(y, y + h)
+                sel[spec.dims.index("x")] = slice(x, x + w)
+            a = np.asarray(self.root[path][tuple(sel)])
+        if path == "inputs/radiance" and self.layout.radiance_encoding == "log16":
+            from stores.codecs import decode_log16
+            a = decode_log16(a)
+        return a
+
+    def read_frame(self, i: int, keys=None, *, crop=None, spp: int | None = None,
+                   allow_incomplete: bool = False) -> dict:
+        """Frame ``i`` in the renderer's layout (``FRAME_ARRAYS`` names, channel-last, float32 images),
+        optionally cropped (``crop = (y, x, h, w)``) and limited to the first ``spp`` samples.
+        ``keys`` defaults to every array; ``'meta'`` adds ``frames_meta(i)``."""
+        i = self._check_index(i)
+        if not allow_incomplete:
+            self._check_complete(i)
+        keys = list(FRAME_ARRAYS) + ["meta"] if keys is None else list(keys)
+        spp = self._check_spp(spp)
+        out = {}
+        for key in keys:
+            if key == "meta":
+                out["meta"] = self.frames_meta(i)
+                continue
+            if key not in ARRAY_BY_SOURCE:
+                raise StoreLayoutError(f"unknown frame array {key!r}; known: {', '.join(ARRAY_BY_SOURCE)}")
+            spec = ARRAY_BY_SOURCE[key]
+            if spec.image:
+                a = self.read_array(spec.path, i, crop, check_complete=False)
+                if spec.path.startswith("inputs/"):
+                    a = a[..., :spp]
+            else:
+                a = np.asarray(self.root[spec.path][i])
+            out[key] = spec.from_store(a, self.layout)
+        return out
+
+    def _check_spp(self, spp) -> int:
+        S = self.layout.spp
+        if spp is None:
+            return S
+        if int(spp) < 1 or int(spp) > S:
+            raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 1..{S}")
+        return int(spp)
+
+    # ---------------------------------------------------------------- splits and clips
+    def split_of_frame(self, i: int) -> str:
+        return split_of_clip(int(self._meta_table()["clip_id"][self._check_index(i)]), self.split_fractions)
+
+    def frames_in_split(self, split: str | None, *, complete_only: bool = True) -> list[int]:
+        """Frame indices of ``split`` (None: all), in index order; complete frames only by default."""
+        fr = self.split_fractions
+        if split is not None and split not in fr:
+            raise SplitError(f"unknown split {split!r}; this store has {list(fr)}")
+        t = self._meta_table()
+        out = []
+        for i in range(self.num_frames):
+            if complete_only and not t["complete"][i]:
+                continue
+            if split is None or split_of_clip(int(t["clip_id"][i]), fr) == split:
+                out.append(i)
+        return out
+
+    def clips(self, split: str | None = None, *, complete_only: bool = True) -> dict[int, list[int]]:
+        """clip id -> frame indices ordered by ``frames/frame`` (index in clip)."""
+        t = self._meta_table()
+        groups: dict[int, list[int]] = {}
+        for i in self.frames_in_split(split, complete_only=complete_only):
+            groups.setdefault(int(t["clip_id"][i]), []).append(i)
+        return {c: sorted(v, key=lambda j: int(t["frame"][j])) for c, v in sorted(groups.items())}
+
+
+def open_store(path, *, fast: bool = True) -> Store:
+    """Open an existing store for reading (``StoreNotFoundError``, ``ForeignStoreError`` and
+    ``SchemaVersionError`` otherwise)."""
+    return Store(path, fast=fast)
+
+
+__all__ = ["Store", "open_store", "split_of_clip", "DEFAULT_SPLIT", "StoreLayout"]

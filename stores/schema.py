@@ -1,0 +1,345 @@
+"""The store schema, version 1: a versioned table of arrays, the layout, and store creation/opening.
+
+One Zarr v3 group per dataset (see ``stores/SCHEMA.md`` for the table with dtypes, chunks and the
+measurements behind them). Images are stored channel-major with samples last,
+``inputs/radiance (float32, F·rgb·y·x·sample)``, sharded one shard per frame and per array with
+``tile x tile`` inner chunks, so a training crop of one frame with all samples reads a few inner
+chunks of one file, and each writer task owns whole shards (no locks). Per-frame scalars have one
+chunk per frame. Every array carries ``dimension_names`` so ``xarray.open_zarr(store, group=...)``
+reads each group with named dims.
+
+The renderer's per-frame dict (``stores.contract.FRAME_ARRAYS``, channel-last) maps to the arrays
+below through :class:`ArraySpec` (``to_store`` / ``from_store`` transpose between the two layouts).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from stores import codecs
+from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
+from stores.errors import (ForeignStoreError, SchemaVersionError, StoreError, StoreLayoutError,
+                           StoreNotFoundError)
+
+SCHEMA_VERSION = 1
+STORE_KIND = "denoise-datagen.sample-store"
+RADIANCE_ENCODINGS = ("float32", "log16")
+FEATURE_DTYPES = ("float16", "float32")
+FLOAT16_MAX = 65504.0
+
+
+@dataclass(frozen=True)
+class StoreLayout:
+    """Shape and encoding of a store: ``num_frames`` frames of ``height x width`` pixels, ``spp`` input
+    samples and one sample layer per entry of ``layer_spp`` (each the mean of that many samples).
+
+    ``tile`` is the inner chunk edge in pixels (clamped to the frame). ``radiance_encoding`` is
+    ``float32`` (lossless, default) or ``log16`` (uint16 log code, rel. error <= 3.4e-4).
+    ``feature_dtype`` is ``float16`` (default; values must stay within +-65504) or ``float32``.
+    """
+
+    num_frames: int
+    height: int
+    width: int
+    spp: int = 8
+    layer_spp: tuple[int, ...] = LAYER_SPP
+    tile: int = 32
+    radiance_encoding: str = "float32"
+    feature_dtype: str = "float16"
+
+    def __post_init__(self):
+        for name in ("num_frames", "height", "width", "spp", "tile"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < (0 if name == "num_frames" else 1):
+                lo = 0 if name == "num_frames" else 1
+                raise StoreLayoutError(f'"{name}" must be an integer >= {lo}, got {v!r}')
+        object.__setattr__(self, "layer_spp", tuple(int(s) for s in self.layer_spp))
+        if any(s < 1 for s in self.layer_spp):
+            raise StoreLayoutError(f'"layer_spp" must hold positive sample counts, got {self.layer_spp!r}')
+        if self.radiance_encoding not in RADIANCE_ENCODINGS:
+            raise StoreLayoutError(f'"radiance_encoding" must be one of {RADIANCE_ENCODINGS}, got {self.radiance_encoding!r}')
+        if self.feature_dtype not in FEATURE_DTYPES:
+            raise StoreLayoutError(f'"feature_dtype" must be one of {FEATURE_DTYPES}, got {self.feature_dtype!r}')
+
+    @property
+    def num_layers(self) -> int:
+        return len(self.layer_spp)
+
+    @property
+    def tile_y(self) -> int:
+        return min(self.tile, self.height)
+
+    @property
+    def tile_x(self) -> int:
+        return min(self.tile, self.width)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["layer_spp"] = list(self.layer_spp)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StoreLayout":
+        d = dict(d)
+        d["layer_spp"] = tuple(d.get("layer_spp", LAYER_SPP))
+        return cls(**d)
+
+    def with_frames(self, num_frames: int) -> "StoreLayout":
+        return StoreLayout(**{**self.to_dict(), "num_frames": num_frames, "layer_spp": self.layer_spp})
+
+    def frame_shape_compatible(self, other: "StoreLayout") -> bool:
+        a, b = self.to_dict(), other.to_dict()
+        a.pop("num_frames"), b.pop("num_frames")
+        return a == b
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One array of the schema: its ``path`` in the group, ``dims`` (frame first), storage ``dtype``,
+    the contract key it comes from (``source``, or a ``FRAME_META`` key for ``frames/*``) and how
+    the contract's channel-last array is transposed into storage (``perm``; ``squeeze`` drops a last
+    axis of size 1)."""
+
+    path: str
+    dims: tuple[str, ...]
+    dtype: str
+    source: str
+    doc: str
+    perm: tuple[int, ...] | None = None
+    squeeze: bool = False
+    image: bool = True
+    fill: Any = 0
+
+    def to_store(self, a: np.ndarray, layout: StoreLayout) -> np.ndarray:
+        """Contract layout (channel-last) -> storage layout and dtype, for one frame."""
+        a = np.asarray(a)
+        if self.squeeze:
+            a = a[..., 0]
+        if self.perm is not None:
+            a = a.transpose(self.perm)
+        if self.path == "inputs/radiance" and layout.radiance_encoding == "log16":
+            return codecs.encode_log16(a)
+        return np.ascontiguousarray(a, dtype=self.storage_dtype(layout))
+
+    def from_store(self, a: np.ndarray, layout: StoreLayout) -> np.ndarray:
+        """Storage layout (any leading frame axis kept) -> contract layout (channel-last) in the
+        contract's dtype (float32 for images)."""
+        if self.path == "inputs/radiance" and layout.radiance_encoding == "log16":
+            a = codecs.decode_log16(a)
+        if self.perm is not None:
+            inv = np.argsort(self.perm)
+            lead = a.ndim - len(self.perm)
+            a = a.transpose(tuple(range(lead)) + tuple(lead + int(i) for i in inv))
+        if self.squeeze:
+            a = a[..., None]
+        if self.image:
+            a = a.astype(np.float32, copy=False)
+        return a
+
+    def storage_dtype(self, layout: StoreLayout) -> str:
+        if self.path == "inputs/radiance" and layout.radiance_encoding == "log16":
+            return "uint16"
+        if self.path == "inputs/features":
+            return layout.feature_dtype
+        return self.dtype
+
+    def shape(self, layout: StoreLayout) -> tuple[int, ...]:
+        sizes = {"frame": layout.num_frames, "rgb": 3, "xyz": 3, "uv": 2, "y": layout.height,
+                 "x": layout.width, "sample": layout.spp, "feature": NUM_FEATURES,
+                 "level": layout.num_layers, "row": 4, "col": 4}
+        return tuple(sizes[d] for d in self.dims)
+
+    def chunks(self, layout: StoreLayout) -> tuple[int, ...]:
+        """Inner chunk shape: one frame x one spatial tile x everything else."""
+        tiles = {"y": layout.tile_y, "x": layout.tile_x}
+        return tuple(1 if d == "frame" else tiles.get(d, s) for d, s in zip(self.dims, self.shape(layout)))
+
+    def shards(self, layout: StoreLayout) -> tuple[int, ...] | None:
+        """Shard shape: one whole frame (spatial extent rounded up to whole tiles); None for scalars."""
+        if not self.image:
+            return None
+        out = []
+        for d, s, c in zip(self.dims, self.shape(layout), self.chunks(layout)):
+            out.append(1 if d == "frame" else -(-s // c) * c)
+        return tuple(out)
+
+
+_IMAGE_SPECS = (
+    ArraySpec("inputs/radiance", ("frame", "rgb", "y", "x", "sample"), "float32", "radiance",
+              "per-sample linear HDR radiance", perm=(3, 0, 1, 2)),
+    ArraySpec("inputs/features", ("frame", "feature", "y", "x", "sample"), "float16", "features",
+              "per-sample features, names in inputs/feature", perm=(3, 0, 1, 2)),
+    ArraySpec("layers/radiance", ("frame", "level", "rgb", "y", "x"), "float32", "layers",
+              "sample layer n: mean of layer_spp[n] independent samples", perm=(0, 3, 1, 2)),
+    ArraySpec("reference/radiance", ("frame", "rgb", "y", "x"), "float32", "reference",
+              "reference radiance (per-pixel mean)", perm=(2, 0, 1)),
+    ArraySpec("reference/stderr", ("frame", "rgb", "y", "x"), "float32", "reference_stderr",
+              "standard error of the reference mean", perm=(2, 0, 1)),
+    ArraySpec("guides/albedo", ("frame", "rgb", "y", "x"), "float32", "guides_albedo",
+              "per-pixel albedo", perm=(2, 0, 1)),
+    ArraySpec("guides/normal", ("frame", "xyz", "y", "x"), "float32", "guides_normal",
+              "per-pixel world-space normal", perm=(2, 0, 1)),
+    ArraySpec("guides/depth", ("frame", "y", "x"), "float32", "guides_depth",
+              "per-pixel depth", squeeze=True),
+    ArraySpec("guides/motion", ("frame", "uv", "y", "x"), "float32", "guides_motion",
+              "per-pixel screen-space motion in pixels, p_prev - p_cur", perm=(2, 0, 1)),
+)
+_MATRIX_SPECS = (
+    ArraySpec("frames/camera_to_world", ("frame", "row", "col"), "float64", "camera_to_world",
+              "camera-to-world matrix", image=False),
+    ArraySpec("frames/world_to_clip", ("frame", "row", "col"), "float64", "world_to_clip",
+              "projection * view (NDC in [-1, 1])", image=False),
+)
+_META_DTYPES = {str: "str", int: "int64", bool: "bool", float: "float64"}
+_META_SPECS = tuple(
+    ArraySpec(f"frames/{k}", ("frame",), _META_DTYPES[t], k, f"frame metadata {k!r}", image=False,
+              fill="" if t is str else (False if t is bool else 0))
+    for k, t in FRAME_META.items()) + (
+    ArraySpec("frames/clip_id", ("frame",), "int64", "clip_id",
+              "clip (scene) id: frames of one clip share it; defaults to scene_seed", image=False),)
+_STATUS_SPECS = (
+    ArraySpec("status/error", ("frame",), "str", "error",
+              "error text of the last failed attempt ('' if none)", image=False, fill=""),
+    ArraySpec("status/complete", ("frame",), "bool", "complete",
+              "True once every array of the frame is written; written last", image=False, fill=False),
+)
+ARRAYS: tuple[ArraySpec, ...] = _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS + _STATUS_SPECS
+ARRAY_BY_PATH = {s.path: s for s in ARRAYS}
+ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}
+GROUPS = ("inputs", "layers", "reference", "guides", "frames", "status")
+
+
+def package_versions() -> dict:
+    """Versions of the packages that shape the data (recorded in the root attributes)."""
+    out = {}
+    import importlib.metadata as md
+    for name in ("numpy", "zarr", "numcodecs", "mitsuba", "drjit", "denoise-datagen"):
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            pass
+    return out
+
+
+def git_hash() -> str | None:
+    """The project's git commit (None outside a checkout)."""
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        r = subprocess.run(["git", "-C", here, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        return r.stdout.strip() or None if r.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _zarr_store(path_or_url):
+    return os.fspath(path_or_url) if isinstance(path_or_url, os.PathLike) else path_or_url
+
+
+def _exists(path_or_url) -> bool:
+    p = _zarr_store(path_or_url)
+    if isinstance(p, str) and "://" not in p:
+        return os.path.exists(os.path.join(p, "zarr.json"))
+    import zarr
+    try:
+        zarr.open_group(p, mode="r")
+        return True
+    except Exception:   # noqa: BLE001 - any failure to open means "not there"
+        return False
+
+
+def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False):
+    """Create the group, every array (empty, ``status/complete`` all False) and the root attributes
+    (schema version, layout, the full generation ``config``, package versions, git hash).
+    Returns the ``zarr.Group``. Refuses to overwrite an existing store unless ``overwrite``."""
+    import zarr
+    if _exists(path_or_url) and not overwrite:
+        raise StoreError(f"a store already exists at {path_or_url!s}; open it (open_or_create) or pass overwrite=True")
+    try:
+        json.dumps(config or {})
+    except TypeError as e:
+        raise StoreLayoutError(f"config must be JSON-serialisable: {e}") from e
+    root = zarr.open_group(_zarr_store(path_or_url), mode="w")
+    for g in GROUPS:
+        root.require_group(g)
+    comp = codecs.compressor()
+    for spec in ARRAYS:
+        dtype = spec.storage_dtype(layout)
+        kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype,
+                  chunks=spec.chunks(layout), dimension_names=spec.dims)
+        if spec.image:
+            kw.update(shards=spec.shards(layout), compressors=comp, fill_value=0)
+        else:
+            kw.update(compressors=None, fill_value=spec.fill)
+        arr = root.create_array(spec.path, **kw)
+        arr.attrs.update({"doc": spec.doc, "source": spec.source})
+    feat = root.create_array("inputs/feature", shape=(NUM_FEATURES,), dtype=str, chunks=(NUM_FEATURES,),
+                             dimension_names=("feature",))
+    feat[:] = np.array(FEATURE_NAMES)
+    spp = root.create_array("layers/spp", shape=(layout.num_layers,), dtype="int32",
+                            chunks=(layout.num_layers,), dimension_names=("level",))
+    spp[:] = np.array(layout.layer_spp, np.int32)
+    root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
+    if layout.radiance_encoding == "log16":
+        root["inputs/radiance"].attrs["log16"] = {
+            "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,
+            "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
+    root.attrs.update({
+        "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, "layout": layout.to_dict(),
+        "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
+        "package_versions": package_versions(), "git_hash": git_hash(),
+    })
+    return root
+
+
+def open_group(path_or_url, mode: str = "r"):
+    """Open an existing store's root group after checking it is ours and of this schema version.
+    Returns ``(group, layout)``. Raises StoreNotFoundError, ForeignStoreError, SchemaVersionError."""
+    import zarr
+    if not _exists(path_or_url):
+        if isinstance(path_or_url, (str, os.PathLike)) and os.path.exists(os.fspath(path_or_url)):
+            raise ForeignStoreError(f"{path_or_url!s} exists but is not a Zarr v3 group (no zarr.json)")
+        raise StoreNotFoundError(f"no store at {path_or_url!s}")
+    try:
+        root = zarr.open_group(_zarr_store(path_or_url), mode=mode)
+    except Exception as e:  # noqa: BLE001
+        raise ForeignStoreError(f"{path_or_url!s} is not a readable Zarr group: {e}") from e
+    attrs = dict(root.attrs)
+    if attrs.get("kind") != STORE_KIND:
+        raise ForeignStoreError(f"{path_or_url!s} is a Zarr group but not a {STORE_KIND} store "
+                                f"(root attribute 'kind' is {attrs.get('kind')!r})")
+    version = attrs.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads and writes "
+                                 f"version {SCHEMA_VERSION} only (re-create the store or use a matching release)")
+    layout = StoreLayout.from_dict(attrs["layout"])
+    missing = [s.path for s in ARRAYS if s.path not in root]
+    if missing:
+        raise ForeignStoreError(f"{path_or_url!s} lacks schema arrays: {', '.join(missing)}")
+    return root, layout
+
+
+def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
+    """Grow every per-frame array to ``num_frames`` (never shrinks). Metadata only; call it from one
+    process (the graph's driver) before tasks write the new frames."""
+    if num_frames <= layout.num_frames:
+        return layout
+    for spec in ARRAYS:
+        arr = root[spec.path]
+        arr.resize((num_frames,) + tuple(arr.shape[1:]))
+    new = layout.with_frames(num_frames)
+    root.attrs["layout"] = new.to_dict()
+    return new
+
+
+def layout_of(root) -> StoreLayout:
+    return StoreLayout.from_dict(dict(root.attrs)["layout"])
+
+
+__all__ = ["SCHEMA_VERSION", "STORE_KIND", "StoreLayout", "ArraySpec", "ARRAYS", "ARRAY_BY_PATH",
+           "ARRAY_BY_SOURCE", "GROUPS", "create_store", "open_group", "grow", "package_versions",
+           "git_hash", "FLOAT16_MAX"]

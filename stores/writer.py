@@ -1,0 +1,144 @@
+"""Resumable, lock-free frame writer.
+
+Protocol for one frame ``i`` (one task writes it; tasks never share a chunk, so no locks):
+
+1. ``status/complete[i] = False`` and ``status/error[i] = ''`` (a re-run first invalidates the frame);
+2. every image array's shard for frame ``i`` (whole shards: a re-run overwrites cleanly);
+3. the camera matrices and ``frames/*`` metadata of frame ``i``;
+4. ``status/complete[i] = True``, last.
+
+A crash anywhere before step 4 leaves the frame marked incomplete, never half-valid; readers refuse
+incomplete frames (``IncompleteFrameError``) and ``incomplete_frames()`` lists them for a re-run.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import numpy as np
+
+from stores import schema
+from stores.contract import FEATURE_NAMES, FRAME_ARRAYS, FRAME_META
+from stores.errors import FrameIndexError, StoreLayoutError, StoreValueError
+from stores.schema import ARRAY_BY_SOURCE, StoreLayout
+
+
+def _expected_shape(tmpl, layout: StoreLayout) -> tuple[int, ...]:
+    dims = {"H": layout.height, "W": layout.width, "S": layout.spp, "L": layout.num_layers}
+    return tuple(dims.get(d, d) for d in tmpl)
+
+
+def check_frame(arrays: dict, layout: StoreLayout) -> None:
+    """Raise StoreLayoutError/StoreValueError unless ``arrays`` is a storable frame for ``layout``:
+    every ``FRAME_ARRAYS`` key with its exact shape, every ``FRAME_META`` key, features within the
+    feature dtype's range."""
+    missing = [k for k in FRAME_ARRAYS if k not in arrays]
+    if missing:
+        raise StoreLayoutError(f"frame lacks arrays: {', '.join(missing)}")
+    for name, (tmpl, _dtype) in FRAME_ARRAYS.items():
+        shape = _expected_shape(tmpl, layout)
+        got = tuple(np.shape(arrays[name]))
+        if got != shape:
+            raise StoreLayoutError(f"array {name!r} has shape {got}, the store expects {shape} "
+                                   f"(H={layout.height}, W={layout.width}, S={layout.spp}, L={layout.num_layers})")
+    meta = arrays.get("meta")
+    if not isinstance(meta, dict):
+        raise StoreLayoutError("frame lacks its 'meta' dict (stores.contract.FRAME_META)")
+    missing = [k for k in FRAME_META if k not in meta]
+    if missing:
+        raise StoreLayoutError(f"frame meta lacks: {', '.join(missing)}")
+    if layout.feature_dtype == "float16":
+        feats = np.asarray(arrays["features"])
+        finite = np.isfinite(feats)
+        big = finite & (np.abs(feats) > schema.FLOAT16_MAX)
+        if big.any():
+            bad = sorted({FEATURE_NAMES[c] for c in np.nonzero(big)[-1]})
+            raise StoreValueError(f"features {bad} exceed float16's range (|x| <= 65504); rescale them in the "
+                                  f"renderer or create the store with feature_dtype='float32'")
+
+
+class StoreWriter:
+    """Writes frames into an existing store. Safe to use from many processes at once as long as each
+    frame index is written by one of them at a time.
+
+    >>> w = StoreWriter(path); w.write_frame(3, render_frame(...))
+    """
+
+    def __init__(self, path):
+        self.path = path
+        self.root, self.layout = schema.open_group(path, mode="r+")
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.root["status/complete"].shape[0])
+
+    def _check_index(self, index: int) -> int:
+        if not (0 <= int(index) < self.num_frames):
+            raise FrameIndexError(f"frame index {index} is outside 0..{self.num_frames - 1}")
+        return int(index)
+
+    def write_frame(self, index: int, arrays: dict, *, on_progress: Callable[[str], None] | None = None) -> None:
+        """Write frame ``index`` from the renderer's dict (``FRAME_ARRAYS`` + ``meta``), completion flag
+        last. ``on_progress(path)`` is called after each array is written (logging, tests)."""
+        index = self._check_index(index)
+        check_frame(arrays, self.layout)
+        root = self.root
+        root["status/complete"][index] = False
+        root["status/error"][index] = ""
+        for source, spec in ARRAY_BY_SOURCE.items():
+            root[spec.path][index] = spec.to_store(arrays[source], self.layout)
+            if on_progress:
+                on_progress(spec.path)
+        meta = dict(arrays["meta"])
+        meta.setdefault("clip_id", meta["scene_seed"])
+        for key in list(FRAME_META) + ["clip_id"]:
+            value = meta[key]
+            root[f"frames/{key}"][index] = str(value) if FRAME_META.get(key) is str else value
+        if on_progress:
+            on_progress("frames")
+        root["status/complete"][index] = True
+        if on_progress:
+            on_progress("status/complete")
+
+    def mark_failed(self, index: int, error) -> None:
+        """Record that frame ``index`` failed: ``status/complete`` False, ``status/error`` the text
+        (an exception becomes ``'TypeName: message'``)."""
+        index = self._check_index(index)
+        text = f"{type(error).__name__}: {error}" if isinstance(error, BaseException) else str(error)
+        self.root["status/complete"][index] = False
+        self.root["status/error"][index] = text or "failed"
+
+    def frame_complete(self, index: int) -> bool:
+        return bool(self.root["status/complete"][self._check_index(index)])
+
+    def incomplete_frames(self) -> list[int]:
+        return [int(i) for i in np.nonzero(~self.root["status/complete"][:])[0]]
+
+    def errors(self) -> dict[int, str]:
+        """Frame index -> recorded error text, for frames with one."""
+        err = self.root["status/error"][:]
+        return {int(i): str(err[i]) for i in range(len(err)) if str(err[i])}
+
+
+def open_or_create(path, layout: StoreLayout, config: dict | None = None) -> StoreWriter:
+    """Open the store at ``path`` for writing, creating it if missing. An existing store must have the
+    same frame layout (resolution, spp, layers, tile, encodings) and schema version; if ``layout``
+    has more frames, every array grows (append). A different ``config`` replaces the recorded one and
+    the previous one goes to ``config_history``. Call from one process before tasks start writing."""
+    exists = schema._exists(path)
+    if not exists:
+        schema.create_store(path, layout, config)
+        return StoreWriter(path)
+    root, have = schema.open_group(path, mode="r+")
+    if not have.frame_shape_compatible(layout):
+        a, b = have.to_dict(), layout.to_dict()
+        diff = {k: (a[k], b[k]) for k in a if k != "num_frames" and a[k] != b[k]}
+        raise StoreLayoutError(f"store at {os.fspath(path)!s} has a different frame layout "
+                               f"(field: (store, requested)): {diff}")
+    schema.grow(root, have, layout.num_frames)
+    if config is not None:
+        attrs = dict(root.attrs)
+        if attrs.get("config") != config:
+            root.attrs["config_history"] = list(attrs.get("config_history", [])) + [attrs.get("config")]
+            root.attrs["config"] = config
+    return StoreWriter(path)
