@@ -90,6 +90,7 @@ def mitsuba(variant: str | None = None, threads: int | None = None):
         if threads is not None:
             _set_threads(threads)
         return mi
+    _check_known(variant)
     if variant.startswith("llvm"):
         lib = find_libllvm()
         if lib is None:
@@ -98,7 +99,7 @@ def mitsuba(variant: str | None = None, threads: int | None = None):
                 "Install Debian's package 'libllvm19' (apt-get install libllvm19, or run `make setup` as root) "
                 "or set DRJIT_LIBLLVM_PATH to a libLLVM.so of version >= 16.")
         os.environ["DRJIT_LIBLLVM_PATH"] = lib
-        if "mitsuba" not in sys.modules and not _state.get(f"probed:{variant}:{lib}"):
+        if not _state.get(f"probed:{variant}:{lib}"):
             # Probe once per process in a child so a broken LLVM gives an error, not an abort.
             marker = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "denoise-datagen" / (
                 f"variant-ok-{variant}-" + lib.replace("/", "_"))
@@ -123,6 +124,15 @@ def mitsuba(variant: str | None = None, threads: int | None = None):
     if threads is not None:
         _set_threads(threads)
     return mi
+
+
+def _check_known(variant: str) -> None:
+    try:
+        import mitsuba as mi_mod  # importing does not start a backend
+    except ImportError as e:  # pragma: no cover - setup installs it
+        raise VariantError(f"mitsuba is not installed ({e}); run `make setup`") from e
+    if variant not in mi_mod.variants():
+        raise VariantError(f"unknown Mitsuba variant {variant!r}; this build has: {', '.join(mi_mod.variants())}")
 
 
 def _set_threads(n: int) -> None:
