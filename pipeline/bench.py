@@ -1,0 +1,47 @@
+"""``python -m pipeline bench`` (``make bench``): every benchmark, figures printed, one run.
+
+Each area contributes ``run() -> dict`` in its own module; this collects them and prints a summary.
+Speed and memory targets live here, not in timed tests.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import time
+import traceback
+
+SUITES = {
+    "render": "pipeline.bench_render",     # samples/s of the per-sample loop and reference vs mi.render, peak memory
+    "store": "stores.bench",               # crops/s and MB/s vs raw np.load, stored/raw bytes
+    "dask": "pipeline.bench_dask",         # frames/min 1 vs 2 workers, scheduler overhead per task
+    "models": "training.bench",            # inference ms per megapixel for each model and OIDN
+}
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--only", nargs="*", choices=sorted(SUITES), help="run only these benchmark suites")
+    p.add_argument("--json", help="also write all figures to this JSON file")
+
+
+def run(args) -> int:
+    results, failed = {}, []
+    for name, module in SUITES.items():
+        if args.only and name not in args.only:
+            continue
+        print(f"\n=== bench: {name} ({module}) ===", flush=True)
+        t0 = time.perf_counter()
+        try:
+            results[name] = importlib.import_module(module).run()
+        except Exception:  # a broken suite is reported, the others still run
+            traceback.print_exc()
+            failed.append(name)
+            continue
+        print(f"--- {name} done in {time.perf_counter() - t0:.1f} s", flush=True)
+    print("\n=== summary ===")
+    print(json.dumps(results, indent=2, default=str))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2, default=str)
+    if failed:
+        print(f"failed suites: {', '.join(failed)}")
+    return 1 if failed else 0
