@@ -188,7 +188,7 @@ def scan_model_folder(path: str | os.PathLike) -> list[str]:
             _load_user_file(str(p), _file_stamp(str(p)))
         except MeshError as e:
             msg = f"skipping broken model file {str(p)!r}: {e}"
-            log.warning(msg)
+            log.info(msg)
             warnings.warn(msg, BrokenModelWarning, stacklevel=2)
             continue
         good.append(str(p))
@@ -398,27 +398,29 @@ def _extrude(spec):
     outline = _points(spec, "outline", 2, 3)
     if outline is None:
         outline = random_outline(rng)
-    ang = np.unwrap(np.arctan2(outline[:, 1], outline[:, 0]))
-    steps = np.diff(np.concatenate([ang, [ang[0] + 2 * np.pi * np.sign(ang[-1] - ang[0] or 1)]]))
-    rad = np.linalg.norm(outline, axis=1)
-    if (rad <= 0).any() or not ((steps > 0).all() or (steps < 0).all()) \
-            or abs(abs(ang[-1] - ang[0]) + abs(steps[-1]) - 2 * np.pi) > 1e-6:
-        raise SpecError("mesh.params.outline (extrude) must be star-shaped around the origin "
-                        "(points at monotone angles going once around)")
     height = _param(spec, "height", float(rng.uniform(0.15, 1.5)), 1e-3, 1e3)
     bevel = _param(spec, "bevel", 0.0, 0.0, 0.49) * height
+    outline = _dedupe_ring(outline)
+    if len(outline) < 3 or abs(_polygon_area(outline)) < 1e-9 * max(np.ptp(outline, axis=0).max(), 1e-30) ** 2:
+        raise SpecError("mesh.params.outline (extrude) must enclose a non-zero area")
+    if _polygon_area(outline) < 0:        # counter-clockwise in (x, z)
+        outline = outline[::-1].copy()
+    if not _is_simple(outline):
+        raise SpecError("mesh.params.outline (extrude) must be a simple polygon (its edges cross)")
+    cap = _fan_or_earclip(outline)        # (T, 3) counter-clockwise triangles of the outline
     k = len(outline)
+    centre = _polygon_centroid(outline)
     if bevel > 0:
-        inset = np.maximum(rad - bevel, 0.5 * rad) / rad
-        layers = [(-height / 2, inset), (-height / 2 + bevel, 1.0), (height / 2 - bevel, 1.0), (height / 2, inset)]
+        reach = float(np.linalg.norm(outline - centre, axis=1).max())
+        s_in = max(1.0 - bevel / reach, 0.5)
+        layers = [(-height / 2, s_in), (-height / 2 + bevel, 1.0), (height / 2 - bevel, 1.0), (height / 2, s_in)]
     else:
         layers = [(-height / 2, 1.0), (height / 2, 1.0)]
     ring = []
-    for y, s in layers:
-        p = outline * np.asarray(s, np.float64).reshape(-1, 1)
+    for y, sc in layers:                  # insets scale toward the centroid (keeps the polygon simple)
+        p = centre + (outline - centre) * sc
         ring.append(np.stack([p[:, 0], np.full(k, y), p[:, 1]], axis=1))
-    v = np.concatenate(ring + [[[0.0, -height / 2, 0.0], [0.0, height / 2, 0.0]]])
-    cb, ct = len(v) - 2, len(v) - 1
+    v = np.concatenate(ring)
     i = np.arange(k)
     j = (i + 1) % k
     faces = []
@@ -426,8 +428,79 @@ def _extrude(spec):
         a, b, c, d = L * k + i, L * k + j, (L + 1) * k + i, (L + 1) * k + j
         faces += [np.stack([a, d, b], 1), np.stack([a, c, d], 1)]
     top = (len(layers) - 1) * k
-    faces += [np.stack([np.full(k, cb), i, j], 1), np.stack([np.full(k, ct), top + j, top + i], 1)]
+    faces += [cap, top + cap[:, ::-1]]    # bottom faces -y, top faces +y
     return v, np.concatenate(faces)
+
+
+def _dedupe_ring(p: np.ndarray) -> np.ndarray:
+    """Drop consecutive repeated points (and a closing point equal to the first)."""
+    keep = np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1) > 1e-12
+    return p[keep] if keep.any() else p[:1]
+
+
+def _polygon_area(p: np.ndarray) -> float:
+    q = np.roll(p, -1, axis=0)
+    return 0.5 * float((p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]).sum())
+
+
+def _polygon_centroid(p: np.ndarray) -> np.ndarray:
+    q = np.roll(p, -1, axis=0)
+    cr = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
+    a = cr.sum() / 2.0
+    return np.array([((p[:, 0] + q[:, 0]) * cr).sum(), ((p[:, 1] + q[:, 1]) * cr).sum()]) / (6.0 * a)
+
+
+def _is_simple(p: np.ndarray) -> bool:
+    """No two non-adjacent edges of the closed polygon intersect (vectorised O(n^2))."""
+    n = len(p)
+    a, b = p, np.roll(p, -1, axis=0)
+    ii, jj = np.triu_indices(n, k=2)
+    keep = ~((ii == 0) & (jj == n - 1))
+    ii, jj = ii[keep], jj[keep]
+
+    def orient(o, x, y):
+        return np.sign((x[:, 0] - o[:, 0]) * (y[:, 1] - o[:, 1]) - (x[:, 1] - o[:, 1]) * (y[:, 0] - o[:, 0]))
+    d1 = orient(a[ii], b[ii], a[jj])
+    d2 = orient(a[ii], b[ii], b[jj])
+    d3 = orient(a[jj], b[jj], a[ii])
+    d4 = orient(a[jj], b[jj], b[ii])
+    return not ((d1 * d2 <= 0) & (d3 * d4 <= 0)).any()
+
+
+def _fan_or_earclip(p: np.ndarray) -> np.ndarray:
+    """Triangles (int64, T×3, counter-clockwise) of a simple counter-clockwise polygon: a fan from
+    vertex 0 when the polygon is convex, else ear clipping."""
+    n = len(p)
+    q, r = np.roll(p, -1, axis=0), np.roll(p, 1, axis=0)
+    turn = (p[:, 0] - r[:, 0]) * (q[:, 1] - p[:, 1]) - (p[:, 1] - r[:, 1]) * (q[:, 0] - p[:, 0])
+    if (turn >= 0).all():
+        return np.stack([np.zeros(n - 2, np.int64), np.arange(1, n - 1), np.arange(2, n)], axis=1)
+    idx = list(range(n))
+    tris = []
+    while len(idx) > 3:
+        m = len(idx)
+        pts = p[idx]
+        for t in range(m):
+            a, b, c = pts[t - 1], pts[t], pts[(t + 1) % m]
+            cross = (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
+            if cross <= 1e-15:
+                continue
+            others = np.delete(pts, [(t - 1) % m, t, (t + 1) % m], axis=0)
+            e = [(b - a, a), (c - b, b), (a - c, c)]
+            inside = np.ones(len(others), bool)
+            for d, o in e:
+                inside &= d[0] * (others[:, 1] - o[1]) - d[1] * (others[:, 0] - o[0]) >= 0
+            if not inside.any():
+                tris.append((idx[t - 1], idx[t], idx[(t + 1) % m]))
+                idx.pop(t)
+                break
+        else:   # no ear: only collinear vertices can block; drop one without a triangle
+            flat = [t for t in range(m) if abs(np.cross(pts[t] - pts[t - 1], pts[(t + 1) % m] - pts[t])) <= 1e-12]
+            if not flat:
+                raise MeshError("extrude outline could not be triangulated")
+            idx.pop(flat[0])
+    tris.append(tuple(idx))
+    return np.asarray(tris, np.int64)
 
 
 def _blob(spec):
