@@ -1,0 +1,176 @@
+"""Command line: look at what the scene generator makes.
+
+    python -m scene_gen preview --seed 3 --kind indoor --res 256 --spp 64 --out data/preview/indoor-3.exr
+    python -m scene_gen spec --seed 3 --kind outdoor                   # the SceneSpec as JSON
+    python -m scene_gen contact-sheet --count 16 --res 160 --spp 64 --out docs/contact_sheet.png
+
+Previews use a fixed tone map (``scene_gen.imageio.tonemap``: log(1 + x), then sRGB; no auto
+exposure), so what looks right here is what the training data holds. Errors are one line on stderr
+with exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scene_gen.spec import SCENE_KINDS
+
+
+def _config(path: str | None):
+    from scene_gen.config import ConfigError, SceneGenConfig
+    if path is None:
+        return SceneGenConfig()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--config {path!r} does not exist")
+    import yaml
+    data = yaml.safe_load(p.read_text()) or {}
+    if isinstance(data, dict) and "scene_gen" in data:
+        data = data["scene_gen"]
+    return SceneGenConfig.from_dict(data)
+
+
+def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, threads: int | None = None) -> np.ndarray:
+    """Render frame ``frame`` of ``spec`` with Mitsuba's own ``mi.render`` (float32, HWC linear RGB).
+
+    Moving objects are shown at the middle of the exposure (previews do not blur)."""
+    from pipeline.variant import mitsuba
+    from scene_gen import to_mitsuba
+    mi = mitsuba(threads=threads)
+    tau = frame + 0.5 * spec.shutter if spec.has_motion else None
+    scene = to_mitsuba.load(spec, frame, res=(res, res), tau=tau)
+    img = mi.render(scene, spp=spp, seed=seed)
+    return np.asarray(img, dtype=np.float32)[..., :3]
+
+
+def _preview(a) -> int:
+    from scene_gen.imageio import write_exr, write_png
+    from scene_gen.sampling import sample_scene
+    t0 = time.perf_counter()
+    spec = sample_scene(a.seed, a.kind, num_frames=a.frames, res=a.res, config=_config(a.config))
+    t1 = time.perf_counter()
+    img = render_spec(spec, res=a.res, spp=a.spp, frame=a.frame)
+    t2 = time.perf_counter()
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".png":
+        write_png(out, img)
+        written = [out]
+    else:
+        exr = out if out.suffix.lower() == ".exr" else out.with_suffix(".exr")
+        write_exr(exr, img)
+        write_png(exr.with_suffix(".png"), img)
+        written = [exr, exr.with_suffix(".png")]
+    if a.save_spec:
+        Path(a.save_spec).write_text(spec.to_json(indent=1))
+    print(f"{a.kind} seed {a.seed}: {len(spec.objects)} objects, lights "
+          f"{[l.kind for l in spec.lights]} + {sum(o.emitter_radiance is not None for o in spec.objects)} area, "
+          f"defocus={spec.has_defocus} motion={spec.has_motion}; sampled in {t1 - t0:.2f} s, "
+          f"rendered {a.res}x{a.res}x{a.spp} spp in {t2 - t1:.1f} s, mean {float(img.mean()):.3f} -> "
+          + ", ".join(map(str, written)))
+    return 0
+
+
+def _spec(a) -> int:
+    from scene_gen.sampling import sample_scene
+    spec = sample_scene(a.seed, a.kind, num_frames=a.frames, res=a.res, config=_config(a.config))
+    print(spec.to_json(indent=1))
+    return 0
+
+
+def _contact_sheet(a) -> int:
+    from PIL import Image, ImageDraw
+
+    from scene_gen.imageio import tonemap
+    from scene_gen.sampling import sample_scene
+    cfg = _config(a.config)
+    cols = a.cols or int(np.ceil(np.sqrt(a.count)))
+    rows = int(np.ceil(a.count / cols))
+    pad = 2
+    sheet = Image.new("RGB", (cols * (a.res + pad) + pad, rows * (a.res + pad) + pad), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for i in range(a.count):
+        kind = SCENE_KINDS[i % 2]
+        seed = a.seed + i // 2
+        spec = sample_scene(seed, kind, res=a.res, config=cfg)
+        img = render_spec(spec, res=a.res, spp=a.spp)
+        tile = Image.fromarray((tonemap(img) * 255 + 0.5).astype(np.uint8))
+        x, y = pad + (i % cols) * (a.res + pad), pad + (i // cols) * (a.res + pad)
+        sheet.paste(tile, (x, y))
+        flags = ("D" if spec.has_defocus else "") + ("M" if spec.has_motion else "")
+        draw.text((x + 3, y + 2), f"{kind} {seed} {flags}", fill=(255, 255, 255))
+        print(f"[{i + 1}/{a.count}] {kind} seed {seed}: {len(spec.objects)} objects", flush=True)
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out, optimize=True)
+    print(f"wrote {out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m scene_gen", description="Random scenes for denoiser training data.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp, res):
+        sp.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+        sp.add_argument("--res", type=int, default=res, help=f"image width and height in pixels (default {res})")
+        sp.add_argument("--config", help="YAML with scene_gen settings (a 'scene_gen' section or the settings themselves)")
+
+    pv = sub.add_parser("preview", help="render one scene to EXR and a tone-mapped PNG")
+    common(pv, 256)
+    pv.add_argument("--kind", choices=SCENE_KINDS, default="indoor")
+    pv.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    pv.add_argument("--frames", type=int, default=1, help="frames in the clip (default 1)")
+    pv.add_argument("--frame", type=int, default=0, help="which frame to render (default 0)")
+    pv.add_argument("--out", required=True, help="file.exr (writes a .png beside it) or file.png")
+    pv.add_argument("--save-spec", help="also write the SceneSpec JSON here")
+    pv.set_defaults(func=_preview)
+
+    sp = sub.add_parser("spec", help="print the SceneSpec JSON of one scene")
+    common(sp, 256)
+    sp.add_argument("--kind", choices=SCENE_KINDS, default="indoor")
+    sp.add_argument("--frames", type=int, default=1)
+    sp.set_defaults(func=_spec)
+
+    cs = sub.add_parser("contact-sheet", help="a PNG grid of random indoor and outdoor scenes")
+    common(cs, 160)
+    cs.add_argument("--count", type=int, default=16, help="number of scenes, alternating indoor/outdoor (default 16)")
+    cs.add_argument("--cols", type=int, default=0, help="columns (default: square)")
+    cs.add_argument("--spp", type=int, default=64)
+    cs.add_argument("--out", default="docs/contact_sheet.png")
+    cs.set_defaults(func=_contact_sheet)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from scene_gen.errors import SceneGenError
+    args = build_parser().parse_args(argv)
+    for name in ("res", "spp", "count", "frames"):
+        v = getattr(args, name, None)
+        if v is not None and v < 1:
+            print(f"error: --{name} must be >= 1, got {v}", file=sys.stderr)
+            return 2
+    if getattr(args, "frame", 0) is not None and hasattr(args, "frames") and hasattr(args, "frame") \
+            and not 0 <= args.frame < args.frames:
+        print(f"error: --frame must lie in [0, {args.frames - 1}], got {args.frame}", file=sys.stderr)
+        return 2
+    try:
+        return args.func(args)
+    except (SceneGenError, ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # a library failure: still one line, but say what it was
+        from pipeline.errors import VariantError
+        if isinstance(e, VariantError):
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

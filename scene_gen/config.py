@@ -1,0 +1,118 @@
+"""SceneGenConfig: the knobs of random scene synthesis (pure data, validated at construction).
+
+Units are metres and degrees. Every field is checked when the config is built and a bad value raises
+:class:`ConfigError` naming the field and its allowed range, e.g.
+``scene_gen.indoor_objects must be an integer in [0, 10000], got -3``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from scene_gen.errors import SpecError
+
+
+class ConfigError(SpecError):
+    """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
+
+
+def _int_in(name: str, v, lo: int, hi: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ConfigError(f"scene_gen.{name} must be an integer in [{lo}, {hi}], got {v!r}")
+
+
+def _prob(name: str, v) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v <= 1.0):
+        raise ConfigError(f"scene_gen.{name} must be a probability in [0, 1], got {v!r}")
+
+
+def _range(name: str, v, lo: float, hi: float, *, open_lo: bool = False, open_hi: bool = False) -> tuple:
+    ok = isinstance(v, (tuple, list)) and len(v) == 2 and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    if ok:
+        a, b = float(v[0]), float(v[1])
+        ok = a <= b and (a > lo if open_lo else a >= lo) and (b < hi if open_hi else b <= hi)
+    if not ok:
+        lb = "(" if open_lo else "["
+        rb = ")" if open_hi else "]"
+        raise ConfigError(f"scene_gen.{name} must be a pair (min, max) with min <= max inside "
+                          f"{lb}{lo}, {hi}{rb}, got {v!r}")
+    return (float(v[0]), float(v[1]))
+
+
+@dataclass(frozen=True)
+class SceneGenConfig:
+    """Random scene synthesis settings (Gharbi et al. 2019 as summarised by Munkberg et al. 2020, sec. 4).
+
+    Counts are the meshes *placed*; objects outside every frame's view frustum are dropped afterwards,
+    so a scene usually holds fewer. ``aperture_range`` is the lens radius as a fraction of the focus
+    distance (log-uniform), so defocus looks alike at every scene scale.
+    """
+    outdoor_objects: int = 75
+    indoor_objects: int = 50
+    p_defocus: float = 0.5
+    p_motion: float = 0.5
+    p_object_motion: float = 0.5          # in a scene with motion, the share of objects that move
+    fov_range: tuple = (15.0, 65.0)       # degrees, within (0, 180)
+    aperture_range: tuple = (0.002, 0.05)  # lens radius / focus distance, log-uniform
+    speed_range: tuple = (0.1, 1.5)       # object speed in object radii per frame
+    p_sunsky: float = 0.5                 # outdoor: Mitsuba sunsky, else a procedural HDR probe
+    p_floating: float = 0.1               # share of objects that float above the ground
+    model_folder: str | None = None       # user OBJ/PLY/GLB models (optional)
+    p_user_model: float = 0.5             # share of meshes taken from model_folder when it is set
+    max_triangles: int = 20000            # per-object triangle budget ceiling
+    min_triangles: int = 64               # per-object triangle budget floor
+    tris_per_px: float = 2.0              # budget per pixel of projected radius (see meshes.triangle_budget)
+    max_depth: int = 5                    # path bounces
+    shutter: float = 0.5                  # exposure as a fraction of the frame interval
+
+    def __post_init__(self):
+        _int_in("outdoor_objects", self.outdoor_objects, 0, 10000)
+        _int_in("indoor_objects", self.indoor_objects, 0, 10000)
+        for n in ("p_defocus", "p_motion", "p_object_motion", "p_sunsky", "p_floating", "p_user_model", "shutter"):
+            _prob(n, getattr(self, n))
+        object.__setattr__(self, "fov_range", _range("fov_range", self.fov_range, 0.0, 180.0,
+                                                     open_lo=True, open_hi=True))
+        object.__setattr__(self, "aperture_range", _range("aperture_range", self.aperture_range, 0.0, 1.0,
+                                                          open_lo=True))
+        object.__setattr__(self, "speed_range", _range("speed_range", self.speed_range, 0.0, 100.0))
+        _int_in("max_triangles", self.max_triangles, 12, 10_000_000)
+        _int_in("min_triangles", self.min_triangles, 12, 10_000_000)
+        if self.min_triangles > self.max_triangles:
+            raise ConfigError(f"scene_gen.min_triangles ({self.min_triangles}) must be <= "
+                              f"scene_gen.max_triangles ({self.max_triangles})")
+        if (isinstance(self.tris_per_px, bool) or not isinstance(self.tris_per_px, (int, float))
+                or not (0 < self.tris_per_px <= 1e6)):
+            raise ConfigError(f"scene_gen.tris_per_px must be a number in (0, 1e6], got {self.tris_per_px!r}")
+        _int_in("max_depth", self.max_depth, 1, 1000)
+        if self.model_folder is not None:
+            if not isinstance(self.model_folder, (str, Path)) or str(self.model_folder) == "":
+                raise ConfigError(f"scene_gen.model_folder must be a folder path or null, got {self.model_folder!r}")
+            p = Path(self.model_folder)
+            if not p.is_dir():
+                raise ConfigError(f"scene_gen.model_folder {str(p)!r} is not an existing folder")
+            object.__setattr__(self, "model_folder", str(p))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k, v in d.items():
+            if isinstance(v, tuple):
+                d[k] = list(v)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "SceneGenConfig":
+        if d is None:
+            return cls()
+        if not isinstance(d, dict):
+            raise ConfigError(f"scene_gen config must be a mapping, got {type(d).__name__}")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ConfigError(f"scene_gen: unknown field(s) {unknown}; known: {sorted(names)}")
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
+        return cls(**kw)
+
+    def objects_for(self, kind: str) -> int:
+        return self.indoor_objects if kind == "indoor" else self.outdoor_objects

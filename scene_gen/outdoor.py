@@ -1,0 +1,120 @@
+"""Outdoor scenes: ~75 meshes resting on a backdrop, lit by ``sunsky`` or a procedural HDR probe (numpy only).
+
+The backdrop is a large ground plane (``plane`` mesh, y = 0), half the time bent up behind the
+objects like a photo-studio cyclorama. The camera stands 0.8–6 m above the ground and looks at a
+point 4–25 m away; objects are dropped where random rays through the image meet the ground (so they
+are in view), mostly resting on it (a few float), without overlapping footprints where possible.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from scene_gen import cameras as cams
+from scene_gen.materials import diffuse, random_material, random_texture
+from scene_gen.spec import LightSpec, MeshSpec, Transform
+
+
+def _f(x) -> float:
+    return round(float(x), 6)
+
+
+def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov: float, res: int,
+                   user_models: list[str]):
+    from scene_gen.sampling import Layout, Placed, probe_params, random_shape, upright
+
+    # camera
+    height = math.exp(r_cam.uniform(math.log(0.8), math.log(6.0)))
+    az = r_cam.uniform(0, 2 * math.pi)
+    dist = r_cam.uniform(4.0, 25.0)
+    fwd = np.array([math.sin(az), 0.0, math.cos(az)])
+    origin = np.array([0.0, height, 0.0])
+    target = origin + fwd * dist
+    target[1] = r_cam.uniform(0.0, 1.5)
+    cam0 = cams.make_camera(origin, target, fov)
+    r, u, f = cams.basis(cam0)
+    tx, ty = cams.tan_half(cam0, (res, res))
+
+    objects = []
+    # backdrop: flat ground or a cyclorama whose curved half rises behind the target
+    bend = rng.uniform() < 0.5
+    ground_tex = random_texture(rng, kind=("checker", "noise", "cells", "stripes")[int(rng.integers(4))])
+    gmat = diffuse(ground_tex.color0, texture=ground_tex) if rng.uniform() < 0.7 else random_material(
+        rng, kind=("roughplastic", "diffuse", "principled")[int(rng.integers(3))])
+    if bend:
+        behind = rng.uniform(3.0, 15.0)
+        size = 60.0
+        center = target * np.array([1, 0, 1]) + fwd * behind
+        yaw = math.degrees(math.atan2(-fwd[0], -fwd[2]))
+        params = {"resolution": 32, "bend": _f(rng.uniform(0.25, 0.6))}
+        curve_line = (center, fwd)
+    else:
+        size, center, yaw = 400.0, np.zeros(3), 0.0
+        params = {"resolution": 1}
+        curve_line = None
+    objects.append(Placed("backdrop", MeshSpec("plane", params, seed=0), gmat,
+                          Transform((_f(center[0]), 0.0, _f(center[2])), (0.0, _f(yaw), 0.0), (size, size, size)),
+                          radius=size * 1.5, keep=True, movable=False, budget=False))
+
+    # objects where random rays through the image meet the ground
+    placed_xz, placed_r = [], []
+    n = cfg.outdoor_objects
+    k = 0
+    tries = 0
+    while k < n and tries < 40 * n + 100:
+        tries += 1
+        shape, half = random_shape(rng, user_models, cfg.p_user_model)
+        size = math.exp(rng.uniform(math.log(0.25), math.log(2.0)))
+        scale, rot, rest, radius = upright(rng, half, size)
+        if rng.uniform() < 0.85:   # in view: a ray through a random image point
+            px, py = rng.uniform(-1, 1, 2)
+            d = f + r * px * tx + u * py * ty
+            if d[1] >= -1e-3:
+                continue
+            t = -origin[1] / d[1]
+            p = origin + d * t
+        else:                       # anywhere around the target (may be culled)
+            a, rr = rng.uniform(0, 2 * math.pi), 30 * math.sqrt(rng.uniform())
+            p = target * np.array([1, 0, 1]) + rr * np.array([math.cos(a), 0, math.sin(a)])
+        cam_d = float(np.linalg.norm(p - origin))
+        if cam_d < 2.5 * radius + 0.5 or cam_d > 70.0:
+            continue
+        if curve_line is not None and np.dot(p - curve_line[0], curve_line[1]) > -radius:
+            continue   # keep objects on the flat part of the cyclorama
+        xz = p[[0, 2]]
+        fp = radius * 0.7
+        if placed_xz and k < n and tries < 20 * n:
+            dd = np.linalg.norm(np.asarray(placed_xz) - xz, axis=1)
+            if (dd < np.asarray(placed_r) + fp).any():
+                continue
+        floating = rng.uniform() < cfg.p_floating
+        y = rest + (rng.uniform(0.3, 3.0) * size if floating else 0.0)
+        objects.append(Placed(f"obj_{k:03d}", shape, random_material(rng),
+                              Transform((_f(xz[0]), _f(y), _f(xz[1])), rot, scale), radius=radius,
+                              planar=not floating))
+        placed_xz.append(xz)
+        placed_r.append(fp)
+        k += 1
+
+    # environment: sunsky or a procedural probe
+    lights = []
+    if rng.uniform() < cfg.p_sunsky:
+        el = math.radians(rng.uniform(10, 70))
+        saz = rng.uniform(0, 2 * math.pi)
+        sun = [_f(math.cos(el) * math.sin(saz)), _f(math.sin(el)), _f(math.cos(el) * math.cos(saz))]
+        lights.append(LightSpec("sunsky", {"sun_direction": sun, "turbidity": _f(rng.uniform(2, 8)),
+                                           "albedo": _f(rng.uniform(0.1, 0.4)),
+                                           "sun_scale": _f(SUNSKY_SCALE * rng.uniform(0.6, 1.2)),
+                                           "sky_scale": _f(SUNSKY_SCALE * rng.uniform(0.6, 1.2))}))
+    else:
+        s = math.exp(rng.uniform(math.log(0.5), math.log(1.5)))
+        lights.append(LightSpec("envmap", {"probe": probe_params(rng, sky=0.6 * s, sun=2.0e4 * s),
+                                           "scale": OUTDOOR_PROBE_SCALE, "rotation": _f(rng.uniform(0, 360))}))
+    return Layout(objects=objects, lights=lights, origin=origin, target=target,
+                  camera_step=_f(rng.uniform(0.05, 0.3)))
+
+
+# Radiance scales chosen so a 64-spp preview with the fixed log tone map is well exposed.
+SUNSKY_SCALE = 1.0
+OUTDOOR_PROBE_SCALE = 1.0
