@@ -464,7 +464,12 @@ def _is_simple(p: np.ndarray) -> bool:
     d2 = orient(a[ii], b[ii], b[jj])
     d3 = orient(a[jj], b[jj], a[ii])
     d4 = orient(a[jj], b[jj], b[ii])
-    return not ((d1 * d2 <= 0) & (d3 * d4 <= 0)).any()
+    hit = (d1 * d2 <= 0) & (d3 * d4 <= 0)
+    col = (d1 == 0) & (d2 == 0)           # collinear edges meet only if their extents overlap
+    lo_i, hi_i = np.minimum(a[ii], b[ii]), np.maximum(a[ii], b[ii])
+    lo_j, hi_j = np.minimum(a[jj], b[jj]), np.maximum(a[jj], b[jj])
+    overlap = ((lo_i <= hi_j) & (lo_j <= hi_i)).all(axis=1)
+    return not (hit & (~col | overlap)).any()
 
 
 def _fan_or_earclip(p: np.ndarray) -> np.ndarray:
