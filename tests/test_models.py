@@ -1,0 +1,243 @@
+"""Contract and math tests for every registered denoiser (tiny widths, 16-32 px, 2 samples)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from stores.contract import NUM_FEATURES
+from training.errors import ConfigError, UnknownModelError
+from training.models import build, names
+from training.models.common import IN_FEATURES, gather, splat
+
+TINY_UNET = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,),
+                 unet_decoder=((8,), (8,), (8,)))
+
+
+def tiny_cfg(name: str, **over) -> dict:
+    cfg = dict(TINY_UNET)
+    if name in ("layer", "layer-w"):
+        cfg.update(kernel_size=5, partition_hidden=(8,), kernel_hidden=(8,))
+    elif name == "layer-optimized":
+        cfg.update(kernel_size=3, partition_hidden=(8,), kernel_hidden=(8,))
+    elif name in ("pixelgather", "samplesplat"):
+        cfg.update(kernel_size=5, kernel_hidden=(8,))
+    cfg.update(over)
+    return cfg
+
+
+PAPER_MODELS = ["layer", "layer-w", "pixelgather", "samplesplat", "layer-optimized"]
+
+
+def make_batch(b=2, s=2, h=24, w=20, seed=0, scale=1.0):
+    g = torch.Generator().manual_seed(seed)
+    rad = torch.rand(b, s, 3, h, w, generator=g) * scale
+    feat = torch.rand(b, s, NUM_FEATURES, h, w, generator=g)
+    feat[:, :, 3] *= 50.0                                            # depth in scene units
+    return {"radiance": rad, "features": feat}
+
+
+def test_registry_has_the_paper_models():
+    assert set(PAPER_MODELS) <= set(names())
+    with pytest.raises(UnknownModelError):
+        build("no-such-model")
+    with pytest.raises(ConfigError, match="layers"):
+        build("layer", layers=6)
+    with pytest.raises(ConfigError, match="kernel_size"):
+        build("pixelgather", kernel_size=4)
+
+
+@pytest.mark.parametrize("name", PAPER_MODELS)
+class TestModelContract:
+    """Every registered model: shapes, rebuild from config, finite forward AND backward on hard inputs."""
+
+    def test_shape_and_rebuild(self, name):
+        torch.manual_seed(0)
+        m = build(name, **tiny_cfg(name))
+        batch = make_batch()
+        out = m(batch)
+        assert out.shape == (2, 3, 24, 20) and out.dtype == torch.float32
+        m2 = build(name, **m.config)
+        m2.load_state_dict(m.state_dict())
+        assert torch.equal(m2(batch), out)
+        assert m.param_count() > 0 and m.fmas_per_pixel(8) > m.fmas_per_pixel(1) * 0.99
+
+    @pytest.mark.parametrize("case", ["fireflies", "huge", "zeros", "zero_albedo", "one_layer"])
+    def test_stability(self, name, case):
+        torch.manual_seed(1)
+        m = build(name, **tiny_cfg(name))
+        batch = make_batch(seed=3)
+        rad, feat = batch["radiance"], batch["features"]
+        if case == "fireflies":
+            rad[0, 0, :, 5, 7] = 1e6
+            rad[1, 1, 1, 10, 3] = 1e6
+        elif case == "huge":
+            rad.mul_(1e8)
+        elif case == "zeros":
+            rad.zero_()
+            feat.zero_()
+        elif case == "zero_albedo":
+            feat[:, :, 4:7] = 0.0
+        elif case == "one_layer" and hasattr(m, "partitioner"):
+            # route every sample to layer 0: the partitioner's last layer outputs +-50 logits
+            last = m.partitioner[-1]
+            with torch.no_grad():
+                last.weight.zero_()
+                last.bias.fill_(-50.0)
+                last.bias[0] = 50.0
+        rad.requires_grad_(True)
+        ref = torch.rand(2, 3, 24, 20) * (1e8 if case == "huge" else 1.0)
+        out = m(batch)
+        assert torch.isfinite(out).all()
+        loss = (torch.abs(out - ref) / (out.abs() + ref.abs() + 0.01)).mean()
+        loss.backward()
+        grads = [p.grad for p in m.parameters() if p.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads)
+        assert torch.isfinite(rad.grad).all()
+        if case == "zeros":
+            assert torch.allclose(out, torch.zeros_like(out))
+
+
+# -- kernel application: vectorised unfold/fold against an explicit loop --------------------------
+
+def _loop_gather(x, k, ks):
+    b, c, h, w = x.shape
+    r = ks // 2
+    out = torch.zeros_like(x)
+    for y in range(h):
+        for xx in range(w):
+            for t in range(ks * ks):
+                dy, dx = t // ks - r, t % ks - r
+                if 0 <= y + dy < h and 0 <= xx + dx < w:
+                    out[:, :, y, xx] += k[:, t, y, xx, None] * x[:, :, y + dy, xx + dx]
+    return out
+
+
+def _loop_splat(x, k, ks):
+    b, c, h, w = x.shape
+    r = ks // 2
+    out = torch.zeros_like(x)
+    for y in range(h):
+        for xx in range(w):
+            for t in range(ks * ks):
+                dy, dx = t // ks - r, t % ks - r
+                if 0 <= y + dy < h and 0 <= xx + dx < w:
+                    out[:, :, y + dy, xx + dx] += k[:, t, y, xx, None] * x[:, :, y, xx]
+    return out
+
+
+def test_gather_and_splat_match_explicit_loops():
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 7, 6, generator=g, dtype=torch.float64)
+    k = torch.rand(2, 9, 7, 6, generator=g, dtype=torch.float64)
+    assert torch.allclose(gather(x, k, 3), _loop_gather(x, k, 3))
+    assert torch.allclose(splat(x, k, 3), _loop_splat(x, k, 3))
+    # adjointness: <gather(x), y> == <x, splat(y)> for the same kernels
+    y = torch.rand(2, 3, 7, 6, generator=g, dtype=torch.float64)
+    assert torch.allclose((gather(x, k, 3) * y).sum(), (x * splat(y, k, 3)).sum())
+
+
+# -- limits where the math says models agree --------------------------------------------------------
+
+@pytest.mark.parametrize("name,layers", [("layer", 1), ("layer", 2), ("layer", 5), ("layer-w", 1)])
+def test_kernel_size_one_composites_to_the_pixel_mean(name, layers):
+    """With 1x1 kernels, alpha compositing with appendix-A occupancy (and weighted compositing)
+    reproduces the per-pixel sample mean exactly, whatever the learned partition (weighted
+    compositing only with one layer: its per-layer kernels re-weight layers)."""
+    torch.manual_seed(0)
+    m = build(name, **tiny_cfg(name, kernel_size=1, layers=layers))
+    batch = make_batch(s=4)
+    out = m(batch)
+    assert torch.allclose(out, batch["radiance"].mean(dim=1), rtol=1e-4, atol=1e-5)
+
+
+def _zero_kernels(mlp):
+    with torch.no_grad():
+        mlp[-1].weight.zero_()
+        mlp[-1].bias.zero_()
+
+
+def _box_oracle(mean, ks):
+    """Normalised box filter over the in-frame neighbourhood (independent: avg_pool2d)."""
+    return F.avg_pool2d(mean, ks, stride=1, padding=ks // 2, count_include_pad=False)
+
+
+def test_layer1_samplesplat_pixelgather_agree_with_constant_kernels():
+    """Kernel generators that output 0 give all-ones kernels: LAYER with 1 layer, SAMPLESPLAT and
+    PIXELGATHER all reduce to the normalised 5x5 box filter of the per-pixel mean."""
+    torch.manual_seed(0)
+    batch = make_batch(s=3, seed=5)
+    oracle = _box_oracle(batch["radiance"].mean(dim=1), 5)
+    for name in ("layer", "samplesplat", "pixelgather"):
+        m = build(name, **tiny_cfg(name, **({"layers": 1} if name == "layer" else {})))
+        _zero_kernels(m.kernel_gen)
+        assert torch.allclose(m(batch), oracle, rtol=1e-4, atol=1e-5), name
+
+
+def test_layer1_equals_samplesplat_when_samples_agree():
+    """If every sample of a pixel is identical, LAYER with one layer (kernel from the mean embedding)
+    and SAMPLESPLAT (a kernel per sample) with the same weights produce the same image."""
+    torch.manual_seed(0)
+    one = make_batch(s=1, seed=7)
+    batch = {k: v.expand(-1, 4, -1, -1, -1).contiguous() for k, v in one.items()}
+    layer = build("layer", **tiny_cfg("layer", layers=1))
+    ss = build("samplesplat", **tiny_cfg("samplesplat"))
+    shared = {k: v for k, v in layer.state_dict().items() if not k.startswith("partitioner")}
+    ss.load_state_dict(shared)
+    a, b = layer(batch), ss(batch)
+    assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(a, batch["radiance"].mean(dim=1), atol=1e-3)   # kernels do filter
+
+
+def test_kernel_exponent_never_overflows():
+    m = build("layer", **tiny_cfg("layer"))
+    with torch.no_grad():
+        m.kernel_gen[-1].bias.fill_(1e4)                  # exp(1e4) would be inf without max-subtraction
+        m.kernel_gen[-1].bias[0] = 2e4
+    out = m(make_batch())
+    assert torch.isfinite(out).all()
+
+
+def test_padded_unet_handles_odd_sizes():
+    m = build("layer-optimized", **tiny_cfg("layer-optimized"))
+    out = m(make_batch(h=17, w=13))
+    assert out.shape == (2, 3, 17, 13) and torch.isfinite(out).all()
+
+
+# -- FMA counts: analytic against torch's FlopCounterMode (an independent count of conv FLOPs) ------
+
+@pytest.mark.parametrize("name", ["layer", "pixelgather", "samplesplat"])
+def test_conv_fmas_match_flop_counter(name):
+    from torch.utils.flop_counter import FlopCounterMode
+
+    m = build(name, **tiny_cfg(name))
+    s, h, w = 2, 32, 32
+    with torch.no_grad(), FlopCounterMode(display=False) as fc:
+        m(make_batch(b=1, s=s, h=h, w=w))
+    counts = fc.get_flop_counts()["Global"]
+    conv_flops = sum(v for k, v in counts.items() if "convolution" in str(k))
+    from training.models.common import conv_fmas
+    if name == "pixelgather":
+        analytic = conv_fmas(m.reducer) + m.unet.fmas_per_pixel() + conv_fmas(m.kernel_gen)
+    elif name == "samplesplat":
+        analytic = s * (conv_fmas(m.reducer) + conv_fmas(m.kernel_gen)) + m.unet.fmas_per_pixel()
+    else:
+        analytic = s * (conv_fmas(m.reducer) + conv_fmas(m.partitioner)) + m.unet.fmas_per_pixel() \
+            + m.layers * conv_fmas(m.kernel_gen)
+    assert conv_flops == pytest.approx(2 * analytic * h * w, rel=1e-9)
+
+
+def test_paper_defaults():
+    """Defaults are the paper's: 20 inputs, 32 embedding, 128 context, 17x17 kernels, 2 layers."""
+    m = build("layer")
+    assert m.reducer[0].in_channels == IN_FEATURES == 20 and m.reducer[0].out_channels == 32
+    assert [c.out_channels for c in m.partitioner if isinstance(c, torch.nn.Conv2d)] == [32, 16, 2]
+    assert [c.out_channels for c in m.kernel_gen if isinstance(c, torch.nn.Conv2d)] == [128, 128, 289]
+    assert m.kernel_gen[0].in_channels == 160 and m.unet.final.out_channels == 128
+    opt = build("layer-optimized")
+    assert [g[-1].out_channels for g in opt.kernel_gens] == [26, 26, 26]
+    assert all(c.out_channels == 32 for g in opt.kernel_gens for c in g[:-1] if isinstance(c, torch.nn.Conv2d))
+    assert opt.fmas_per_pixel(8) < m.fmas_per_pixel(8) / 2
+    pg = build("pixelgather")
+    assert pg.reducer[0].in_channels == 40

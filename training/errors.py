@@ -1,0 +1,25 @@
+"""Errors raised by the training package. Only ``training.__main__.main`` turns them into exit codes."""
+
+
+class TrainingError(Exception):
+    """Base class of every training error."""
+
+
+class ConfigError(TrainingError, ValueError):
+    """A model or training setting is invalid; the message names the setting and its allowed range."""
+
+
+class UnknownModelError(TrainingError, KeyError):
+    """No model is registered under the requested name."""
+
+
+class CheckpointError(TrainingError, RuntimeError):
+    """A checkpoint cannot be read or does not match (model, config or the store's schema version)."""
+
+
+class DataError(TrainingError, RuntimeError):
+    """Training data is missing or has an unexpected layout (shapes, channels, splits)."""
+
+
+class NonFiniteError(TrainingError, FloatingPointError):
+    """A loss or gradient became NaN/Inf during training."""

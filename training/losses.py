@@ -1,0 +1,61 @@
+"""Training losses, found by name: ``build_loss('smape')``.
+
+All take ``denoised, reference`` as float32 tensors of equal shape, channel-first: images
+(B, 3, H, W) or clips (B, T, 3, H, W) for the temporal loss. Linear radiance in, scalar out.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from .errors import ConfigError
+from .tonemap import tonemap
+
+SMAPE_EPS = 0.01   # eq. 9 of the layer paper
+
+LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {}
+
+
+def register_loss(name: str):
+    def deco(fn):
+        if name in LOSSES:
+            raise ConfigError(f"loss {name!r} is already registered")
+        LOSSES[name] = fn
+        return fn
+    return deco
+
+
+def build_loss(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    try:
+        return LOSSES[name]
+    except KeyError:
+        raise ConfigError(f'"loss" must be one of {sorted(LOSSES)}, got {name!r}') from None
+
+
+@register_loss("smape")
+def smape(denoised: torch.Tensor, reference: torch.Tensor, eps: float = SMAPE_EPS) -> torch.Tensor:
+    """Eq. 9: mean over pixels and channels of |d - r| / (|d| + |r| + eps), on linear radiance."""
+    return torch.mean(torch.abs(denoised - reference) / (torch.abs(denoised) + torch.abs(reference) + eps))
+
+
+@register_loss("l2-tonemap")
+def l2_tonemap(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Mean squared error on tone-mapped values (eq. 7), the paper's alternative loss (appendix C)."""
+    return torch.mean((tonemap(denoised) - tonemap(reference)) ** 2)
+
+
+@register_loss("l1")
+def l1(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error on tone-mapped values (eq. 7)."""
+    return torch.mean(torch.abs(tonemap(denoised) - tonemap(reference)))
+
+
+@register_loss("temporal-l1")
+def temporal_l1(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """L1 of temporal finite differences on tone-mapped clips (B, T, 3, H, W), T >= 2:
+    mean |(d_t - d_{t-1}) - (r_t - r_{t-1})| (Chaitanya et al. 2017's temporal term)."""
+    if denoised.dim() != 5 or denoised.shape[1] < 2:
+        raise ConfigError(f"temporal-l1 needs clips (B, T>=2, C, H, W), got shape {tuple(denoised.shape)}")
+    d, r = tonemap(denoised), tonemap(reference)
+    return torch.mean(torch.abs((d[:, 1:] - d[:, :-1]) - (r[:, 1:] - r[:, :-1])))

@@ -1,0 +1,123 @@
+"""Image quality metrics. numpy in, float out; images are (H, W, 3) float arrays, linear radiance.
+
+relMSE and SMAPE are computed on linear radiance; PSNR and SSIM on tone-mapped values (eq. 7 of the
+layer paper: sRGB(log(x+1))) with a peak of 1 and no clipping (as NVlabs/layerdenoise's ``PSNR``);
+tPSNR is PSNR of temporal finite differences of tone-mapped clips (Hasselgren et al. 2020);
+FLIP is HDR-FLIP from the ``flip-evaluator`` package on linear radiance.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+from .tonemap import tonemap
+
+RELMSE_EPS = 0.01
+SMAPE_EPS = 0.01
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = 5          # 11x11 Gaussian window (truncate 3.5 sigma, as Wang et al. / scikit-image)
+SSIM_K1, SSIM_K2 = 0.01, 0.03
+
+METRIC_NAMES = ("relmse", "smape", "psnr", "ssim", "flip")
+
+
+def _pair(d, r):
+    d = np.asarray(d, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    if d.shape != r.shape:
+        raise ValueError(f"denoised {d.shape} and reference {r.shape} differ in shape")
+    return d, r
+
+
+def relmse(denoised, reference, eps: float = RELMSE_EPS) -> float:
+    """Relative MSE: mean over pixels and channels of (d - r)^2 / (r^2 + eps), linear radiance."""
+    d, r = _pair(denoised, reference)
+    return float(np.mean((d - r) ** 2 / (r ** 2 + eps)))
+
+
+def smape(denoised, reference, eps: float = SMAPE_EPS) -> float:
+    """Eq. 9: mean |d - r| / (|d| + |r| + eps), linear radiance."""
+    d, r = _pair(denoised, reference)
+    return float(np.mean(np.abs(d - r) / (np.abs(d) + np.abs(r) + eps)))
+
+
+def psnr_ldr(denoised, reference, peak: float = 1.0) -> float:
+    """PSNR of two already display-referred images: 10 log10(peak^2 / MSE); inf for identical images."""
+    d, r = _pair(denoised, reference)
+    mse = float(np.mean((d - r) ** 2))
+    return float("inf") if mse == 0.0 else float(10.0 * np.log10(peak ** 2 / mse))
+
+
+def psnr(denoised, reference) -> float:
+    """PSNR on tone-mapped values (eq. 7), peak 1."""
+    d, r = _pair(denoised, reference)
+    return psnr_ldr(tonemap(d), tonemap(r))
+
+
+def _gauss_window() -> np.ndarray:
+    x = np.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return g / g.sum()
+
+
+def _blur_valid(x: np.ndarray) -> np.ndarray:
+    """Separable 11x11 Gaussian over axes 0, 1, keeping only the fully covered (valid) region."""
+    g = _gauss_window()
+    y = correlate1d(x, g, axis=0, mode="constant")
+    y = correlate1d(y, g, axis=1, mode="constant")
+    p = SSIM_RADIUS
+    return y[p:-p, p:-p]
+
+
+def ssim_ldr(denoised, reference, data_range: float = 1.0) -> float:
+    """Mean SSIM (Wang et al. 2004, Gaussian 11x11 window, sigma 1.5) over channels and valid pixels of
+    two display-referred (H, W, C) images. Needs H, W >= 11."""
+    x, y = _pair(denoised, reference)
+    if x.ndim == 2:
+        x, y = x[..., None], y[..., None]
+    if min(x.shape[0], x.shape[1]) < 2 * SSIM_RADIUS + 1:
+        raise ValueError(f"SSIM needs images of at least {2 * SSIM_RADIUS + 1} px, got {x.shape[:2]}")
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    mx, my = _blur_valid(x), _blur_valid(y)
+    sxx = _blur_valid(x * x) - mx * mx
+    syy = _blur_valid(y * y) - my * my
+    sxy = _blur_valid(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return float(np.mean(s))
+
+
+def ssim(denoised, reference) -> float:
+    """SSIM on tone-mapped values (eq. 7)."""
+    d, r = _pair(denoised, reference)
+    return ssim_ldr(tonemap(d), tonemap(r))
+
+
+def tpsnr(denoised_clip, reference_clip) -> float:
+    """Temporal PSNR of clips (T, H, W, 3), T >= 2: PSNR (peak 1) of the finite differences
+    x_t - x_{t-1} of tone-mapped frames, over all t."""
+    d, r = _pair(denoised_clip, reference_clip)
+    if d.ndim != 4 or d.shape[0] < 2:
+        raise ValueError(f"tPSNR needs clips (T>=2, H, W, C), got {d.shape}")
+    td, tr = tonemap(d), tonemap(r)
+    return psnr_ldr(np.diff(td, axis=0), np.diff(tr, axis=0))
+
+
+def flip(denoised, reference) -> float:
+    """Mean HDR-FLIP error (flip-evaluator) of linear radiance images (H, W, 3); lower is better."""
+    import flip_evaluator
+
+    d, r = _pair(denoised, reference)
+    d = np.ascontiguousarray(np.maximum(d, 0.0), dtype=np.float32)
+    r = np.ascontiguousarray(np.maximum(r, 0.0), dtype=np.float32)
+    _, mean_error, _ = flip_evaluator.evaluate(r, d, "HDR", inputsRGB=False, applyMagma=False)
+    return float(mean_error)
+
+
+def all_metrics(denoised, reference, with_flip: bool = True) -> dict[str, float]:
+    """relMSE, SMAPE, PSNR, SSIM (and FLIP) of one frame (H, W, 3)."""
+    out = {"relmse": relmse(denoised, reference), "smape": smape(denoised, reference),
+           "psnr": psnr(denoised, reference), "ssim": ssim(denoised, reference)}
+    if with_flip:
+        out["flip"] = flip(denoised, reference)
+    return out

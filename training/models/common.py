@@ -1,0 +1,266 @@
+"""Shared parts of the kernel-predicting denoisers (Munkberg & Hasselgren 2020, appendix B).
+
+Layouts: per-sample radiance (float32, BS3HW) linear; per-sample features (float32, BS17HW) in the
+order of ``stores.contract.FEATURE_NAMES``; kernels (float32, B k*k H W) non-negative; images
+(float32, BCHW). All fully connected parts are 1x1 convolutions, activations leaky ReLU 0.01,
+Xavier-uniform initialisation with zero biases.
+
+Kernel application is vectorised with ``unfold`` (gather) and ``fold`` (splat); no Python loop runs
+over pixels, samples or layers.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from stores.contract import FEATURE_GROUPS, NUM_FEATURES
+
+from ..errors import ConfigError
+
+NEG_SLOPE = 0.01
+EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)
+IN_FEATURES = 3 + NUM_FEATURES   # 20 floats per sample
+
+# Figure 3 U-net, feature counts of NVlabs/layerdenoise (layer_network.py): five 2x2 max-pool levels.
+PAPER_UNET = dict(
+    unet_encoder=((64, 64), (128,), (256,), (512,), (512,)),
+    unet_bottleneck=(512,),
+    unet_decoder=((512, 512), (256, 256), (128, 128), (128, 128), (128, 128)),
+)
+
+
+def act() -> nn.Module:
+    return nn.LeakyReLU(NEG_SLOPE)
+
+
+def mlp(cin: int, hidden: Sequence[int], cout: int, last_act: bool = False) -> nn.Sequential:
+    """Fully connected network as 1x1 convolutions: cin -> hidden... -> cout, leaky ReLU between."""
+    layers: list[nn.Module] = []
+    prev = cin
+    for h in hidden:
+        layers += [nn.Conv2d(prev, h, 1), act()]
+        prev = h
+    layers.append(nn.Conv2d(prev, cout, 1))
+    if last_act:
+        layers.append(act())
+    return nn.Sequential(*layers)
+
+
+def conv_fmas(module: nn.Module) -> int:
+    """FMAs per output pixel of all Conv2d in ``module`` (Cin/groups * Cout * kh * kw each), bias ignored."""
+    total = 0
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d):
+            kh, kw = m.kernel_size
+            total += (m.in_channels // m.groups) * m.out_channels * kh * kw
+    return total
+
+
+def xavier_init(module: nn.Module) -> None:
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
+def _check_widths(name: str, widths) -> tuple:
+    widths = tuple(tuple(int(f) for f in w) if isinstance(w, (list, tuple)) else int(w) for w in widths)
+    flat = [f for w in widths for f in (w if isinstance(w, tuple) else (w,))]
+    if not flat or any(f < 1 for f in flat):
+        raise ConfigError(f'"{name}" must be non-empty positive feature counts, got {widths}')
+    return widths
+
+
+class UNet(nn.Module):
+    """U-net of figure 3: 3x3 convolutions, leaky ReLU 0.01, 2x2 max-pooling, bilinear upsampling,
+    skip connections concatenated with the upsampled features, a final 3x3 convolution to ``cout``.
+
+    ``forward(x (float32, BCHW))`` returns ``(out (B cout H W), decoder)`` where ``decoder[i]`` is the
+    output of the decoder block at 1/2^i resolution (i = 0 .. depth-1; i = 0 is the last block, before
+    the final convolution). Any H, W: the input is padded (replicate) to a multiple of 2^depth and the
+    outputs are cropped back to ceil(H / 2^i).
+    """
+
+    def __init__(self, cin: int, cout: int, encoder, bottleneck, decoder):
+        super().__init__()
+        encoder = _check_widths("unet_encoder", encoder)
+        decoder = _check_widths("unet_decoder", decoder)
+        bottleneck = _check_widths("unet_bottleneck", bottleneck)
+        if len(encoder) != len(decoder):
+            raise ConfigError(f'"unet_decoder" must have as many blocks as "unet_encoder" ({len(encoder)}), '
+                              f"got {len(decoder)}")
+        self.depth = len(encoder)
+        self.cin, self.cout = cin, cout
+
+        def block(prev, feats):
+            layers = []
+            for f in feats:
+                layers += [nn.Conv2d(prev, f, 3, padding=1), act()]
+                prev = f
+            return nn.Sequential(*layers), prev
+
+        prev = cin
+        skips = [cin]
+        self.enc = nn.ModuleList()
+        for feats in encoder:
+            b, prev = block(prev, feats)
+            self.enc.append(b)
+            skips.append(prev)
+        self.bottleneck, prev = block(prev, bottleneck)
+        self.dec = nn.ModuleList()
+        self.dec_channels = []
+        for idx, feats in enumerate(decoder):
+            skip = skips[self.depth - 1 - idx]
+            b, prev = block(prev + skip, feats)
+            self.dec.append(b)
+            self.dec_channels.append(prev)
+        self.final = nn.Conv2d(prev, cout, 3, padding=1)
+
+    def decoder_channels(self, level: int) -> int:
+        """Channels of the decoder output at 1/2^level resolution."""
+        return self.dec_channels[self.depth - 1 - level]
+
+    def forward(self, x: torch.Tensor):
+        h, w = x.shape[-2:]
+        m = 2 ** self.depth
+        ph, pw = (-h) % m, (-w) % m
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        skips = [x]
+        for b in self.enc:
+            x = F.max_pool2d(b(x), 2)
+            skips.append(x)
+        x = self.bottleneck(x)
+        outs = []
+        for idx, b in enumerate(self.dec):
+            x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+            x = b(torch.cat((x, skips[self.depth - 1 - idx]), dim=1))
+            outs.append(x)
+        out = self.final(x)
+        decoder = []
+        for level in range(self.depth):
+            d = outs[self.depth - 1 - level]
+            decoder.append(d[..., : -(-h // 2 ** level), : -(-w // 2 ** level)])
+        return out[..., :h, :w], decoder
+
+    def fmas_per_pixel(self) -> float:
+        """Convolution FMAs per full-resolution pixel (each level costs 1/4 of the one above)."""
+        total = 0.0
+        for i, b in enumerate(self.enc):           # encoder block i runs at 1/2^i before its pool
+            total += conv_fmas(b) / 4 ** i
+        total += conv_fmas(self.bottleneck) / 4 ** self.depth
+        for idx, b in enumerate(self.dec):          # decoder block idx runs at 1/2^(depth-1-idx)
+            total += conv_fmas(b) / 4 ** (self.depth - 1 - idx)
+        return total + conv_fmas(self.final)
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs
+
+
+def _signed_log(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.log1p(torch.abs(x))
+
+
+def prepare_inputs(radiance: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """Robust network inputs (float32, BS20HW) from radiance (BS3HW) and features (BS17HW).
+
+    Radiance -> log1p(max(L, 0)); depth -> depth / per-frame max depth (in [0, 1]); motion and
+    circle of confusion (pixels, unbounded) -> sign(x) log1p|x|; the rest (normals, albedo, specular,
+    roughness, lens, time) is already bounded. Non-finite values become 0. Kernels still apply to the
+    LINEAR radiance; this only feeds the embedding networks.
+    """
+    if radiance.dim() != 5 or radiance.shape[2] != 3:
+        raise ConfigError(f"radiance must be (B, S, 3, H, W), got {tuple(radiance.shape)}")
+    if features.dim() != 5 or features.shape[2] != NUM_FEATURES or features.shape[:2] != radiance.shape[:2] \
+            or features.shape[-2:] != radiance.shape[-2:]:
+        raise ConfigError(f"features must be (B, S, {NUM_FEATURES}, H, W) matching radiance "
+                          f"{tuple(radiance.shape)}, got {tuple(features.shape)}")
+    rad = torch.log1p(torch.clamp(torch.nan_to_num(radiance, nan=0.0, posinf=0.0, neginf=0.0), min=0.0))
+    f = torch.nan_to_num(features, nan=0.0, posinf=0.0, neginf=0.0)
+    g = FEATURE_GROUPS
+    depth = torch.clamp(f[:, :, g["depth"]], min=0.0)
+    dmax = depth.amax(dim=(1, 2, 3, 4), keepdim=True)
+    depth = depth / (dmax + EPS)
+    parts = [rad, f[:, :, g["normal"]], depth, f[:, :, g["albedo"]], f[:, :, g["specular"]],
+             f[:, :, g["roughness"]], _signed_log(f[:, :, g["motion"]]), _signed_log(f[:, :, g["coc"]]),
+             f[:, :, g["lens"]], f[:, :, g["time"]]]
+    return torch.cat(parts, dim=2)
+
+
+def clean_radiance(radiance: torch.Tensor) -> torch.Tensor:
+    """Linear radiance with non-finite values set to 0 and negatives clamped (any layout)."""
+    return torch.clamp(torch.nan_to_num(radiance, nan=0.0, posinf=0.0, neginf=0.0), min=0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Kernels
+
+
+def exp_kernels(logits: torch.Tensor, dims) -> torch.Tensor:
+    """exp(logits - max over ``dims``): positive kernel weights whose largest tap is exactly 1, so the
+    exponent never overflows and the weight sum never underflows to 0 (appendix A, line 26)."""
+    m = logits.detach().amax(dim=dims, keepdim=True)
+    return torch.exp(logits - m)
+
+
+def gather(x: torch.Tensor, kernels: torch.Tensor, kernel_size: int) -> torch.Tensor:
+    """Gather: out(p) = sum_t K_p[t] x(p + off_t); x (float32, BCHW), kernels (B k*k H W), zero padding.
+    Taps ``t`` are row-major over offsets (-r..r, -r..r), r = k // 2 (``unfold`` order)."""
+    b, c, h, w = x.shape
+    k2 = kernel_size * kernel_size
+    cols = F.unfold(x, kernel_size, padding=kernel_size // 2).view(b, c, k2, h * w)
+    return (cols * kernels.reshape(b, 1, k2, h * w)).sum(dim=2).view(b, c, h, w)
+
+
+def splat_columns(cols: torch.Tensor, kernel_size: int) -> torch.Tensor:
+    """Splat precomputed contributions cols (B, C, k*k, H, W): out(q + off_t) += cols[:, :, t, q]."""
+    b, c, k2, h, w = cols.shape
+    return F.fold(cols.reshape(b, c * k2, h * w), (h, w), kernel_size, padding=kernel_size // 2)
+
+
+def splat(x: torch.Tensor, kernels: torch.Tensor, kernel_size: int) -> torch.Tensor:
+    """Splat (adjoint of :func:`gather`): out(p) = sum_t K_{p - off_t}[t] x(p - off_t).
+    x (float32, BCHW), kernels (B k*k H W); contributions that leave the frame are dropped."""
+    return splat_columns(x.unsqueeze(2) * kernels.unsqueeze(1), kernel_size)
+
+
+def check_kernel_size(k: int) -> int:
+    k = int(k)
+    if k < 1 or k % 2 == 0:
+        raise ConfigError(f'"kernel_size" must be an odd integer >= 1, got {k}')
+    return k
+
+
+# ---------------------------------------------------------------------------------------------
+# Base class
+
+
+class Denoiser(nn.Module):
+    """Base of every denoiser. ``forward(batch)`` takes the dataset's batch dict (``radiance``
+    (float32, BS3HW), ``features`` (float32, BS17HW), optional guides) and returns linear radiance
+    (float32, B3HW). ``config`` holds the settings that rebuild the model with ``build(name, **config)``.
+    """
+
+    name = "?"
+
+    def __init__(self, **config):
+        super().__init__()
+        self.config = dict(config)
+
+    def forward(self, batch: dict) -> torch.Tensor:
+        return self.denoise(batch["radiance"], batch["features"])
+
+    def denoise(self, radiance: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def fmas_per_pixel(self, spp: int) -> float:
+        """Analytic FMAs per output pixel at ``spp`` samples per pixel (conv layers + kernel taps)."""
+        raise NotImplementedError
+
+    def param_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())

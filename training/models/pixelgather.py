@@ -1,0 +1,50 @@
+"""PIXELGATHER: per-pixel kernel-predicting denoiser (Munkberg & Hasselgren 2020, sec. 5, appendix B;
+after Bako et al. 2017 / Gharbi et al. 2019's PixelGather, without albedo demodulation).
+
+Per-pixel mean and variance (over samples) of the 20 normalised inputs -> pixel reducer
+([40, 32], [32, 32], [32, 32]) -> U-net (fig. 3) -> 128 context features -> kernel generator
+([160, 128], [128, 128], [128, 17*17]) once per pixel -> exp(kernel - max) -> gather on the per-pixel
+mean radiance, normalised by the gathered kernel weights.
+"""
+from __future__ import annotations
+
+import torch
+
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, clean_radiance,
+                     conv_fmas, exp_kernels, gather, mlp, prepare_inputs, xavier_init)
+from .registry import register
+
+
+@register("pixelgather")
+class PixelGatherDenoiser(Denoiser):
+    def __init__(self, kernel_size: int = 17, embed: int = 32, context: int = 128, kernel_hidden=(128, 128),
+                 unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
+                 unet_decoder=PAPER_UNET["unet_decoder"]):
+        kernel_size = check_kernel_size(kernel_size)
+        super().__init__(kernel_size=kernel_size, embed=embed, context=context, kernel_hidden=tuple(kernel_hidden),
+                         unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
+        self.kernel_size, self.embed = kernel_size, embed
+        self.reducer = mlp(2 * IN_FEATURES, (embed, embed), embed, last_act=True)
+        self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
+        self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
+        xavier_init(self)
+
+    def pixel_kernels(self, radiance, features):
+        """Per-pixel kernels (float32, B k*k H W), exponentiated with the per-pixel max subtracted."""
+        x = prepare_inputs(radiance, features)
+        stats = torch.cat((x.mean(dim=1), x.var(dim=1, unbiased=False)), dim=1)
+        e = self.reducer(stats)
+        ctx, _ = self.unet(e)
+        return exp_kernels(self.kernel_gen(torch.cat((e, ctx), dim=1)), dims=1)
+
+    def denoise(self, radiance, features):
+        kernels = self.pixel_kernels(radiance, features)
+        mean = clean_radiance(radiance).mean(dim=1)
+        ones = torch.ones_like(mean[:, :1])
+        f = gather(torch.cat((mean, ones), dim=1), kernels, self.kernel_size)
+        return f[:, :3] / (f[:, 3:4] + EPS)
+
+    def fmas_per_pixel(self, spp: int) -> float:
+        # mean and variance of the inputs are additions/multiplies per sample (2 * 20), then per pixel
+        return spp * 2 * IN_FEATURES + conv_fmas(self.reducer) + self.unet.fmas_per_pixel() \
+            + conv_fmas(self.kernel_gen) + 4 * self.kernel_size ** 2

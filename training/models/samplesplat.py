@@ -1,0 +1,57 @@
+"""SAMPLESPLAT: per-sample kernel-splatting denoiser (Munkberg & Hasselgren 2020, sec. 5, appendix B;
+a scaled-down Gharbi et al. 2019).
+
+Sample reducer (20 -> 32 -> 32 -> 32) per sample -> U-net (fig. 3) on the mean embedding -> 128
+context features -> kernel generator ([160, 128], [128, 128], [128, 17*17]) once PER SAMPLE ->
+exp(kernel - max over all samples' taps of the pixel) -> every sample splats its radiance and its
+weight with its own kernel -> output = splatted radiance / splatted weight.
+
+Vectorised: the per-sample contributions are reduced over samples with one einsum before one fold.
+"""
+from __future__ import annotations
+
+import torch
+
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, clean_radiance,
+                     conv_fmas, exp_kernels, mlp, prepare_inputs, splat_columns, xavier_init)
+from .registry import register
+
+
+@register("samplesplat")
+class SampleSplatDenoiser(Denoiser):
+    def __init__(self, kernel_size: int = 17, embed: int = 32, context: int = 128, kernel_hidden=(128, 128),
+                 unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
+                 unet_decoder=PAPER_UNET["unet_decoder"]):
+        kernel_size = check_kernel_size(kernel_size)
+        super().__init__(kernel_size=kernel_size, embed=embed, context=context, kernel_hidden=tuple(kernel_hidden),
+                         unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
+        self.kernel_size, self.embed = kernel_size, embed
+        self.reducer = mlp(IN_FEATURES, (embed, embed), embed, last_act=True)
+        self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
+        self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
+        xavier_init(self)
+
+    def sample_kernels(self, radiance, features):
+        """Per-sample kernels (float32, B S k*k H W), max over (S, taps) subtracted before exp."""
+        x = prepare_inputs(radiance, features)
+        b, s, c, h, w = x.shape
+        e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
+        ctx, _ = self.unet(e.mean(dim=1))
+        inp = torch.cat((e, ctx.unsqueeze(1).expand(b, s, -1, h, w)), dim=2).reshape(b * s, -1, h, w)
+        logits = self.kernel_gen(inp).view(b, s, -1, h, w)
+        return exp_kernels(logits, dims=(1, 2))
+
+    def denoise(self, radiance, features):
+        kernels = self.sample_kernels(radiance, features)               # B S k2 H W
+        lin = clean_radiance(radiance)
+        vals = torch.cat((lin, torch.ones_like(lin[:, :, :1])), dim=2)  # B S 4 H W
+        b, s, k2, h, w = kernels.shape                                   # sum over samples before the fold:
+        cols = torch.bmm(vals.permute(0, 3, 4, 2, 1).reshape(b * h * w, 4, s),      # one (4 x S) @ (S x k2)
+                         kernels.permute(0, 3, 4, 1, 2).reshape(b * h * w, s, k2))  # product per pixel
+        cols = cols.view(b, h, w, 4, k2).permute(0, 3, 4, 1, 2)
+        f = splat_columns(cols, self.kernel_size)
+        return f[:, :3] / (f[:, 3:4] + EPS)
+
+    def fmas_per_pixel(self, spp: int) -> float:
+        per_sample = conv_fmas(self.reducer) + conv_fmas(self.kernel_gen) + 4 * self.kernel_size ** 2
+        return spp * per_sample + self.unet.fmas_per_pixel()
