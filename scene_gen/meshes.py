@@ -217,11 +217,33 @@ def _build_cached(key: str) -> MeshData:
         if spec.triangle_budget and mesh.num_triangles > spec.triangle_budget:
             mesh = decimate(mesh, spec.triangle_budget)
         return mesh
-    v, f = _geometry(spec)
+    v, f = _geometry(_coarsest_for_budget(spec)) if spec.triangle_budget else _geometry(spec)
     if spec.triangle_budget and len(f) > spec.triangle_budget:
         v, f = _decimate_vf(v, f, spec.triangle_budget)
     crease = _param(spec, "crease_deg", CREASE_DEG, 0.0, 180.0)
     return _finish(v, f, crease_deg=crease)
+
+
+def _coarsest_for_budget(spec: MeshSpec) -> MeshSpec:
+    """The spec with its tessellation lowered towards its triangle budget (decimating a smaller
+    input is several times faster), where the resolution was left to the default.
+
+    Icosphere-based kinds (sphere, blob) take the lowest subdivision level with at least 1.5x the
+    budget (never below 2 for blobs, whose bumps need the samples); tori scale both section counts.
+    """
+    budget, p = spec.triangle_budget, spec.params
+    if spec.kind in ("sphere", "blob") and "subdivisions" not in p:
+        default = 3 if spec.kind == "sphere" else 4
+        level = next((s for s in range(default + 1) if 20 * 4 ** s >= 1.5 * budget), default)
+        level = max(level, 2 if spec.kind == "blob" else 1)
+        if level < default:
+            return dataclasses.replace(spec, params={**p, "subdivisions": level})
+    if spec.kind == "torus" and "major_sections" not in p and "minor_sections" not in p:
+        f = math.sqrt(1.5 * budget / (2 * 48 * 24))
+        if f < 1:
+            return dataclasses.replace(spec, params={**p, "major_sections": max(8, math.ceil(48 * f)),
+                                                     "minor_sections": max(6, math.ceil(24 * f))})
+    return spec
 
 
 def _geometry(spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
