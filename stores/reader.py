@@ -149,7 +149,7 @@ class Store:
     # ---------------------------------------------------------------- metadata
     @property
     def num_frames(self) -> int:
-        return int(self.root["status/complete"].shape[0])
+        return len(self._meta_table()["complete"])
 
     @property
     def attrs(self) -> dict:
@@ -184,6 +184,10 @@ class Store:
             self._meta_cache = table
         return self._meta_cache
 
+    def meta_column(self, key: str) -> np.ndarray:
+        """One ``frames/*`` column (or ``complete``/``error``) for all frames, from the cache."""
+        return self._meta_table()[key].copy()
+
     def complete_mask(self) -> np.ndarray:
         """``complete (bool, F)``."""
         return self._meta_table()["complete"].copy()
@@ -200,10 +204,16 @@ class Store:
         return int(i)
 
     def _check_complete(self, i: int) -> None:
-        if not bool(self.root["status/complete"][i]):
-            err = str(self.root["status/error"][i])
-            why = f" (last error: {err})" if err else " (never finished, or its writer stopped mid-frame)"
-            raise IncompleteFrameError(f"frame {i} of {os.fspath(self.path)!s} is incomplete{why}")
+        """Uses the cached completion flags; a frame cached as incomplete is re-checked on disk (it may
+        have been finished since this Store was opened)."""
+        if self._meta_table()["complete"][i]:
+            return
+        if bool(self.root["status/complete"][i]):
+            self._meta_cache = None
+            return
+        err = str(self.root["status/error"][i])
+        why = f" (last error: {err})" if err else " (never finished, or its writer stopped mid-frame)"
+        raise IncompleteFrameError(f"frame {i} of {os.fspath(self.path)!s} is incomplete{why}")
 
     def frames_meta(self, i: int) -> dict:
         """``FRAME_META`` of frame ``i`` plus ``clip_id``, ``complete``, ``error`` and the camera matrices

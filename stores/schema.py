@@ -127,10 +127,8 @@ class ArraySpec:
         return np.ascontiguousarray(a, dtype=self.storage_dtype(layout))
 
     def from_store(self, a: np.ndarray, layout: StoreLayout) -> np.ndarray:
-        """Storage layout (any leading frame axis kept) -> contract layout (channel-last) in the
-        contract's dtype (float32 for images)."""
-        if self.path == "inputs/radiance" and layout.radiance_encoding == "log16":
-            a = codecs.decode_log16(a)
+        """Storage layout (any leading frame axis kept; log16 radiance already decoded, as
+        ``Store.read_array`` returns it) -> contract layout (channel-last), float32 for images."""
         if self.perm is not None:
             inv = np.argsort(self.perm)
             lead = a.ndim - len(self.perm)

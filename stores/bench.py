@@ -1,0 +1,190 @@
+"""Store benchmark: crop read speed against a raw ``np.load`` ceiling, stored/raw bytes, codec table.
+
+``run() -> dict`` prints and returns:
+
+* ``crops_per_s``, ``mb_per_s``: random 128x128 crops with all 8 samples of radiance + 17 features
+  (what ``SampleDataset`` reads), from a store on local disk, through the reader's fast path; MB are
+  float32 bytes delivered (128*128*8*20*4 = 10.5 MB a crop). ``zarr_*``: the same through zarr-python.
+* ``ceiling_*``: ``np.load`` of the same crop as one uncompressed float32 ``.npy`` file;
+  ``fraction_of_ceiling`` = mb_per_s / ceiling_mb_per_s (target >= 0.5).
+* ``stored_over_raw``: bytes of the image arrays' files / their float32 bytes.
+* ``codecs``: the candidate encodings on the same frames (ratio, decode ms a frame).
+
+Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
+(``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import shutil
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from stores.reader import open_store
+from stores.schema import ARRAYS, StoreLayout
+from stores.writer import open_or_create
+
+
+def _synthetic():
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests",
+                        "test_stores_synthetic.py")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"the benchmark's synthetic frames come from {path} (run from a checkout) "
+                                f"or pass store=PATH")
+    spec = importlib.util.spec_from_file_location("_stores_synthetic", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.synthetic_frame
+
+
+def _dir_bytes(path: str) -> int:
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs
+               if f != "zarr.json")
+
+
+def compare_codecs(frames: list[dict]) -> list[dict]:
+    """Per-sample inputs (radiance + features) of ``frames`` under candidate encodings, channel-major
+    ``(C, H, W, S)`` like the store: ratio to float32 bytes and decode time per frame."""
+    from numcodecs import Blosc
+
+    from stores.codecs import decode_log16, encode_log16
+    rad = [np.ascontiguousarray(f["radiance"].transpose(3, 0, 1, 2)) for f in frames]
+    feat = [np.ascontiguousarray(f["features"].transpose(3, 0, 1, 2)) for f in frames]
+    raw = sum(r.nbytes + f.nbytes for r, f in zip(rad, feat))
+    lz4 = Blosc("lz4", 5, Blosc.SHUFFLE)
+    zstd = Blosc("zstd", 3, Blosc.BITSHUFFLE)
+    lz4b = Blosc("lz4", 5, Blosc.BITSHUFFLE)
+    cases = [
+        ("raw float32", None, lambda r: r, np.float32),
+        ("float16 (radiance overflows > 65504)", None, lambda r: r.astype(np.float16), np.float16),
+        ("float32, zstd-3 + bitshuffle", zstd, lambda r: r, np.float32),
+        ("float32 + f16 features, zstd-3 + bitshuffle", zstd, lambda r: r, np.float16),
+        ("float32 + f16 features, lz4-5 + bitshuffle", lz4b, lambda r: r, np.float16),
+        ("float32 + f16 features, lz4-5 + shuffle (chosen)", lz4, lambda r: r, np.float16),
+        ("log16 radiance + f16 features, lz4-5 + shuffle", lz4, encode_log16, np.float16),
+    ]
+    rows = []
+    for name, codec, enc_r, fdt in cases:
+        nbytes, dec_s = 0, 0.0
+        overflow = 0
+        for r, f in zip(rad, feat):
+            er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
+            overflow += int(np.isinf(er.astype(np.float32)).sum()) if er.dtype == np.float16 else 0
+            if codec is None:
+                nbytes += er.nbytes + ef.nbytes
+                continue
+            br, bf = codec.encode(er), codec.encode(ef)
+            nbytes += len(br) + len(bf)
+            t = time.perf_counter()
+            dr = np.frombuffer(codec.decode(br), er.dtype)
+            if er.dtype == np.uint16:
+                dr = decode_log16(dr)
+            np.frombuffer(codec.decode(bf), ef.dtype)
+            dec_s += time.perf_counter() - t
+        rows.append({"encoding": name, "ratio": nbytes / raw, "decode_ms_per_frame": 1e3 * dec_s / len(rad),
+                     "inf_after_encoding": overflow})
+    return rows
+
+
+def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: int = 4, size: int = 256,
+        compare: bool = True, verbose: bool = True) -> dict:
+    """Run the benchmark (module docstring) and return its figures."""
+    tmp = tempfile.mkdtemp(prefix="stores-bench-")
+    out: dict = {}
+    try:
+        frame_list = []
+        if store is None:
+            synth = _synthetic()
+            store = os.path.join(tmp, "bench.zarr")
+            w = open_or_create(store, StoreLayout(num_frames=frames, height=size, width=size, spp=spp),
+                               {"bench": True})
+            t_write = 0.0
+            for i in range(frames):
+                fr = synth(1000 + i, size, size, spp, sun=(i == 0))
+                frame_list.append(fr)
+                t = time.perf_counter()
+                w.write_frame(i, fr)
+                t_write += time.perf_counter() - t
+            out["write_s_per_frame"] = t_write / frames
+        s = open_store(store)
+        lay = s.layout
+        crop = min(crop, lay.height, lay.width)
+        spp = min(spp, lay.spp)
+        done = s.complete_frames()
+        rng = np.random.default_rng(0)
+        picks = [(int(rng.choice(done)), int(rng.integers(0, lay.height - crop + 1)),
+                  int(rng.integers(0, lay.width - crop + 1))) for _ in range(crops)]
+        mb = crop * crop * spp * 20 * 4 / 1e6
+
+        def timed(st):
+            t = time.perf_counter()
+            for i, y, x in picks:
+                r = st.read_array("inputs/radiance", i, (y, x, crop, crop))[..., :spp]
+                f = st.read_array("inputs/features", i, (y, x, crop, crop))[..., :spp]
+                r.astype(np.float32, copy=False), f.astype(np.float32)
+            return (time.perf_counter() - t) / len(picks)
+
+        timed(s)                                   # warm the page cache
+        dt = timed(s)
+        dz = timed(open_store(store, fast=False))
+        npy = os.path.join(tmp, "crop.npy")
+        np.save(npy, np.zeros((crop, crop, spp, 20), np.float32))
+        np.load(npy)
+        t = time.perf_counter()
+        for _ in picks:
+            np.load(npy)
+        dc = (time.perf_counter() - t) / len(picks)
+        stored = raw = 0
+        for spec in ARRAYS:
+            if spec.image:
+                stored += _dir_bytes(os.path.join(os.fspath(store), *spec.path.split("/")))
+                raw += int(np.prod(spec.shape(lay)[1:])) * 4 * len(done)
+        out.update({
+            "crop": crop, "spp": spp, "crops": crops, "mb_per_crop": mb,
+            "crops_per_s": 1 / dt, "mb_per_s": mb / dt,
+            "zarr_crops_per_s": 1 / dz, "zarr_mb_per_s": mb / dz,
+            "ceiling_crops_per_s": 1 / dc, "ceiling_mb_per_s": mb / dc,
+            "fraction_of_ceiling": dc / dt, "stored_over_raw": stored / max(raw, 1),
+        })
+        if compare and frame_list:
+            out["codecs"] = compare_codecs(frame_list)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    if verbose:
+        print(format_report(out))
+    return out
+
+
+def format_report(r: dict) -> str:
+    lines = [f"stores bench: {r['crops']} random {r['crop']}x{r['crop']} crops x {r['spp']} samples "
+             f"(radiance + 17 features, {r['mb_per_crop']:.1f} MB float32 each)",
+             f"  store (fast path) {r['crops_per_s']:8.1f} crops/s {r['mb_per_s']:8.0f} MB/s",
+             f"  store (zarr-python) {r['zarr_crops_per_s']:6.1f} crops/s {r['zarr_mb_per_s']:8.0f} MB/s",
+             f"  np.load ceiling   {r['ceiling_crops_per_s']:8.1f} crops/s {r['ceiling_mb_per_s']:8.0f} MB/s",
+             f"  fraction of ceiling {r['fraction_of_ceiling']:.2f} (target >= 0.5)",
+             f"  stored / raw float32 bytes {r['stored_over_raw']:.3f}"]
+    if "write_s_per_frame" in r:
+        lines.append(f"  write {r['write_s_per_frame'] * 1e3:.0f} ms per frame")
+    for row in r.get("codecs", []):
+        lines.append(f"    {row['encoding']:52s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"
+                     + (f"  Inf: {row['inf_after_encoding']}" if row["inf_after_encoding"] else ""))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="bench", description="Store crop-read benchmark (figures printed).")
+    ap.add_argument("--store", default=None, help="benchmark this store instead of synthetic frames")
+    ap.add_argument("--crops", type=int, default=40)
+    ap.add_argument("--size", type=int, default=256, help="synthetic frame size")
+    args = ap.parse_args(argv)
+    run(args.store, crops=args.crops, size=args.size)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,213 @@
+"""Exports to the formats other tools read: ``exr``, ``oidn`` and ``layerdenoise``.
+
+``main(argv)`` is ``python -m pipeline export STORE --frames ... --format F --out DIR``. Only complete
+frames are exported (an incomplete one is an error naming it).
+
+* ``exr``: per frame a folder ``frame_NNNNNN/`` with OpenEXR files (float32, ZIP):
+  ``input_mean.exr`` (mean of the per-sample radiance), ``layer_NNNNspp.exr`` (each sample layer),
+  ``reference.exr``, ``reference_stderr.exr`` (RGB), ``albedo.exr`` (RGB), ``normal.exr`` (RGB = world xyz),
+  ``depth.exr`` (Y), ``motion.exr`` (R = motion_x, G = motion_y, pixels), and tone-mapped sRGB PNG
+  previews (``*.png``: ``x / (1 + x)`` per channel, then the sRGB curve) of input_mean, layers,
+  reference, albedo and normal (``n * 0.5 + 0.5``).
+* ``oidn``: the naming read by Intel Open Image Denoise's training toolkit (``training/dataset.py``:
+  images are grouped by the name before the last ``_``; a ``NNNNspp`` suffix is an input, ``ref`` the
+  target; features are ``.hdr.exr``, ``.alb.exr``, ``.nrm.exr`` with channels R, G, B). One input set per
+  sample layer: ``fNNNNNN_0001spp.hdr.exr`` ... ``fNNNNNN_0032spp.hdr.exr`` with the frame's per-pixel
+  ``.alb.exr``/``.nrm.exr`` guides, and ``fNNNNNN_ref.hdr.exr`` (+ ``.alb``/``.nrm``). (The per-sample
+  inputs are not exported here: their mean would collide with the 8-spp layer's name.)
+* ``layerdenoise``: HDF5 as read by NVlabs/layerdenoise ``datasets.py``: ``NAME_input.h5`` holding
+  ``[frames, samples, channels, H, W]`` float16 datasets ``color`` (3), ``normals_depth`` (4: view-space
+  normal, depth normalised by the frame's largest depth), ``albedo`` (3), ``specular`` (4: specular
+  colour + roughness), ``uvt`` (3: lens u, v + time), ``motionvecs`` (3: NDC motion x, y + signed CoC in
+  pixels), and ``NAME_ref.h5`` with ``color [frames, 3, H, W]`` (the loader derives the reference file
+  name by replacing the last ``_...`` with ``_ref.h5``). View space is the camera frame of
+  ``camera_to_world`` (``n_view = R^T n_world``). NDC motion is ``(2 mx / W, -2 my / H)`` (y up).
+  float16 saturates at 65504: radiance above it is clamped (the loader clips at 65535 anyway).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from stores.contract import FEATURE_GROUPS
+from stores.errors import ExportError, StoreError
+from stores.reader import Store, open_store
+from stores.validate import parse_frames
+
+FORMATS = ("exr", "oidn", "layerdenoise")
+
+
+def srgb8(y: np.ndarray) -> np.ndarray:
+    """Linear ``[0, 1]`` -> 8-bit sRGB (uint8, same shape)."""
+    y = np.clip(np.nan_to_num(np.asarray(y, np.float64), nan=0.0), 0.0, 1.0)
+    s = np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
+    return np.clip(np.rint(s * 255), 0, 255).astype(np.uint8)
+
+
+def tonemap_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear HDR ``(float, HW3)`` -> 8-bit sRGB ``(uint8, HW3)``: Reinhard ``x/(1+x)`` then the sRGB curve."""
+    x = np.nan_to_num(np.maximum(np.asarray(x, np.float64), 0.0), nan=0.0, posinf=1e30)
+    return srgb8(x / (1.0 + x))
+
+
+def write_exr(path: str, channels: dict) -> None:
+    """``channels``: name -> ``(float32, HW)`` or ``"RGB"`` -> ``(float32, HW3)``; ZIP compression."""
+    import OpenEXR
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    chans = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
+    with OpenEXR.File(header, chans) as f:
+        f.write(path)
+
+
+def read_exr(path: str) -> dict:
+    """name -> pixels (``RGB`` grouped as HW3 when present)."""
+    import OpenEXR
+    with OpenEXR.File(path) as f:
+        return {k: np.array(v.pixels) for k, v in f.channels().items()}
+
+
+def _png(path: str, rgb: np.ndarray) -> None:
+    from PIL import Image
+    Image.fromarray(rgb).save(path)
+
+
+def _complete(store: Store, frames: list[int]) -> None:
+    bad = [i for i in frames if not store.frames_meta(i)["complete"]]
+    if bad:
+        raise ExportError(f"frames {bad} are incomplete; re-run them or leave them out (--frames)")
+
+
+def export_exr(store: Store, frames: list[int], out: str) -> list[str]:
+    """Write the ``exr`` format (module docstring). Returns the files written."""
+    _complete(store, frames)
+    written = []
+    for i in frames:
+        fr = store.read_frame(i)
+        d = os.path.join(out, f"frame_{i:06d}")
+        os.makedirs(d, exist_ok=True)
+        imgs = {"input_mean": fr["radiance"].mean(axis=2), "reference": fr["reference"],
+                "reference_stderr": fr["reference_stderr"], "albedo": fr["guides_albedo"],
+                "normal": fr["guides_normal"]}
+        for n, s in enumerate(store.layout.layer_spp):
+            imgs[f"layer_{s:04d}spp"] = fr["layers"][n]
+        for name, rgb in imgs.items():
+            write_exr(os.path.join(d, f"{name}.exr"), {"RGB": rgb})
+            written.append(os.path.join(d, f"{name}.exr"))
+            if name == "reference_stderr":
+                continue
+            if name == "normal":
+                preview = np.clip(np.rint((rgb * 0.5 + 0.5) * 255), 0, 255).astype(np.uint8)
+            elif name == "albedo":
+                preview = srgb8(rgb)
+            else:
+                preview = tonemap_srgb(rgb)
+            _png(os.path.join(d, f"{name}.png"), preview)
+            written.append(os.path.join(d, f"{name}.png"))
+        write_exr(os.path.join(d, "depth.exr"), {"Y": fr["guides_depth"][..., 0]})
+        write_exr(os.path.join(d, "motion.exr"), {"R": fr["guides_motion"][..., 0], "G": fr["guides_motion"][..., 1]})
+        written += [os.path.join(d, "depth.exr"), os.path.join(d, "motion.exr")]
+    return written
+
+
+def export_oidn(store: Store, frames: list[int], out: str) -> list[str]:
+    """Write the ``oidn`` format (module docstring). Returns the files written."""
+    _complete(store, frames)
+    os.makedirs(out, exist_ok=True)
+    written = []
+    for i in frames:
+        fr = store.read_frame(i, ["layers", "reference", "guides_albedo", "guides_normal"])
+        base = os.path.join(out, f"f{i:06d}")
+        alb, nrm = np.clip(fr["guides_albedo"], 0, 1), fr["guides_normal"]
+        sets = [(f"{s:04d}spp", fr["layers"][n]) for n, s in enumerate(store.layout.layer_spp)]
+        sets.append(("ref", fr["reference"]))
+        for suffix, color in sets:
+            for feat, img in (("hdr", color), ("alb", alb), ("nrm", nrm)):
+                path = f"{base}_{suffix}.{feat}.exr"
+                write_exr(path, {"RGB": img})
+                written.append(path)
+    return written
+
+
+def _view_normals(n_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
+    """``n_world (..., 3)`` -> camera-space normals with ``R^T`` of ``camera_to_world``."""
+    R = np.asarray(cam_to_world, np.float64)[:3, :3]
+    return (n_world.astype(np.float64) @ R).astype(np.float32)   # row vectors: n @ R == (R^T n^T)^T
+
+
+def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "dataset") -> list[str]:
+    """Write ``NAME_input.h5`` and ``NAME_ref.h5`` (module docstring). Returns the two paths."""
+    import h5py
+    _complete(store, frames)
+    os.makedirs(out, exist_ok=True)
+    lay = store.layout
+    F, S, H, W = len(frames), lay.spp, lay.height, lay.width
+    f16 = np.float16
+    inp, ref = os.path.join(out, f"{name}_input.h5"), os.path.join(out, f"{name}_ref.h5")
+    shapes = {"color": 3, "normals_depth": 4, "albedo": 3, "specular": 4, "uvt": 3, "motionvecs": 3}
+    g = FEATURE_GROUPS
+    with h5py.File(inp, "w") as hi, h5py.File(ref, "w") as hr:
+        ds = {k: hi.create_dataset(k, (F, S, c, H, W), dtype=f16, chunks=(1, S, c, H, W))
+              for k, c in shapes.items()}
+        dref = hr.create_dataset("color", (F, 3, H, W), dtype=f16, chunks=(1, 3, H, W))
+        for j, i in enumerate(frames):
+            fr = store.read_frame(i, ["radiance", "features", "reference", "camera_to_world"])
+            rad, feat = fr["radiance"], fr["features"]                  # (H, W, S, 3), (H, W, S, 17)
+            to_sc = lambda a: np.moveaxis(a, (2, 3), (0, 1))           # noqa: E731  (H,W,S,C)->(S,C,H,W)
+            depth = feat[..., g["depth"]]
+            dmax = float(depth.max()) if depth.size and depth.max() > 0 else 1.0
+            nview = _view_normals(feat[..., g["normal"]], fr["camera_to_world"])
+            motion = feat[..., g["motion"]] * np.array([2.0 / W, -2.0 / H], np.float32)
+            blocks = {
+                "color": np.minimum(rad, 65504.0),
+                "normals_depth": np.concatenate([nview, depth / dmax], axis=-1),
+                "albedo": feat[..., g["albedo"]],
+                "specular": np.concatenate([feat[..., g["specular"]], feat[..., g["roughness"]]], axis=-1),
+                "uvt": np.concatenate([feat[..., g["lens"]], feat[..., g["time"]]], axis=-1),
+                "motionvecs": np.concatenate([motion, feat[..., g["coc"]]], axis=-1),
+            }
+            for k, a in blocks.items():
+                ds[k][j] = to_sc(a).astype(f16)
+            dref[j] = np.minimum(fr["reference"], 65504.0).transpose(2, 0, 1).astype(f16)
+        hi.attrs["frames"] = np.asarray(frames, np.int64)
+        hi.attrs["source"] = os.fspath(store.path)
+    return [inp, ref]
+
+
+def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name: str = "dataset") -> list[str]:
+    """Export ``frames`` (``'all'``, ``'0,2,5-7'`` or a list) of the store in format ``fmt``."""
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {FORMATS}")
+    store = open_store(store_path)
+    idx = frames if isinstance(frames, list) else parse_frames(frames, store.num_frames)
+    if not idx:
+        raise ExportError("no frames to export")
+    if fmt == "exr":
+        return export_exr(store, idx, out)
+    if fmt == "oidn":
+        return export_oidn(store, idx, out)
+    return export_layerdenoise(store, idx, out, name)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="export", description="Export store frames to OpenEXR, the OIDN "
+                                 "training layout, or layerdenoise HDF5.")
+    ap.add_argument("store", help="path of the Zarr store")
+    ap.add_argument("--frames", default="all", help="all (default), 3, 0,2,5-7")
+    ap.add_argument("--format", required=True, choices=FORMATS)
+    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
+    args = ap.parse_args(argv)
+    try:
+        files = export(args.store, args.frames, args.format, args.out, args.name)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2 if not isinstance(e, ExportError) else 1
+    print(f"wrote {len(files)} files to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
