@@ -315,11 +315,6 @@ def _z_up_to_y_up(v: np.ndarray) -> np.ndarray:
     return np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
 
 
-def _tm(v, f):
-    import trimesh
-    return trimesh.Trimesh(vertices=v, faces=f, process=False)
-
-
 # --- primitives ---------------------------------------------------------------------------
 
 def _sphere(spec):
