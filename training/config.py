@@ -1,0 +1,66 @@
+"""Training settings: a frozen, self-validating dataclass that round-trips through a dict."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. Defaults are the layer paper's (sec. 4): Adam lr 0.005, batch 4, 128 px crops,
+    8 spp, SMAPE loss. ``steps`` is the budget in optimiser steps; ``model_cfg`` overrides the model's
+    (paper) defaults, e.g. ``{"layers": 3}``."""
+
+    model: str = "layer"
+    model_cfg: dict = field(default_factory=dict)
+    loss: str = "smape"
+    lr: float = 0.005
+    batch: int = 4
+    crop: int = 128
+    spp: int = 8
+    steps: int = 1000
+    seed: int = 0
+    val_every: int = 100        # optimiser steps between validations (0: only at the end)
+    val_frames: int = 8         # held-out frames per validation (0: all of the split)
+    val_crop: int = 128         # crop of validation frames (0: full frames)
+    val_split: str = "val"
+    log_every: int = 10
+    checkpoint_every: int = 100
+    device: str = "cpu"
+
+    def __post_init__(self):
+        def need(name, ok, rng):
+            if not ok:
+                raise ConfigError(f'"{name}" must be {rng}, got {getattr(self, name)!r}')
+        need("lr", self.lr > 0, "> 0")
+        for name in ("batch", "crop", "spp", "log_every", "checkpoint_every"):
+            need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 1, "an integer >= 1")
+        for name in ("steps", "val_every", "val_frames", "val_crop", "seed"):
+            need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")
+        need("model_cfg", isinstance(self.model_cfg, dict), "a dict of model settings")
+        need("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda"),
+             '"cpu" or "cuda[:N]"')
+        from .losses import build_loss
+        build_loss(self.loss)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"unknown training settings {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**d)
+
+    def replace(self, **kw) -> "TrainConfig":
+        return TrainConfig.from_dict({**self.to_dict(), **kw})
+
+    def identity(self) -> dict:
+        """Settings that must match to resume a run (everything except the step budget and logging)."""
+        d = self.to_dict()
+        for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device"):
+            d.pop(k)
+        return d
