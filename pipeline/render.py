@@ -40,8 +40,9 @@ each moving object are set for the slice's time (``mi.traverse`` + ``update``) a
 of the samples is rendered. Inputs use ``g = gcd(cfg.time_slices, spp)`` slices with jittered
 stratified times ``t_k = (k + u_k) / g`` (samples ``s`` of every pixel in slice ``k = s // (S/g)``,
 so samples are ordered by time); each layer likewise with its own jitter (1 spp: one uniform time);
-the reference uses one time per pass, a randomly shifted van der Corput sequence (stratified for
-any prefix, so an early stop stays unbiased). The ``time`` feature is the slice time ``t_k``, i.e.
+the reference uses ``cfg.ref_time_slices`` times per pass, consecutive blocks of a randomly shifted
+van der Corput sequence (stratified for any prefix of passes, so an early stop stays unbiased; the
+batch-means standard error then includes the time variance and is slightly conservative). The ``time`` feature is the slice time ``t_k``, i.e.
 the time the geometry was actually at. A scene without ``has_motion`` renders in one pass at
 ``tau = frame`` and its ``time`` feature is 0.
 
@@ -105,6 +106,7 @@ class RenderConfig:
     ref_min_passes: int = 16                 # passes before an early stop may happen
     ref_target_rel_stderr: float | None = None   # early stop once the relative standard error is below
     time_slices: int = 4                     # time slices per render for scenes with moving objects
+    ref_time_slices: int = 4                 # time slices per reference pass (moving objects only)
     threads: int = 0                         # drjit threads (0 = leave as is)
     seed_offset: int = 0                     # extra SeedSequence entropy (0 = the dataset default)
     max_value: float = 1e8                   # +-Inf radiance is clamped to this
@@ -138,6 +140,8 @@ class RenderConfig:
         need("ref_target_rel_stderr", t is None or (isinstance(t, (int, float)) and math.isfinite(t) and t > 0),
              "None or a number > 0")
         need("time_slices", is_int(self.time_slices) and 1 <= self.time_slices <= 1024, "an integer in [1, 1024]")
+        need("ref_time_slices", is_int(self.ref_time_slices) and self.ref_time_slices >= 1
+             and self.ref_time_slices & (self.ref_time_slices - 1) == 0, "a power of two >= 1")
         need("threads", is_int(self.threads) and 0 <= self.threads <= 1024, "an integer in [0, 1024] (0 = default)")
         need("seed_offset", is_int(self.seed_offset) and self.seed_offset >= 0, "an integer >= 0")
         need("max_value", isinstance(self.max_value, (int, float)) and math.isfinite(self.max_value)
@@ -288,6 +292,8 @@ class FrameScene:
     def shape_index(self, registry_ids: np.ndarray) -> np.ndarray:
         """Table index (int64, 0 = no hit) of drjit shape registry ids (0 = no hit)."""
         ids = np.asarray(registry_ids, np.int64)
+        if len(self._sorted_ids) == 0:
+            return np.zeros(ids.shape, np.int64)
         pos = np.clip(np.searchsorted(self._sorted_ids, ids), 0, len(self._sorted_ids) - 1)
         found = (self._sorted_ids[pos] == ids) & (ids != 0)
         return np.where(found, self._order[pos] + 1, 0)
@@ -465,8 +471,9 @@ def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float
         return z, z.copy(), 0, 0.0, 0
     passes = cfg.ref_passes
     pass_spp = cfg.ref_spp // passes
+    k = math.gcd(cfg.ref_time_slices, pass_spp) if fs.has_motion else 1
     shift = _rng(fs.spec, fs.frame, cfg, STREAM_REFERENCE).random()
-    times = np.minimum((_van_der_corput(passes) + shift) % 1.0, np.nextafter(1.0, 0.0))
+    times = np.minimum((_van_der_corput(passes * k) + shift) % 1.0, np.nextafter(1.0, 0.0)).reshape(passes, k)
     cnt = np.zeros((H, W, 1))
     s1 = np.zeros((H, W, 3))
     s2 = np.zeros((H, W, 3))
@@ -474,9 +481,12 @@ def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float
     done = 0
     mean = std = None
     for p in range(passes):
-        fs.set_time(float(times[p]) if fs.has_motion else 0.0)
-        img = _mi_render(fs, pass_spp, stream_seed(fs.spec.seed, fs.frame, STREAM_REFERENCE, p,
-                                                   offset=cfg.seed_offset))
+        img = 0.0
+        for j in range(k):
+            fs.set_time(float(times[p, j]) if fs.has_motion else 0.0)
+            img = img + _mi_render(fs, pass_spp // k, stream_seed(fs.spec.seed, fs.frame, STREAM_REFERENCE, p, j,
+                                                                  offset=cfg.seed_offset))
+        img = img / k
         nan = np.isnan(img).any(axis=-1, keepdims=True)
         b = ~np.isfinite(img).all(axis=-1)
         bad += int(b.sum())
