@@ -65,6 +65,24 @@ def sphere_in_frustum(cam: CameraSpec, centers: np.ndarray, radii: np.ndarray,
     return inside
 
 
+def frustum_test(cam: CameraSpec, res: tuple[int, int]):
+    """A fast scalar version of :func:`sphere_in_frustum` for one camera: ``f(center (3), radius) -> bool``."""
+    r, u, fw = basis(cam)
+    o = np.asarray(cam.origin, float)
+    tx, ty = tan_half(cam, res)
+    kx, ky = 1.0 / math.sqrt(1 + tx * tx), 1.0 / math.sqrt(1 + ty * ty)
+    r, u, fw, o = r.tolist(), u.tolist(), fw.tolist(), o.tolist()
+
+    def test(c, radius: float) -> bool:
+        d = (c[0] - o[0], c[1] - o[1], c[2] - o[2])
+        x = d[0] * r[0] + d[1] * r[1] + d[2] * r[2]
+        y = d[0] * u[0] + d[1] * u[1] + d[2] * u[2]
+        z = d[0] * fw[0] + d[1] * fw[1] + d[2] * fw[2]
+        return (z > -radius and (x - z * tx) * kx < radius and (-x - z * tx) * kx < radius
+                and (y - z * ty) * ky < radius and (-y - z * ty) * ky < radius)
+    return test
+
+
 def projected_radius_px(cam: CameraSpec, centers: np.ndarray, radii: np.ndarray, res: tuple[int, int]) -> np.ndarray:
     """Radius in pixels of each bounding sphere's projection (float64, N); huge when the camera is inside."""
     p = to_camera(cam, centers)

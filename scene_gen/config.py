@@ -55,7 +55,7 @@ class SceneGenConfig:
     p_motion: float = 0.5
     p_object_motion: float = 0.5          # in a scene with motion, the share of objects that move
     fov_range: tuple = (15.0, 65.0)       # degrees, within (0, 180)
-    aperture_range: tuple = (0.002, 0.05)  # lens radius / focus distance, log-uniform
+    aperture_range: tuple = (0.001, 0.02)  # lens radius / focus distance, log-uniform
     speed_range: tuple = (0.1, 1.5)       # object speed in object radii per frame
     p_sunsky: float = 0.5                 # outdoor: Mitsuba sunsky, else a procedural HDR probe
     p_floating: float = 0.1               # share of objects that float above the ground

@@ -59,43 +59,44 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
 
     # objects where random rays through the image meet the ground
     placed_xz, placed_r = [], []
-    n = cfg.outdoor_objects
-    k = 0
-    tries = 0
-    while k < n and tries < 40 * n + 100:
-        tries += 1
-        shape, half = random_shape(rng, user_models, cfg.p_user_model)
+    for k in range(cfg.outdoor_objects):
+        anywhere = rng.uniform() < 0.1     # a few outside the first view (clips may turn to them)
         size = math.exp(rng.uniform(math.log(0.25), math.log(2.0)))
-        scale, rot, rest, radius = upright(rng, half, size)
-        if rng.uniform() < 0.85:   # in view: a ray through a random image point
-            px, py = rng.uniform(-1, 1, 2)
-            d = f + r * px * tx + u * py * ty
-            if d[1] >= -1e-3:
+        bound = size * 1.2   # typical bounding radius; the exact one follows the shape
+        xz = None
+        for attempt in range(30):
+            if not anywhere:   # in view: a ray through a random image point meets the ground
+                px, py = rng.uniform(-1, 1, 2)
+                d = f + r * px * tx + u * py * ty
+                if d[1] >= -1e-3:
+                    continue
+                p = origin + d * (-origin[1] / d[1])
+            else:
+                a, rr = rng.uniform(0, 2 * math.pi), 30 * math.sqrt(rng.uniform())
+                p = target * np.array([1, 0, 1]) + rr * np.array([math.cos(a), 0, math.sin(a)])
+            cam_d = float(np.linalg.norm(p - origin))
+            if cam_d < 2.5 * bound + 0.5 or cam_d > 70.0:
                 continue
-            t = -origin[1] / d[1]
-            p = origin + d * t
-        else:                       # anywhere around the target (may be culled)
-            a, rr = rng.uniform(0, 2 * math.pi), 30 * math.sqrt(rng.uniform())
-            p = target * np.array([1, 0, 1]) + rr * np.array([math.cos(a), 0, math.sin(a)])
-        cam_d = float(np.linalg.norm(p - origin))
-        if cam_d < 2.5 * radius + 0.5 or cam_d > 70.0:
+            if curve_line is not None and np.dot(p - curve_line[0], curve_line[1]) > -bound:
+                continue   # keep objects on the flat part of the cyclorama
+            q = p[[0, 2]]
+            if placed_xz and attempt < 20:   # footprints apart where possible
+                dd = np.linalg.norm(np.asarray(placed_xz) - q, axis=1)
+                if (dd < np.asarray(placed_r) + bound * 0.7).any():
+                    continue
+            xz = q
+            break
+        if xz is None:
             continue
-        if curve_line is not None and np.dot(p - curve_line[0], curve_line[1]) > -radius:
-            continue   # keep objects on the flat part of the cyclorama
-        xz = p[[0, 2]]
-        fp = radius * 0.7
-        if placed_xz and k < n and tries < 20 * n:
-            dd = np.linalg.norm(np.asarray(placed_xz) - xz, axis=1)
-            if (dd < np.asarray(placed_r) + fp).any():
-                continue
+        shape, half = random_shape(rng, user_models, cfg.p_user_model)
+        scale, rot, rest, radius = upright(rng, half, size)
         floating = rng.uniform() < cfg.p_floating
         y = rest + (rng.uniform(0.3, 3.0) * size if floating else 0.0)
         objects.append(Placed(f"obj_{k:03d}", shape, random_material(rng),
                               Transform((_f(xz[0]), _f(y), _f(xz[1])), rot, scale), radius=radius,
                               planar=not floating))
         placed_xz.append(xz)
-        placed_r.append(fp)
-        k += 1
+        placed_r.append(bound * 0.7)
 
     # environment: sunsky or a procedural probe
     lights = []
@@ -105,16 +106,17 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
         sun = [_f(math.cos(el) * math.sin(saz)), _f(math.sin(el)), _f(math.cos(el) * math.cos(saz))]
         lights.append(LightSpec("sunsky", {"sun_direction": sun, "turbidity": _f(rng.uniform(2, 8)),
                                            "albedo": _f(rng.uniform(0.1, 0.4)),
-                                           "sun_scale": _f(SUNSKY_SCALE * rng.uniform(0.6, 1.2)),
-                                           "sky_scale": _f(SUNSKY_SCALE * rng.uniform(0.6, 1.2))}))
+                                           "sun_scale": _f(SUN_SCALE * rng.uniform(0.6, 1.3)),
+                                           "sky_scale": _f(SKY_SCALE * rng.uniform(0.6, 1.3))}))
     else:
         s = math.exp(rng.uniform(math.log(0.5), math.log(1.5)))
-        lights.append(LightSpec("envmap", {"probe": probe_params(rng, sky=0.6 * s, sun=2.0e4 * s),
+        lights.append(LightSpec("envmap", {"probe": probe_params(rng, sky=0.5 * s, sun=1.0e4 * s),
                                            "scale": OUTDOOR_PROBE_SCALE, "rotation": _f(rng.uniform(0, 360))}))
     return Layout(objects=objects, lights=lights, origin=origin, target=target,
                   camera_step=_f(rng.uniform(0.05, 0.3)))
 
 
 # Radiance scales chosen so a 64-spp preview with the fixed log tone map is well exposed.
-SUNSKY_SCALE = 1.0
+SUN_SCALE = 2.0   # Mitsuba sunsky at scale 1: the sun lights a 0.5-albedo ground to ~0.17 (at 45°)
+SKY_SCALE = 5.0   # ... the sky alone to ~0.04, and the sky itself is ~0.1 (sunsky turned y-up)
 OUTDOOR_PROBE_SCALE = 1.0

@@ -351,13 +351,14 @@ def _clamp_into(rects, height, margin=0.35):
     return clamp
 
 
-def _sample_in_plan(rng, rects, margin, n_try=200):
+def _sample_in_plan(rng, rects, margin, n_try=4):
     r = np.asarray(rects, np.float64)
     lo, hi = r[:, :2].min(0), r[:, 2:].max(0)
-    for _ in range(n_try):
-        p = rng.uniform(lo, hi)
-        if inside_plan(r, p[None], margin)[0]:
-            return p
+    for _ in range(n_try):   # batches of candidates; the first inside one wins
+        p = rng.uniform(lo, hi, (32, 2))
+        ok = np.flatnonzero(inside_plan(r, p, margin))
+        if len(ok):
+            return p[ok[0]]
     c = r[0]
     return np.array([(c[0] + c[2]) / 2, (c[1] + c[3]) / 2])
 
@@ -409,9 +410,8 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
         origin, target = np.array([0.0, 1.5, 0.0]), np.array([1.0, 0.8, 1.0])
     cam0 = cams_make(origin, target, fov)
 
-    def in_view(p, radius):
-        from scene_gen import cameras as cams
-        return bool(cams.sphere_in_frustum(cam0, np.asarray(p)[None], np.array([radius]), (res, res))[0])
+    from scene_gen.cameras import frustum_test
+    in_view = frustum_test(cam0, (res, res))
 
     n_total = cfg.indoor_objects
     count = [0]
@@ -476,36 +476,40 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
                 Transform((_f(q[0]), _f((top + 0.1) / 2), _f(q[1])), (0.0, _f(yaw), 0.0),
                           (0.015, _f((top + 0.1) / 2 + 0.015), _f(dep / 2))),
                 radius=top / 2 + 0.1, movable=False)
-    # objects on supports and on the floor
-    k = 0
-    tries = 0
-    while count[0] < n_total and tries < 40 * n_total + 100:
-        tries += 1
+    # objects on supports and on the floor, nearly all in the first view
+    vis_supports = [sp for sp in supports if in_view([sp[0], sp[2], sp[1]], max(sp[3], sp[4]))]
+    for k in range(max(0, n_total - count[0])):
+        on_support = bool(vis_supports) and rng.uniform() < 0.3
+        must_see = rng.uniform() < 0.95
+        pos = None
+        for _ in range(30):
+            if on_support:
+                sx, sz, sy, hx, hz, yaw = vis_supports[int(rng.integers(len(vis_supports)))]
+                size = math.exp(rng.uniform(math.log(0.05), math.log(0.18)))
+                lx, lz = rng.uniform(-hx, hx), rng.uniform(-hz, hz)
+                cy, sy_ = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+                x, z = sx + cy * lx + sy_ * lz, sz - sy_ * lx + cy * lz
+                base_y = sy
+            else:
+                size = math.exp(rng.uniform(math.log(0.08), math.log(0.5)))
+                x, z = _sample_in_plan(rng, rects, size + 0.05)
+                base_y = 0.0
+            if must_see and not in_view([x, base_y + size, z], size * 1.2):
+                continue
+            if math.dist((x, base_y + size, z), origin) < 1.2 * size + 0.3:
+                continue
+            pos = (x, z, base_y, size)
+            break
+        if pos is None:
+            continue
+        x, z, base_y, size = pos
         shape, half = random_shape(rng, user_models, cfg.p_user_model)
-        on_support = supports and rng.uniform() < 0.35
-        if on_support:
-            sx, sz, sy, hx, hz, yaw = supports[int(rng.integers(len(supports)))]
-            size = math.exp(rng.uniform(math.log(0.05), math.log(0.18)))
-            lx, lz = rng.uniform(-hx, hx), rng.uniform(-hz, hz)
-            cy, sy_ = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
-            x, z = sx + cy * lx + sy_ * lz, sz - sy_ * lx + cy * lz
-            base_y = sy
-        else:
-            size = math.exp(rng.uniform(math.log(0.08), math.log(0.5)))
-            q = _sample_in_plan(rng, rects, size + 0.05)
-            x, z = q
-            base_y = 0.0
         scale, rot, rest, radius = upright(rng, half, size)
         floating = (not on_support) and rng.uniform() < cfg.p_floating
         y = base_y + rest + (rng.uniform(0.3, 1.2) if floating else 0.0)
         y = min(y, H - rest - 0.05)
-        if not on_support and not in_view([x, y, z], radius) and rng.uniform() < 0.8:
-            continue
-        if float(np.linalg.norm(np.array([x, y, z]) - origin)) < radius + 0.3:
-            continue
         add(f"obj_{k:03d}", shape, random_material(rng), Transform((_f(x), _f(y), _f(z)), rot, scale),
             radius=radius, planar=not floating)
-        k += 1
 
     # four area lights: emissive rectangles under the ceiling (plane faces +y: turned over) or on walls
     for li in range(4):
