@@ -73,7 +73,8 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
         nbytes, dec_s = 0, 0.0
         overflow = 0
         for r, f in zip(rad, feat):
-            er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
+            with np.errstate(over="ignore"):
+                er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
             overflow += int(np.isinf(er.astype(np.float32)).sum()) if er.dtype == np.float16 else 0
             if codec is None:
                 nbytes += er.nbytes + ef.nbytes

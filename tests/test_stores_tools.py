@@ -1,0 +1,202 @@
+"""Validator (with a writer killed mid-frame by SIGKILL), exports (exr, oidn, layerdenoise), CLI, bench."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stores import bench, export, validate
+from stores.errors import ExportError
+from stores.reader import open_store
+from stores.schema import StoreLayout
+from stores.writer import StoreWriter, open_or_create
+from test_stores_synthetic import synthetic_frame
+
+ROOT = Path(__file__).resolve().parents[1]
+H, W, S = 12, 16, 4
+
+
+@pytest.fixture()
+def store2(tmp_path):
+    path = tmp_path / "s.zarr"
+    w = open_or_create(path, StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=8))
+    frames = [synthetic_frame(20 + i, H, W, S, motion=True, defocus=True) for i in range(2)]
+    for i, fr in enumerate(frames):
+        w.write_frame(i, fr)
+    return path, frames
+
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    sys.path[:0] = [{root!r}, {tests!r}]
+    from stores.writer import StoreWriter
+    from test_stores_synthetic import synthetic_frame
+    def progress(name):
+        if name == "inputs/features":       # radiance and features of the new frame are on disk
+            print("MID", flush=True)
+            time.sleep(120)
+    StoreWriter({path!r}).write_frame(1, synthetic_frame(77, {h}, {w}, {s}), on_progress=progress)
+    print("DONE", flush=True)
+""")
+
+
+def test_writer_killed_mid_frame_is_flagged_and_rerun_completes(store2, tmp_path, capsys):
+    path, frames = store2
+    assert validate.main([str(path)]) == 0
+    capsys.readouterr()
+    script = tmp_path / "child.py"
+    script.write_text(CHILD.format(root=str(ROOT), tests=str(ROOT / "tests"), path=str(path), h=H, w=W, s=S))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "MID"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    # the frame was complete before; the killed re-run left it incomplete, not half-valid
+    rep = validate.validate_store(path)
+    assert rep.incomplete == [1] and not rep.ok
+    assert validate.main([str(path)]) == 1
+    assert "incomplete: [1]" in capsys.readouterr().out
+    assert StoreWriter(path).incomplete_frames() == [1]
+    # half-written new radiance is on disk, but readers refuse the frame
+    with pytest.raises(Exception, match="incomplete"):
+        open_store(path).read_frame(1)
+    # the re-run (what the Dask stage does for incomplete_frames()) completes it
+    for i in StoreWriter(path).incomplete_frames():
+        StoreWriter(path).write_frame(i, synthetic_frame(77, H, W, S))
+    assert validate.main([str(path)]) == 0
+    np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"], synthetic_frame(77, H, W, S)["radiance"])
+
+
+def test_validator_finds_bad_values(store2):
+    path, _ = store2
+    fr = synthetic_frame(5, H, W, S)
+    fr["radiance"][0, 0, 0, 0] = np.nan
+    fr["radiance"][1, 1, 0, 0] = np.inf
+    fr["features"][2, 2, :, 4] = 1.7               # albedo_r > 1
+    fr["reference"][3, 3, 1] = -0.5
+    StoreWriter(path).write_frame(0, fr)
+    rep = validate.validate_store(path)
+    f0, f1 = rep.frames
+    assert f0.nonfinite["radiance"] == 2
+    text = " | ".join(f0.problems)
+    assert "radiance: 2 NaN/Inf" in text and "features.albedo above 1.0" in text and "reference below 0" in text
+    assert not f1.problems and f1.ref_rel_stderr == pytest.approx(0.01, rel=0.2)
+    assert f0.ranges["reference"][0] == -0.5
+    assert validate.main([str(path), "--frames", "1"]) == 0
+    assert validate.main([str(path), "--json"]) == 1
+
+
+def test_validate_cli_exit_codes(tmp_path, store2):
+    path, _ = store2
+    run = lambda *a: subprocess.run([sys.executable, "-m", "stores", *a], cwd=ROOT,  # noqa: E731
+                                    capture_output=True, text=True, timeout=120)
+    ok = run("validate", str(path), "-v")
+    assert ok.returncode == 0, ok.stderr
+    assert "OK" in ok.stdout and "frame      1" in ok.stdout
+    missing = run("validate", str(tmp_path / "missing.zarr"))
+    assert missing.returncode == 2 and "no store" in missing.stderr
+
+
+def test_export_exr(store2, tmp_path):
+    path, frames = store2
+    assert export.main([str(path), "--frames", "1", "--format", "exr", "--out", str(tmp_path / "e")]) == 0
+    d = tmp_path / "e" / "frame_000001"
+    mean = export.read_exr(str(d / "input_mean.exr"))["RGB"]
+    np.testing.assert_allclose(mean, frames[1]["radiance"].mean(axis=2), rtol=1e-6)
+    np.testing.assert_array_equal(export.read_exr(str(d / "layer_0004spp.exr"))["RGB"], frames[1]["layers"][2])
+    np.testing.assert_array_equal(export.read_exr(str(d / "reference.exr"))["RGB"], frames[1]["reference"])
+    np.testing.assert_array_equal(export.read_exr(str(d / "depth.exr"))["Y"], frames[1]["guides_depth"][..., 0])
+    mo = export.read_exr(str(d / "motion.exr"))
+    np.testing.assert_array_equal(mo["R"], frames[1]["guides_motion"][..., 0])
+    from PIL import Image
+    png = Image.open(d / "reference.png")
+    assert png.size == (W, H) and png.mode == "RGB"
+    assert export.tonemap_srgb(np.array([[[0.0, 1.0, 1e8]]]))[0, 0].tolist() == [0, 188, 255]
+    assert not (tmp_path / "e" / "frame_000000").exists()
+
+
+def test_export_oidn_naming(store2, tmp_path):
+    path, frames = store2
+    export.export(path, "0-1", "oidn", str(tmp_path / "o"))
+    names = sorted(os.listdir(tmp_path / "o"))
+    assert "f000000_0001spp.hdr.exr" in names and "f000001_0032spp.nrm.exr" in names
+    assert "f000001_ref.hdr.exr" in names and "f000001_ref.alb.exr" in names
+    # OIDN's grouping rule (training/dataset.py): group = name before the last '_' when the suffix is
+    # NNNNspp or ref; inputs are the sorted names but the last, the target is the last.
+    groups = {}
+    for n in names:
+        stem = n.rsplit(".", 2)[0]
+        prefix, suffix = stem.rsplit("_", 1)
+        assert suffix == "ref" or (suffix.endswith("spp") and suffix[:-3].isdecimal())
+        groups.setdefault(prefix, set()).add(stem)
+    assert set(groups) == {"f000000", "f000001"}
+    members = sorted(groups["f000001"])
+    assert members[-1] == "f000001_ref" and len(members) == 7
+    ref = export.read_exr(str(tmp_path / "o" / "f000001_ref.hdr.exr"))["RGB"]
+    np.testing.assert_array_equal(ref, frames[1]["reference"])
+    l8 = export.read_exr(str(tmp_path / "o" / "f000001_0008spp.hdr.exr"))["RGB"]
+    np.testing.assert_array_equal(l8, frames[1]["layers"][3])
+
+
+def test_export_layerdenoise_matches_its_loader(store2, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    path, frames = store2
+    inp, ref = export.export(path, "all", "layerdenoise", str(tmp_path / "l"), name="synthetic_set")
+    scene = os.path.basename(inp)
+    # layerdenoise train.py: ref file = scene[0:scene.rfind("_")] + "_ref.h5"
+    assert os.path.basename(ref) == scene[0:scene.rfind("_")] + "_ref.h5"
+    with h5py.File(inp, "r") as f, h5py.File(ref, "r") as r:
+        chans = {"color": 3, "normals_depth": 4, "albedo": 3, "specular": 4, "uvt": 3, "motionvecs": 3}
+        for k, c in chans.items():
+            assert f[k].shape == (2, S, c, H, W) and f[k].dtype == np.float16, k
+        assert r["color"].shape == (2, 3, H, W) and r["color"].dtype == np.float16
+        # the loader's slicing: [idx, 0:spp, ..., oh:oh+ch, ow:ow+cw]
+        color = f["color"][1, 0:2, ..., 2:10, 3:11]
+        target = r["color"][1, ..., 2:10, 3:11]
+        assert color.shape == (2, 3, 8, 8) and target.shape == (3, 8, 8)
+        fr = frames[1]
+        expect = np.minimum(fr["radiance"][2:10, 3:11, 0:2], 65504).transpose(2, 3, 0, 1)
+        np.testing.assert_allclose(color.astype(np.float32), expect, rtol=1e-3)
+        np.testing.assert_allclose(target.astype(np.float32), np.minimum(fr["reference"], 65504)[2:10, 3:11].transpose(2, 0, 1), rtol=1e-3)
+        mv = f["motionvecs"][1].astype(np.float32)                       # (S, 3, H, W)
+        np.testing.assert_allclose(mv[:, 0], fr["features"][..., 11].transpose(2, 0, 1) * 2 / W, rtol=1e-3, atol=1e-4)
+        np.testing.assert_allclose(mv[:, 1], -fr["features"][..., 12].transpose(2, 0, 1) * 2 / H, rtol=1e-3, atol=1e-4)
+        nd = f["normals_depth"][1].astype(np.float32)
+        R = fr["camera_to_world"][:3, :3]
+        n_world = fr["features"][..., 0:3]
+        n_view = np.einsum("ij,hwsj->hwsi", np.linalg.inv(R), n_world)  # inverse rotation
+        np.testing.assert_allclose(nd[:, 0:3], n_view.transpose(2, 3, 0, 1), atol=2e-3)
+        assert nd[:, 3].max() == pytest.approx(1.0, abs=1e-3) and nd[:, 3].min() >= 0
+        spec = f["specular"][1].astype(np.float32)
+        np.testing.assert_allclose(spec[:, 3], fr["features"][..., 10].transpose(2, 0, 1), atol=1e-3)
+        uvt = f["uvt"][1].astype(np.float32)
+        np.testing.assert_allclose(uvt[:, 2], fr["features"][..., 16].transpose(2, 0, 1), atol=1e-3)
+
+
+def test_export_errors(store2, tmp_path):
+    path, _ = store2
+    StoreWriter(path).mark_failed(0, "boom")
+    with pytest.raises(ExportError, match=r"frames \[0\] are incomplete"):
+        export.export(path, "all", "oidn", str(tmp_path / "x"))
+    with pytest.raises(ExportError, match="unknown export format"):
+        export.export(path, "1", "png", str(tmp_path / "x"))
+    assert export.main([str(path), "--frames", "5", "--format", "exr", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_bench_smoke():
+    r = bench.run(crops=3, crop=32, frames=1, size=32, verbose=False)
+    for k in ("crops_per_s", "mb_per_s", "ceiling_mb_per_s", "fraction_of_ceiling", "stored_over_raw"):
+        assert r[k] > 0, k
+    assert r["stored_over_raw"] < 1.0
+    chosen = [row for row in r["codecs"] if "chosen" in row["encoding"]][0]
+    f16 = [row for row in r["codecs"] if row["encoding"].startswith("float16")][0]
+    assert chosen["inf_after_encoding"] == 0 and f16["inf_after_encoding"] > 0   # sun disc overflows float16
+    assert "crops/s" in bench.format_report(r)
