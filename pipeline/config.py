@@ -1,0 +1,390 @@
+"""The dataset configuration: one YAML file → a validated, frozen :class:`DatasetConfig`.
+
+Everything is checked when the file is loaded, before a cluster starts or a pixel is rendered: an
+unknown key or a bad value raises :class:`~pipeline.errors.ConfigError` whose message names the
+field (``dataset.scenes[1].count``) and its allowed range. The sub-sections ``render`` and
+``scene_gen`` are validated by their owners (:class:`pipeline.render.RenderConfig`,
+:class:`scene_gen.config.SceneGenConfig`), so their messages name their fields the same way.
+
+YAML layout (every key optional except ``scenes``; see ``configs/default.yaml``)::
+
+    name: default                # store name: <out or $DENOISE_DATA>/<name>.zarr
+    seed: 1                      # root seed: scene i's seed = SeedSequence([seed, i])
+    out: null                    # store path or fsspec URL (the CLI's --out wins)
+    resolution: [32, 32]         # (W, H) pixels, or one int for a square
+    scenes:                      # groups in order; scene indices run across the groups
+      - {kind: indoor,  count: 2}            # stills
+      - {kind: outdoor, count: 1, frames: 4} # 4-frame clips
+    render: {spp: 8, layer_levels: 6, ref_spp: 4096}   # RenderConfig fields (not res)
+    scene_gen: {}                # SceneGenConfig fields
+    store: {}                    # passed to the store writer (compression, chunks)
+    tasks: {retries: 2, split_streams: true, reference_resources: null}
+    cluster: {kind: local, workers: null, threads_per_worker: 1, ...}
+
+Frames are numbered in that order: scene 0's frames, then scene 1's, ... A frame's bytes depend only
+on (seed, scene index, frame index, render config), never on workers or task order.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+SCENE_KINDS = ("indoor", "outdoor")
+CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
+MAX_RES = 16384
+STORE_KEYS = frozenset({"tile", "radiance_encoding", "feature_dtype"})   # stores.schema.StoreLayout fields
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+def _need(ok: bool, name: str, rng: str, value) -> None:
+    if not ok:
+        raise ConfigError(f"{name} must be {rng}, got {value!r}")
+
+
+def _known(section: str, d: Any, cls) -> dict:
+    """Check ``d`` is a mapping with only ``cls``'s field names; returns it as a dict."""
+    if d is None:
+        return {}
+    if not isinstance(d, dict):
+        raise ConfigError(f"{section} must be a mapping, got {type(d).__name__}")
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(map(str, d)) - names)
+    if unknown:
+        raise ConfigError(f"{section}: unknown key(s) {unknown}; known: {sorted(names)}")
+    return dict(d)
+
+
+def scene_seed(root_seed: int, index: int) -> int:
+    """Seed of scene ``index`` (an int in [0, 2**31)): ``SeedSequence([root_seed, index])``."""
+    ss = np.random.SeedSequence([int(root_seed), int(index)])
+    return int(ss.generate_state(1, np.uint32)[0] >> 1)
+
+
+@dataclass(frozen=True)
+class SceneGroup:
+    """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip)."""
+    kind: str
+    count: int
+    frames: int = 1
+
+    def validate(self, where: str) -> None:
+        _need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind)
+        _need(_is_int(self.count) and 1 <= self.count <= 10_000_000, f"{where}.count",
+              "an integer in [1, 10000000]", self.count)
+        _need(_is_int(self.frames) and 1 <= self.frames <= 10_000, f"{where}.frames",
+              "an integer in [1, 10000]", self.frames)
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """How the graph is cut into tasks and how failures are handled.
+
+    ``split_streams``: inputs, sample layers and reference of a frame are three tasks (references can
+    then run on other workers, e.g. GPU ones); else one task renders the whole frame (one scene load
+    instead of three). ``retries``: extra attempts of a failed task (transient failures) before the
+    frame is recorded as failed. ``reference_resources``: Dask worker resources a reference task
+    needs, e.g. ``{GPU: 1}`` (workers must then advertise them: ``dask worker --resources GPU=1``).
+    """
+    retries: int = 2
+    split_streams: bool = True
+    reference_resources: dict | None = None
+
+    def validate(self) -> None:
+        _need(_is_int(self.retries) and 0 <= self.retries <= 100, "dataset.tasks.retries",
+              "an integer in [0, 100]", self.retries)
+        _need(isinstance(self.split_streams, bool), "dataset.tasks.split_streams", "true or false",
+              self.split_streams)
+        r = self.reference_resources
+        if r is not None:
+            _need(isinstance(r, dict) and len(r) > 0 and all(
+                isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
+                for k, v in r.items()), "dataset.tasks.reference_resources",
+                "null or a mapping of resource name to a number > 0 (e.g. {GPU: 1})", r)
+            _need(self.split_streams, "dataset.tasks.split_streams",
+                  "true when reference_resources is set (the reference must be its own task)",
+                  self.split_streams)
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    """Where the graph runs (the CLI's ``--scheduler``/``--workers`` override ``kind``/``address``/``workers``).
+
+    - ``local``: a ``LocalCluster`` of ``workers`` processes (default: one per CPU core) with
+      ``threads_per_worker`` threads each (drjit's thread pool is sized to match), serving the dashboard
+      at ``dashboard_address``.
+    - ``scheduler``: connect to a running scheduler at ``address`` (``tcp://host:8786``).
+    - ``slurm`` / ``pbs``: start ``jobs`` batch jobs with dask-jobqueue (``pip install dask-jobqueue``);
+      ``jobqueue`` holds the keyword arguments of ``SLURMCluster`` / ``PBSCluster`` (cores, memory,
+      walltime, queue, account, job_extra_directives, ...).
+    """
+    kind: str = "local"
+    address: str | None = None
+    workers: int | None = None
+    threads_per_worker: int = 1
+    memory_limit: str | int = "auto"
+    dashboard_address: str | None = ":8787"
+    connect_timeout: float = 10.0
+    jobs: int = 1
+    jobqueue: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        p = "dataset.cluster"
+        _need(self.kind in CLUSTER_KINDS, f"{p}.kind", f"one of {CLUSTER_KINDS}", self.kind)
+        if self.kind == "scheduler":
+            _need(isinstance(self.address, str) and "://" in self.address, f"{p}.address",
+                  "a scheduler address like tcp://host:8786 when kind is 'scheduler'", self.address)
+        elif self.address is not None:
+            _need(isinstance(self.address, str) and "://" in self.address, f"{p}.address",
+                  "null or a scheduler address like tcp://host:8786", self.address)
+        _need(self.workers is None or (_is_int(self.workers) and 1 <= self.workers <= 4096), f"{p}.workers",
+              "null (one per core) or an integer in [1, 4096]", self.workers)
+        _need(_is_int(self.threads_per_worker) and 1 <= self.threads_per_worker <= 1024,
+              f"{p}.threads_per_worker", "an integer in [1, 1024]", self.threads_per_worker)
+        m = self.memory_limit
+        _need((isinstance(m, str) and m != "") or (_is_int(m) and m >= 0), f"{p}.memory_limit",
+              "'auto', a size like '4GiB', or a number of bytes >= 0", m)
+        _need(self.dashboard_address is None or isinstance(self.dashboard_address, str),
+              f"{p}.dashboard_address", "null (no dashboard) or an address like ':8787'", self.dashboard_address)
+        t = self.connect_timeout
+        _need(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and 0 < t <= 3600,
+              f"{p}.connect_timeout", "a number of seconds in (0, 3600]", t)
+        _need(_is_int(self.jobs) and 1 <= self.jobs <= 100_000, f"{p}.jobs", "an integer in [1, 100000]", self.jobs)
+        _need(isinstance(self.jobqueue, dict) and all(isinstance(k, str) for k in self.jobqueue),
+              f"{p}.jobqueue", "a mapping of dask-jobqueue keyword arguments", self.jobqueue)
+        if self.kind in ("slurm", "pbs"):
+            for k in ("cores", "memory"):
+                _need(k in self.jobqueue, f"{p}.jobqueue.{k}", f"set for kind {self.kind!r} (dask-jobqueue needs it)",
+                      self.jobqueue.get(k))
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """One frame of the dataset: its store index, its scene and its index within the scene's clip."""
+    index: int
+    scene: int
+    kind: str
+    seed: int
+    frame: int
+    num_frames: int
+
+    @property
+    def key(self) -> str:
+        """Readable Dask key prefix: ``scene-000042/frame-3``."""
+        return f"scene-{self.scene:06d}/frame-{self.frame}"
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """A whole dataset: what to generate, how to render it, where to store it and where to run.
+
+    ``render`` and ``scene_gen`` are the validated dicts of :class:`pipeline.render.RenderConfig`
+    (without ``res``, which comes from ``resolution``) and :class:`scene_gen.config.SceneGenConfig`.
+    """
+    scenes: tuple[SceneGroup, ...]
+    name: str = "dataset"
+    seed: int = 0
+    out: str | None = None
+    resolution: tuple[int, int] = (32, 32)
+    render: dict = field(default_factory=dict)
+    scene_gen: dict = field(default_factory=dict)
+    store: dict = field(default_factory=dict)
+    tasks: TaskConfig = TaskConfig()
+    cluster: ClusterConfig = ClusterConfig()
+
+    def __post_init__(self):
+        _need(isinstance(self.name, str) and self.name != "" and "/" not in self.name
+              and self.name.strip() == self.name, "dataset.name", "a non-empty file name without '/'", self.name)
+        _need(_is_int(self.seed) and 0 <= self.seed < 2 ** 63, "dataset.seed", "an integer in [0, 2**63)", self.seed)
+        _need(self.out is None or (isinstance(self.out, str) and self.out != ""), "dataset.out",
+              "null or a store path / URL", self.out)
+        res = self.resolution
+        if _is_int(res):
+            res = (res, res)
+        _need(isinstance(res, (tuple, list)) and len(res) == 2 and all(_is_int(r) and 1 <= r <= MAX_RES for r in res),
+              "dataset.resolution", f"a positive int or [W, H] of ints in [1, {MAX_RES}]", self.resolution)
+        object.__setattr__(self, "resolution", (int(res[0]), int(res[1])))
+        _need(isinstance(self.scenes, (tuple, list)) and len(self.scenes) > 0, "dataset.scenes",
+              "a non-empty list of {kind, count, frames} groups", self.scenes)
+        object.__setattr__(self, "scenes", tuple(self.scenes))
+        for i, g in enumerate(self.scenes):
+            g.validate(f"dataset.scenes[{i}]")
+        for n in ("render", "scene_gen", "store"):
+            _need(isinstance(getattr(self, n), dict), f"dataset.{n}", "a mapping", getattr(self, n))
+        if "res" in self.render:
+            raise ConfigError("dataset.render.res is not allowed: set dataset.resolution (shared with scene_gen)")
+        self.tasks.validate()
+        self.cluster.validate()
+        rc = self.render_config()   # the owners validate their sections (raise ConfigError naming the field)
+        if rc.oracle_spp:
+            raise ConfigError(f"dataset.render.oracle_spp must be 0 (the store has no oracle image), got {rc.oracle_spp}")
+        self.scene_gen_config()
+        self.store_layout()
+
+    # -- derived -----------------------------------------------------------------------------------
+    def render_config(self):
+        """The :class:`pipeline.render.RenderConfig` of every frame (``res`` = ``resolution``)."""
+        from pipeline.render import RenderConfig
+        return RenderConfig.from_dict({**self.render, "res": list(self.resolution)})
+
+    def scene_gen_config(self):
+        """The :class:`scene_gen.config.SceneGenConfig` (raises ConfigError naming a bad field)."""
+        from scene_gen.config import SceneGenConfig
+        from scene_gen.errors import SceneGenError
+        try:
+            return SceneGenConfig.from_dict(dict(self.scene_gen))
+        except SceneGenError as e:
+            raise ConfigError(f"dataset.{e}" if str(e).startswith("scene_gen") else f"dataset.scene_gen: {e}") from e
+
+    def store_layout(self):
+        """The :class:`stores.schema.StoreLayout` of the dataset (``store`` holds its encoding fields)."""
+        from stores.errors import StoreError
+        from stores.schema import StoreLayout
+        allowed = sorted(STORE_KEYS)
+        unknown = sorted(set(self.store) - STORE_KEYS)
+        if unknown:
+            raise ConfigError(f"dataset.store: unknown key(s) {unknown}; known: {allowed}")
+        rc = self.render_config()
+        try:
+            return StoreLayout(num_frames=self.num_frames, height=self.resolution[1], width=self.resolution[0],
+                               spp=rc.spp, layer_spp=tuple(2 ** n for n in range(rc.layer_levels)), **self.store)
+        except (StoreError, TypeError) as e:
+            raise ConfigError(f"dataset.store: {e}") from e
+
+    @property
+    def num_scenes(self) -> int:
+        return sum(g.count for g in self.scenes)
+
+    @property
+    def num_frames(self) -> int:
+        return sum(g.count * g.frames for g in self.scenes)
+
+    def frames(self) -> list[FrameRef]:
+        """Every frame in store order (scene by scene, frame by frame)."""
+        out: list[FrameRef] = []
+        s = 0
+        for g in self.scenes:
+            for _ in range(g.count):
+                seed = scene_seed(self.seed, s)
+                for f in range(g.frames):
+                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames))
+                s += 1
+        return out
+
+    def store_path(self, out: str | None = None) -> str:
+        """Where the store goes: ``out`` (CLI) or ``self.out``, else ``$DENOISE_DATA/<name>.zarr``
+        (``data/<name>.zarr`` when ``DENOISE_DATA`` is unset). A path ending in ``/`` or naming an
+        existing folder without ``zarr.json`` gets ``<name>.zarr`` appended."""
+        target = out or self.out
+        if target is None:
+            return str(Path(os.environ.get("DENOISE_DATA") or "data") / f"{self.name}.zarr")
+        target = os.path.expandvars(os.path.expanduser(target))
+        if "://" in target:
+            return target
+        p = Path(target)
+        if target.endswith("/") or (p.is_dir() and not (p / "zarr.json").exists() and p.suffix != ".zarr"):
+            return str(p / f"{self.name}.zarr")
+        return str(p)
+
+    def with_overrides(self, **kw) -> "DatasetConfig":
+        """A copy with top-level fields replaced (validated again)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d.update(kw)
+        return DatasetConfig(**d)
+
+    def with_cluster(self, **kw) -> "DatasetConfig":
+        c = {f.name: getattr(self.cluster, f.name) for f in fields(ClusterConfig)}
+        c.update(kw)
+        return self.with_overrides(cluster=ClusterConfig(**c))
+
+    # -- (de)serialisation -------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """Plain data (lists, dicts, scalars) that :meth:`from_dict` turns back into an equal config."""
+        def group(g):
+            return {"kind": g.kind, "count": g.count, "frames": g.frames}
+        return {
+            "name": self.name, "seed": int(self.seed), "out": self.out, "resolution": list(self.resolution),
+            "scenes": [group(g) for g in self.scenes],
+            "render": _plain(self.render), "scene_gen": _plain(self.scene_gen), "store": _plain(self.store),
+            "tasks": _plain({f.name: getattr(self.tasks, f.name) for f in fields(TaskConfig)}),
+            "cluster": _plain({f.name: getattr(self.cluster, f.name) for f in fields(ClusterConfig)}),
+        }
+
+    def content_dict(self) -> dict:
+        """What determines the dataset's bytes (no ``out``, ``cluster`` or ``tasks``): stored in the
+        store's root attributes and compared on resume."""
+        d = self.to_dict()
+        for k in ("out", "cluster", "tasks"):
+            d.pop(k)
+        d["render"] = self.render_config().to_dict()
+        d["render"].pop("threads", None)        # drjit's thread count does not change a byte
+        d["store"] = {k: v for k, v in self.store_layout().to_dict().items() if k in STORE_KEYS}
+        d["scene_gen"] = self.scene_gen_config().to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Any) -> "DatasetConfig":
+        d = _known("dataset", d, cls)
+        if "scenes" not in d:
+            raise ConfigError("dataset.scenes is required: a list of {kind: indoor|outdoor, count: N, frames: F}")
+        scenes = d["scenes"]
+        _need(isinstance(scenes, list) and len(scenes) > 0, "dataset.scenes",
+              "a non-empty list of {kind, count, frames} groups", scenes)
+        groups = []
+        for i, g in enumerate(scenes):
+            gd = _known(f"dataset.scenes[{i}]", g, SceneGroup)
+            for k in ("kind", "count"):
+                if k not in gd:
+                    raise ConfigError(f"dataset.scenes[{i}].{k} is required")
+            groups.append(SceneGroup(**gd))
+        d["scenes"] = tuple(groups)
+        d["tasks"] = TaskConfig(**_known("dataset.tasks", d.get("tasks"), TaskConfig))
+        cl = _known("dataset.cluster", d.get("cluster"), ClusterConfig)
+        if cl.get("jobqueue") is None:
+            cl.pop("jobqueue", None)
+        d["cluster"] = ClusterConfig(**cl)
+        for k in ("render", "scene_gen", "store"):
+            if d.get(k) is None:
+                d[k] = {}
+        if isinstance(d.get("resolution"), list):
+            d["resolution"] = tuple(d["resolution"])
+        return cls(**d)
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (tuple, list)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v)
+    return v
+
+
+def load_config(path: str | os.PathLike) -> DatasetConfig:
+    """Read and validate a YAML dataset config; raises ConfigError naming the file and the field."""
+    import yaml
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {str(p)!r} does not exist")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {e}") from e
+    try:
+        return DatasetConfig.from_dict(data)
+    except ConfigError as e:
+        raise ConfigError(f"{p}: {e}") from e
+    except TypeError as e:      # e.g. a field given a mapping where a scalar belongs
+        raise ConfigError(f"{p}: {e}") from e
