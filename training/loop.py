@@ -115,7 +115,9 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
         step = int(ck["step"])
 
     train_ds = sample_dataset(store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed)
-    val_ds = sample_dataset(store, cfg.val_split, cfg.spp, cfg.val_crop or None, augment=False, seed=cfg.seed)
+    lay = store.layout
+    val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None   # small stores: whole frames
+    val_ds = sample_dataset(store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed)
     log = _Log(out / "metrics.csv", step)
 
     def save():

@@ -1,0 +1,75 @@
+"""The command contract: train -> evaluate -> report on a tiny real store; OIDN baseline; figure 10; bench."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from test_training import TINY, make_store
+from training.__main__ import main
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return make_store(tmp_path_factory.mktemp("store") / "tiny.zarr", per_split=(3, 1, 2))
+
+
+def test_cli_train_evaluate_report(store, tmp_path):
+    runs = tmp_path / "runs"
+    for name, cfg in (("layer", TINY), ("layer-optimized", {**TINY, "kernel_size": 3, "unet_encoder": ((8,),) * 3, "unet_decoder": ((8,),) * 3})):
+        rc = main(["train", "--model", name, "--store", store, "--steps", "2", "--crop", "16", "--batch", "2",
+                   "--spp", "2", "--out", str(runs / name), "--model-cfg", json.dumps(cfg), "--no-progress",
+                   "--val-every", "2", "--val-frames", "1"])
+        assert rc == 0 and (runs / name / "checkpoint.pt").is_file() and (runs / name / "metrics.csv").is_file()
+
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--checkpoint", str(runs / "layer" / "checkpoint.pt"), "--store", store,
+                 "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["method"] == "layer" and res["split"] == "test" and res["spp"] == 2 and len(res["frames"]) == 2
+    for f in res["frames"]:
+        assert {"relmse", "smape", "psnr", "ssim", "flip", "ms_per_megapixel"} <= set(f)
+        assert f["ms_per_megapixel"] > 0 and 0 <= f["flip"] <= 1 and np.isfinite(f["relmse"])
+    assert res["mean"]["relmse"] == pytest.approx(np.mean([f["relmse"] for f in res["frames"]]))
+
+    rep = tmp_path / "report"
+    assert main(["report", "--runs", str(runs / "layer"), str(runs / "layer-optimized"), str(runs / "missing*"),
+                 "--store", store, "--out", str(rep)]) == 0
+    md = (rep / "report.md").read_text()
+    for label in ("| input |", "| layer |", "| layer-optimized |", "| oidn |", "relMSE", "FMAs", "figure 10"):
+        assert label in md
+    assert Image.open(rep / "speed_vs_error.png").size[0] > 100
+    crops = Image.open(rep / "crops.png")
+    assert crops.size == (5 * (32 * 3 + 4), 32 * 3 + 16)   # 5 panels: input, 2 models, oidn, reference
+    assert main(["report", "--runs", str(tmp_path / "nothing"), "--store", store, "--out", str(rep)]) == 2
+
+
+def test_oidn_baseline_denoises(store):
+    """OIDN on the noisy mean beats the noisy input itself on the synthetic frames (heavy-tailed noise
+    with x1e5 fireflies at 2 spp): far lower relMSE and higher SSIM."""
+    from training.evaluate import evaluate
+    noisy = evaluate("input", store, split="test", with_flip=False)
+    oidn = evaluate("oidn", store, split="test", with_flip=False)
+    assert oidn["mean"]["relmse"] < noisy["mean"]["relmse"] / 10
+    assert oidn["mean"]["ssim"] > noisy["mean"]["ssim"]
+
+
+def test_figure10_ordering():
+    """Figure 10's shape: PIXELGATHER flat in spp; SAMPLESPLAT grows fastest; LAYER in between;
+    OPTIMIZED cheapest."""
+    from training.fma import figure10
+    rows = {(r["model"], r["spp"]): r["fmas_per_pixel"] for r in figure10(spps=(2, 8, 32))}
+    pg = [rows[("pixelgather", s)] for s in (2, 8, 32)]
+    assert max(pg) / min(pg) < 1.01
+    for s in (8, 32):
+        assert rows[("layer-optimized", s)] < rows[("pixelgather", s)] < rows[("layer", s)] < rows[("samplesplat", s)]
+    assert rows[("samplesplat", 32)] - rows[("samplesplat", 2)] > 5 * (rows[("layer", 32)] - rows[("layer", 2)])
+
+
+def test_bench_runs_small():
+    from training.bench import run
+    res = run(size=32, spp=2, repeats=1, models=("pixelgather", "layer-optimized"), print_table=False)
+    assert set(res) == {"pixelgather", "layer-optimized", "oidn"}
+    assert all(v["ms_per_megapixel"] > 0 for v in res.values())

@@ -1,0 +1,68 @@
+"""Inference speed of every paper model (default widths) and OIDN at 8 spp on this machine, in one run.
+
+``run()`` returns and prints ``{name: {"ms_per_megapixel", "fmas_per_pixel", "params"}}``. Inputs are
+random per-sample frames of ``size x size`` pixels (speed does not depend on content); times are the
+best of ``repeats`` forward passes under ``torch.no_grad`` after a warm-up.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from stores.contract import NUM_FEATURES
+
+BENCH_MODELS = ("pixelgather", "samplesplat", "layer", "layer-w", "layer-optimized")
+
+
+def _best(fn, repeats: int) -> float:
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def run(size: int = 128, spp: int = 8, repeats: int = 3, models=BENCH_MODELS, oidn: bool = True,
+        print_table: bool = True) -> dict:
+    from .models import build
+    from .oidn import oidn_denoise
+
+    g = torch.Generator().manual_seed(0)
+    batch = {"radiance": torch.rand(1, spp, 3, size, size, generator=g) * 4,
+             "features": torch.rand(1, spp, NUM_FEATURES, size, size, generator=g)}
+    mp = size * size / 1e6
+    res = {}
+    for name in models:
+        torch.manual_seed(0)
+        m = build(name).eval()
+        with torch.no_grad():
+            s = _best(lambda: m(batch), repeats)
+        res[name] = {"ms_per_megapixel": s * 1e3 / mp, "fmas_per_pixel": float(m.fmas_per_pixel(spp)),
+                     "params": m.param_count()}
+        del m
+    if oidn:
+        rng = np.random.default_rng(0)
+        color = rng.random((size, size, 3), dtype=np.float32) * 4
+        alb = rng.random((size, size, 3), dtype=np.float32)
+        nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
+        s = _best(lambda: oidn_denoise(color, alb, nrm), repeats)
+        res["oidn"] = {"ms_per_megapixel": s * 1e3 / mp, "fmas_per_pixel": None, "params": None}
+    if print_table:
+        print(f"inference at {spp} spp, {size}x{size}, {torch.get_num_threads()} threads (best of {repeats})")
+        print(f"{'model':<16} {'ms/MP':>12} {'kFMA/px':>10} {'params':>12}")
+        for k, v in res.items():
+            fm = "-" if v["fmas_per_pixel"] is None else f"{v['fmas_per_pixel'] / 1e3:.0f}"
+            pc = "-" if v["params"] is None else f"{v['params']:,}"
+            print(f"{k:<16} {v['ms_per_megapixel']:>12.0f} {fm:>10} {pc:>12}")
+        if "layer" in res and "layer-optimized" in res:
+            print(f"layer / layer-optimized time ratio: "
+                  f"{res['layer']['ms_per_megapixel'] / res['layer-optimized']['ms_per_megapixel']:.1f}x")
+    return res
+
+
+if __name__ == "__main__":
+    run()

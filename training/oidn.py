@@ -1,0 +1,15 @@
+"""Intel Open Image Denoise baseline (PyPI ``pyoidn``), given albedo and normal guides."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def oidn_denoise(color: np.ndarray, albedo: np.ndarray | None = None, normal: np.ndarray | None = None) -> np.ndarray:
+    """Denoise HDR linear ``color (float32, HW3)`` with optional ``albedo`` (HW3, in [0, 1]) and
+    ``normal`` (HW3, in [-1, 1]); returns float32 HW3. OIDN's RT filter, HDR mode, high quality."""
+    import pyoidn
+
+    c = np.ascontiguousarray(np.clip(np.nan_to_num(color, nan=0.0, posinf=0.0), 0.0, None), dtype=np.float32)
+    a = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0.0, 1.0), dtype=np.float32)
+    n = None if normal is None else np.ascontiguousarray(np.clip(normal, -1.0, 1.0), dtype=np.float32)
+    return np.asarray(pyoidn.denoise(c, a, n, hdr=True), dtype=np.float32)
