@@ -90,8 +90,8 @@ def _primitive(rng: np.random.Generator, kind: str) -> tuple[dict, np.ndarray, n
         return {"profile": prof, "sections": 48}, np.array([-rm, y.min(), -rm]), np.array([rm, y.max(), rm])
     if kind == "extrude":   # a star-shaped outline
         n = int(rng.integers(5, 12))
-        ang = np.sort(u(0, 2 * np.pi, n)) if rng.uniform() < 0.5 else np.linspace(0, 2 * np.pi, n, endpoint=False)
-        ang = ang + 1e-3 * np.arange(n)
+        gaps = u(0.4, 1.0, n) if rng.uniform() < 0.5 else np.ones(n)   # monotone angles: a simple polygon
+        ang = np.cumsum(gaps) / gaps.sum() * 2 * np.pi
         rad = u(0.4, 1.0, n) if rng.uniform() < 0.6 else np.where(np.arange(n) % 2 == 0, 1.0, u(0.35, 0.6))
         xz = np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
         h = u(0.15, 1.5)
