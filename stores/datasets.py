@@ -169,11 +169,11 @@ class _StoreDataset(torch.utils.data.Dataset):
 
     def _samples(self, i: int, region, spp: int) -> dict:
         s = self.store
-        rad = s.read_array("inputs/radiance", i, region)[..., :spp]        # (3, h, w, S)
-        feat = s.read_array("inputs/features", i, region)[..., :spp]       # (17, h, w, S)
+        rad = s.read_array("inputs/radiance", i, region, samples=spp)     # (S, 3, h, w)
+        feat = s.read_array("inputs/features", i, region, samples=spp)    # (S, 17, h, w)
         return {
-            "radiance": torch.from_numpy(np.ascontiguousarray(rad.transpose(3, 0, 1, 2), dtype=np.float32)),
-            "features": torch.from_numpy(np.ascontiguousarray(feat.transpose(3, 0, 1, 2), dtype=np.float32)),
+            "radiance": torch.from_numpy(np.ascontiguousarray(rad, dtype=np.float32)),
+            "features": torch.from_numpy(np.ascontiguousarray(feat, dtype=np.float32)),
         }
 
 

@@ -57,6 +57,7 @@ class _ShardReader:
         self.dtype = np.dtype(meta["data_type"])
         self.fill = meta.get("fill_value", 0) or 0
         self.iy, self.ix = dims.index("y"), dims.index("x")
+        self.isample = dims.index("sample") if "sample" in dims else None
         self.ny = self.shards[self.iy] // self.inner[self.iy]
         self.nx = self.shards[self.ix] // self.inner[self.ix]
         names = [c["name"] for c in shard["codecs"]]
@@ -79,8 +80,9 @@ class _ShardReader:
         except (KeyError, IndexError, TypeError):
             return False
 
-    def read(self, frame: int, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis, storage dtype."""
+    def read(self, frame: int, y0: int, y1: int, x0: int, x1: int, samples: int | None = None) -> np.ndarray:
+        """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis (and only the first
+        ``samples`` samples, for arrays with a sample axis), storage dtype."""
         from numcodecs import blosc
         ndim = len(self.shape)
         key = self.sep.join(["c", str(frame)] + ["0"] * (ndim - 1))
@@ -88,6 +90,10 @@ class _ShardReader:
         out_shape = list(self.shape[1:])
         iy, ix = self.iy - 1, self.ix - 1
         out_shape[iy], out_shape[ix] = y1 - y0, x1 - x0
+        keep = [slice(None)] * len(out_shape)
+        if samples is not None and self.isample is not None:
+            out_shape[self.isample - 1] = samples
+            keep[self.isample - 1] = slice(0, samples)
         out = np.empty(out_shape, self.dtype)
         ty, tx = inner[iy], inner[ix]
         path = os.path.join(self.dir, *key.split("/")) if self.sep == "/" else os.path.join(self.dir, key)
@@ -114,7 +120,7 @@ class _ShardReader:
                     if self.blosc:
                         buf = blosc.decompress(buf)
                     chunk = np.frombuffer(buf, self.dtype).reshape(inner)
-                    src = [slice(None)] * len(out_shape)
+                    src = list(keep)
                     src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
                     out[tuple(dst)] = chunk[tuple(src)]
         finally:
@@ -257,23 +263,31 @@ class Store:
             raise CropSizeError(f"crop at (y={y}, x={x}) of {h}x{w} leaves the {H}x{W} frame")
         return y, x, h, w
 
-    def read_array(self, path: str, i: int, crop=None, *, check_complete: bool = True) -> np.ndarray:
+    def read_array(self, path: str, i: int, crop=None, *, samples: int | None = None,
+                   check_complete: bool = True) -> np.ndarray:
         """One frame of image array ``path`` in storage layout without the frame axis, e.g.
-        ``inputs/radiance -> (float32, rgb·h·w·sample)`` (log16 decoded), cropped to
-        ``crop = (y, x, h, w)``. Features come back as stored (float16 unless float32 was chosen)."""
+        ``inputs/radiance -> (float32, sample·rgb·h·w)`` (log16 decoded), cropped to
+        ``crop = (y, x, h, w)``, the first ``samples`` samples of per-sample arrays.
+        Features come back as stored (float16 unless float32 was chosen)."""
         i = self._check_index(i)
         if check_complete:
             self._check_complete(i)
         spec = ARRAY_BY_PATH[path]
         y, x, h, w = self._check_crop(crop)
+        if samples is not None and "sample" in spec.dims:
+            samples = self._check_spp(samples)
+        else:
+            samples = None
         r = self._reader(path) if spec.image else None
         if r is not None:
-            a = r.read(i, y, y + h, x, x + w)
+            a = r.read(i, y, y + h, x, x + w, samples)
         else:
             sel = [i] + [slice(None)] * (len(spec.dims) - 1)
             if spec.image:
                 sel[spec.dims.index("y")] = slice(y, y + h)
                 sel[spec.dims.index("x")] = slice(x, x + w)
+            if samples is not None:
+                sel[spec.dims.index("sample")] = slice(0, samples)
             a = np.asarray(self.root[path][tuple(sel)])
         if path == "inputs/radiance" and self.layout.radiance_encoding == "log16":
             from stores.codecs import decode_log16
@@ -299,9 +313,7 @@ class Store:
                 raise StoreLayoutError(f"unknown frame array {key!r}; known: {', '.join(ARRAY_BY_SOURCE)}")
             spec = ARRAY_BY_SOURCE[key]
             if spec.image:
-                a = self.read_array(spec.path, i, crop, check_complete=False)
-                if spec.path.startswith("inputs/"):
-                    a = a[..., :spp]
+                a = self.read_array(spec.path, i, crop, samples=spp, check_complete=False)
             else:
                 a = np.asarray(self.root[spec.path][i])
             out[key] = spec.from_store(a, self.layout)

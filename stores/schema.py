@@ -1,8 +1,8 @@
 """The store schema, version 1: a versioned table of arrays, the layout, and store creation/opening.
 
 One Zarr v3 group per dataset (see ``stores/SCHEMA.md`` for the table with dtypes, chunks and the
-measurements behind them). Images are stored channel-major with samples last,
-``inputs/radiance (float32, F·rgb·y·x·sample)``, sharded one shard per frame and per array with
+measurements behind them). Images are stored sample-major (the (S, C, h, w) layout training consumes, no transpose on read),
+``inputs/radiance (float32, F·sample·rgb·y·x)``, sharded one shard per frame and per array with
 ``tile x tile`` inner chunks, so a training crop of one frame with all samples reads a few inner
 chunks of one file, and each writer task owns whole shards (no locks). Per-frame scalars have one
 chunk per frame. Every array carries ``dimension_names`` so ``xarray.open_zarr(store, group=...)``
@@ -168,10 +168,10 @@ class ArraySpec:
 
 
 _IMAGE_SPECS = (
-    ArraySpec("inputs/radiance", ("frame", "rgb", "y", "x", "sample"), "float32", "radiance",
-              "per-sample linear HDR radiance", perm=(3, 0, 1, 2)),
-    ArraySpec("inputs/features", ("frame", "feature", "y", "x", "sample"), "float16", "features",
-              "per-sample features, names in inputs/feature", perm=(3, 0, 1, 2)),
+    ArraySpec("inputs/radiance", ("frame", "sample", "rgb", "y", "x"), "float32", "radiance",
+              "per-sample linear HDR radiance", perm=(2, 3, 0, 1)),
+    ArraySpec("inputs/features", ("frame", "sample", "feature", "y", "x"), "float16", "features",
+              "per-sample features, names in inputs/feature", perm=(2, 3, 0, 1)),
     ArraySpec("layers/radiance", ("frame", "level", "rgb", "y", "x"), "float32", "layers",
               "sample layer n: mean of layer_spp[n] independent samples", perm=(0, 3, 1, 2)),
     ArraySpec("reference/radiance", ("frame", "rgb", "y", "x"), "float32", "reference",

@@ -85,9 +85,9 @@ def test_xarray_opens_every_group_with_named_dims(store3):
         ds = xr.open_zarr(str(path), group=g, consolidated=False)
         assert ds.sizes["frame"] == 3, g
     ds = xr.open_zarr(str(path), group="inputs", consolidated=False)
-    assert ds["radiance"].dims == ("frame", "rgb", "y", "x", "sample")
+    assert ds["radiance"].dims == ("frame", "sample", "rgb", "y", "x")
     assert list(ds["feature"].values[:4]) == ["normal_x", "normal_y", "normal_z", "depth"]
-    np.testing.assert_array_equal(ds["radiance"].isel(frame=2).values, frames[2]["radiance"].transpose(3, 0, 1, 2))
+    np.testing.assert_array_equal(ds["radiance"].isel(frame=2).values, frames[2]["radiance"].transpose(2, 3, 0, 1))
     depth = xr.open_zarr(str(path), group="guides", consolidated=False)["depth"]
     assert depth.dims == ("frame", "y", "x")
     meta = xr.open_zarr(str(path), group="frames", consolidated=False)
