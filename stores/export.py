@@ -191,22 +191,38 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     return export_layerdenoise(store, idx, out, name)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="export", description="Export store frames to OpenEXR, the OIDN "
-                                 "training layout, or layerdenoise HDF5.")
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The ``export`` sub-command's arguments (shared by ``python -m pipeline`` and ``python -m stores``)."""
     ap.add_argument("store", help="path of the Zarr store")
     ap.add_argument("--frames", default="all", help="all (default), 3, 0,2,5-7")
     ap.add_argument("--format", required=True, choices=FORMATS)
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
-    args = ap.parse_args(argv)
+
+
+def run(args) -> int:
+    """Export and print a one-line summary; raises StoreError (ExportError, ...) on failure."""
     try:
         files = export(args.store, args.frames, args.format, args.out, args.name)
-    except (StoreError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2 if not isinstance(e, ExportError) else 1
+    except ValueError as e:
+        if isinstance(e, StoreError):
+            raise
+        raise ExportError(str(e)) from e
     print(f"wrote {len(files)} files to {args.out}")
     return 0
+
+
+def main(argv=None) -> int:
+    """``export STORE --format F --out DIR``: exit 0 on success, 2 on any error (message on stderr)."""
+    ap = argparse.ArgumentParser(prog="export", description="Export store frames to OpenEXR, the OIDN "
+                                 "training layout, or layerdenoise HDF5.")
+    add_arguments(ap)
+    args = ap.parse_args(argv)
+    try:
+        return run(args)
+    except StoreError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,8 +1,8 @@
 """The store schema, version 1: a versioned table of arrays, the layout, and store creation/opening.
 
 One Zarr v3 group per dataset (see ``stores/SCHEMA.md`` for the table with dtypes, chunks and the
-measurements behind them). Images are stored sample-major (the (S, C, h, w) layout training consumes, no transpose on read),
-``inputs/radiance (float32, F·sample·rgb·y·x)``, sharded one shard per frame and per array with
+measurements behind them). Images are stored sample-major, the ``(S, C, h, w)`` layout training
+consumes (no transpose on read): ``inputs/radiance (float32, F·sample·rgb·y·x)``, sharded one shard per frame and per array with
 ``tile x tile`` inner chunks, so a training crop of one frame with all samples reads a few inner
 chunks of one file, and each writer task owns whole shards (no locks). Per-frame scalars have one
 chunk per frame. Every array carries ``dimension_names`` so ``xarray.open_zarr(store, group=...)``

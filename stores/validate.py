@@ -179,23 +179,37 @@ _IMAGE_KEYS = ("radiance", "features", "layers", "reference", "reference_stderr"
                "guides_normal", "guides_depth", "guides_motion", "camera_to_world", "world_to_clip")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="validate", description="Check a store: schema, completeness, "
-                                 "NaN/Inf counts, value ranges and reference standard error, per frame.")
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The ``validate`` sub-command's arguments (shared by ``python -m pipeline`` and ``python -m stores``)."""
     ap.add_argument("store", help="path of the Zarr store")
     ap.add_argument("--frames", default=None, help="frames to check: all (default), 3, 0,2,5-7")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
     ap.add_argument("-v", "--verbose", action="store_true", help="one line per frame with value ranges")
-    args = ap.parse_args(argv)
+
+
+def run(args) -> int:
+    """Validate and print; 0 if no problem, 1 if problems. Raises StoreError if the store cannot be read."""
+    store = open_store(args.store)
     try:
-        store = open_store(args.store)
         frames = parse_frames(args.frames, store.num_frames)
-        rep = validate_store(args.store, frames)
-    except (StoreError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except ValueError as e:
+        raise StoreError(str(e)) from e
+    rep = validate_store(args.store, frames)
     print(json.dumps(rep.to_dict(), indent=1) if args.json else rep.format(args.verbose))
     return 0 if rep.ok else 1
+
+
+def main(argv=None) -> int:
+    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store of this schema)."""
+    ap = argparse.ArgumentParser(prog="validate", description="Check a store: schema, completeness, "
+                                 "NaN/Inf counts, value ranges and reference standard error, per frame.")
+    add_arguments(ap)
+    args = ap.parse_args(argv)
+    try:
+        return run(args)
+    except StoreError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -200,3 +200,14 @@ def test_bench_smoke():
     f16 = [row for row in r["codecs"] if row["encoding"].startswith("float16")][0]
     assert chosen["inf_after_encoding"] == 0 and f16["inf_after_encoding"] > 0   # sun disc overflows float16
     assert "crops/s" in bench.format_report(r)
+
+
+def test_pipeline_cli_dispatches_to_stores(store2, tmp_path, capsys):
+    """``python -m pipeline validate|export`` use stores.validate/export ``add_arguments`` + ``run``."""
+    pm = pytest.importorskip("pipeline.__main__")
+    path, _ = store2
+    assert pm.main(["validate", str(path)]) == 0
+    assert pm.main(["export", str(path), "--format", "oidn", "--frames", "0", "--out", str(tmp_path / "o")]) == 0
+    assert (tmp_path / "o" / "f000000_ref.hdr.exr").exists()
+    assert pm.main(["validate", str(tmp_path / "missing.zarr")]) == 2
+    assert "no store" in capsys.readouterr().err
