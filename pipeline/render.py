@@ -310,15 +310,16 @@ def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float
     W, H = fs.cfg.res
     n = rows * W * s_per
     sampler = fs.sampler
-    sampler.seed(seed, n)
+    # Seeds, offsets and times are opaque so one compiled kernel serves every chunk, slice and frame.
+    sampler.seed(dr.opaque(mi.UInt32, seed), n)
     idx = dr.arange(mi.UInt32, n)
     pix = idx // s_per
     px = mi.Float(pix % W)
-    py = mi.Float(pix // W + row0)
+    py = mi.Float(pix // W + dr.opaque(mi.UInt32, row0))
     film = (mi.Point2f(px, py) + sampler.next_2d()) * mi.ScalarPoint2f(1.0 / W, 1.0 / H)
     ap = sampler.next_2d()
     wav = sampler.next_1d()
-    ray, weight = fs.sensor.sample_ray_differential(float(fs.tau(t)), wav, film, ap)
+    ray, weight = fs.sensor.sample_ray_differential(dr.opaque(mi.Float, float(fs.tau(t))), wav, film, ap)
     si = fs.scene.ray_intersect(ray)
     hit = si.is_valid()
     albedo = si.bsdf(ray).eval_diffuse_reflectance(si, hit)
