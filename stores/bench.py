@@ -130,6 +130,7 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         zs = open_store(store, fast=False)
         from stores.datasets import SampleDataset
         ds = SampleDataset(s, split=None, spp=spp, crop=crop, augment=False)
+        t = lay.tile_y
         npy = os.path.join(tmp, "crop.npy")
         np.save(npy, np.zeros((spp, 20, crop, crop), np.float32))
 
@@ -140,6 +141,8 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         ways = {"fast": lambda i, y, x: read(s, i, y, x), "zarr": lambda i, y, x: read(zs, i, y, x),
                 "tensors": lambda i, y, x: ds._samples(i, (y, x, crop, crop), spp),
                 "ceiling": lambda i, y, x: np.load(npy)}
+        if lay.tile_x == t:
+            ways["aligned"] = lambda i, y, x: read(s, i, (y // t) * t, (x // t) * t)
         times = {k: [] for k in ways}
         for k, fn in ways.items():                 # warm the page cache and the readers
             fn(*picks[0])
@@ -158,6 +161,9 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
             "fraction_of_ceiling": med["ceiling"] / med["fast"],
             "tensor_fraction_of_ceiling": med["ceiling"] / med["tensors"],
         })
+        if "aligned" in med:
+            out.update({"aligned_crops_per_s": 1 / med["aligned"], "aligned_mb_per_s": mb / med["aligned"],
+                        "aligned_fraction_of_ceiling": med["ceiling"] / med["aligned"]})
         stored = raw = 0
         for spec in ARRAYS:
             if spec.image:
@@ -180,6 +186,8 @@ def format_report(r: dict) -> str:
              f"  store (zarr-python) {r['zarr_crops_per_s']:6.1f} crops/s {r['zarr_mb_per_s']:8.0f} MB/s",
              f"  as float32 tensors (S,C,h,w) {r['tensor_crops_per_s']:6.1f} crops/s {r['tensor_mb_per_s']:6.0f} MB/s"
              f"  (SampleDataset's read)",
+             f"  tile-aligned crops {r.get('aligned_crops_per_s', float('nan')):7.1f} crops/s "
+             f"{r.get('aligned_mb_per_s', float('nan')):8.0f} MB/s (crop_align = tile)",
              f"  np.load ceiling   {r['ceiling_crops_per_s']:8.1f} crops/s {r['ceiling_mb_per_s']:8.0f} MB/s",
              f"  fraction of ceiling {r['fraction_of_ceiling']:.2f} (as tensors {r['tensor_fraction_of_ceiling']:.2f};"
              f" target >= 0.5)",

@@ -10,6 +10,9 @@ Every item is a dict of float32 tensors, channel-first:
 * :class:`ClipDataset` (temporal): the SampleDataset keys with a leading time axis ``(T, ...)``, T
   consecutive frames of one clip, one crop window and one augmentation for the whole clip.
 
+Crop origins are uniform over the frame, or multiples of ``crop_align`` (e.g. the store's tile, 32:
+no inner chunk is read only in part, ~1.6x fewer bytes decoded for 128-pixel crops).
+
 Determinism: crop origin and augmentation of item ``i`` come from
 ``np.random.SeedSequence([seed, epoch, frame])`` only, so they do not depend on worker count or order;
 call ``set_epoch(e)`` before each epoch (with ``DataLoader(persistent_workers=True)`` the workers keep
@@ -126,8 +129,12 @@ def compose_layers(layers: np.ndarray, counts: np.ndarray, layer_spp) -> np.ndar
 
 # ---------------------------------------------------------------------------- datasets
 class _StoreDataset(torch.utils.data.Dataset):
-    def __init__(self, store, split: str | None, crop: int | tuple[int, int] | None, augment: bool, seed: int):
+    def __init__(self, store, split: str | None, crop: int | tuple[int, int] | None, augment: bool, seed: int,
+                 crop_align: int = 1):
         self.store: Store = store if isinstance(store, Store) else open_store(store)
+        if int(crop_align) < 1:
+            raise CropSizeError(f"crop_align must be >= 1, got {crop_align}")
+        self.crop_align = int(crop_align)
         H, W = self.store.layout.height, self.store.layout.width
         if crop is None:
             self.crop = (H, W)
@@ -150,7 +157,8 @@ class _StoreDataset(torch.utils.data.Dataset):
     def _origin(self, rng) -> tuple[int, int]:
         H, W = self.store.layout.height, self.store.layout.width
         ch, cw = self.crop
-        return int(rng.integers(0, H - ch + 1)), int(rng.integers(0, W - cw + 1))
+        a = self.crop_align
+        return a * int(rng.integers(0, (H - ch) // a + 1)), a * int(rng.integers(0, (W - cw) // a + 1))
 
     def _region(self, oy, ox):
         return (oy, ox, self.crop[0], self.crop[1])
@@ -190,8 +198,8 @@ class SampleDataset(_StoreDataset):
     See the module docstring for the keys and the augmentation."""
 
     def __init__(self, store, split: str | None = "train", spp: int = 8, crop: int | None = 128,
-                 augment: bool = True, seed: int = 0):
-        super().__init__(store, split, crop, augment, seed)
+                 augment: bool = True, seed: int = 0, crop_align: int = 1):
+        super().__init__(store, split, crop, augment, seed, crop_align)
         S = self.store.layout.spp
         if not 1 <= int(spp) <= S:
             raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 1..{S}")
@@ -226,8 +234,8 @@ class PixelDataset(_StoreDataset):
     ``depth``, ``motion``, ``index``, ``origin``."""
 
     def __init__(self, store, split: str | None = "train", spp: SppSpec = 8, crop: int | None = 128,
-                 augment: bool = True, seed: int = 0):
-        super().__init__(store, split, crop, augment, seed)
+                 augment: bool = True, seed: int = 0, crop_align: int = 1):
+        super().__init__(store, split, crop, augment, seed, crop_align)
         lay = self.store.layout
         self.max_spp = int(sum(lay.layer_spp))
         if isinstance(spp, (int, np.integer)):
@@ -281,8 +289,9 @@ class ClipDataset(_StoreDataset):
     ``spp=0`` leaves out the per-sample inputs (guides and reference only)."""
 
     def __init__(self, store, split: str | None = "train", frames: int = 4, spp: int = 8,
-                 crop: int | None = 128, augment: bool = True, seed: int = 0, stride: int = 1):
-        super().__init__(store, split, crop, augment, seed)
+                 crop: int | None = 128, augment: bool = True, seed: int = 0, stride: int = 1,
+                 crop_align: int = 1):
+        super().__init__(store, split, crop, augment, seed, crop_align)
         S = self.store.layout.spp
         if not 0 <= int(spp) <= S:
             raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 0..{S}")

@@ -42,6 +42,12 @@ def test_sample_dataset_items(store):
     np.testing.assert_array_equal(it["reference"].numpy(), fr["reference"][oy:oy + 16, ox:ox + 16].transpose(2, 0, 1))
     full = SampleDataset(store, split=None, spp=4, crop=None, augment=False)[0]
     assert full["radiance"].shape == (4, 3, 20, 24)
+    aligned = SampleDataset(store, split=None, spp=1, crop=8, augment=False, crop_align=8)
+    origins = set()
+    for epoch in range(4):
+        aligned.set_epoch(epoch)
+        origins |= {tuple(int(v) for v in aligned[i]["origin"]) for i in range(6)}
+    assert all(y % 8 == 0 and x % 8 == 0 for y, x in origins) and len(origins) > 1
 
 
 def test_determinism_epochs_and_workers(store):
