@@ -1,0 +1,7 @@
+"""Zarr v3 stores of per-sample denoiser training data (schema: ``stores/SCHEMA.md``).
+
+Modules: ``contract`` (renderer -> store arrays), ``schema`` (versioned array table, create/open),
+``writer`` (resumable lock-free frame writes), ``reader`` (frames, crops, splits, clips), ``codecs``,
+``validate`` and ``export`` (CLI sub-commands), ``datasets`` (PyTorch; the only module importing torch),
+``bench``, ``errors``. Nothing is imported here, so numpy-only users never pay for torch or zarr.
+"""

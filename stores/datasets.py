@@ -286,15 +286,21 @@ class ClipDataset(_StoreDataset):
     """``frames`` consecutive frames of one clip (same crop window and augmentation for all): the
     SampleDataset keys with a leading time axis, e.g. ``radiance (T,S,3,h,w)``, ``motion (T,2,h,w)``,
     ``index (T,)``. Windows start every ``stride`` frames; clips shorter than ``frames`` are skipped.
-    ``spp=0`` leaves out the per-sample inputs (guides and reference only)."""
+    ``spp=0`` leaves out the per-sample inputs (guides and reference only). ``pixel_spp`` (int
+    0..sum(layer_spp)) adds ``pixel_radiance (T,3,h,w)`` composed from the sample layers, for
+    per-pixel temporal denoisers."""
 
     def __init__(self, store, split: str | None = "train", frames: int = 4, spp: int = 8,
                  crop: int | None = 128, augment: bool = True, seed: int = 0, stride: int = 1,
-                 crop_align: int = 1):
+                 crop_align: int = 1, pixel_spp: int | None = None):
         super().__init__(store, split, crop, augment, seed, crop_align)
         S = self.store.layout.spp
         if not 0 <= int(spp) <= S:
             raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 0..{S}")
+        top = int(sum(self.store.layout.layer_spp))
+        if pixel_spp is not None and not 0 <= int(pixel_spp) <= top:
+            raise SampleCountError(f"pixel_spp={pixel_spp}; the layers hold 0..{top}")
+        self.pixel_spp = None if pixel_spp is None else int(pixel_spp)
         if frames < 1 or stride < 1:
             raise SplitError(f"frames and stride must be >= 1, got frames={frames}, stride={stride}")
         self.spp, self.T = int(spp), int(frames)
@@ -321,6 +327,11 @@ class ClipDataset(_StoreDataset):
         per_t = []
         for i in win:
             item = self._samples(i, region, self.spp) if self.spp else {}
+            if self.pixel_spp is not None:
+                counts = np.full(self.crop, self.pixel_spp, np.int64)
+                layers = self.store.read_array("layers/radiance", i, region)
+                item["pixel_radiance"] = torch.from_numpy(
+                    compose_layers(layers, counts, self.store.layout.layer_spp))
             item.update(self._guides(i, region))
             per_t.append(item)
         out = {k: torch.stack([d[k] for d in per_t]) for k in per_t[0]}

@@ -187,6 +187,10 @@ def test_clip_windows(store):
     assert len(ds) == 3 and [list(w) for w in ds.windows] == [[0, 1], [2, 3], [4, 5]]
     it = ds[1]
     assert "radiance" not in it and it["reference"].shape == (2, 3, 8, 8)
+    px = ClipDataset(store, split=None, frames=2, spp=1, crop=None, augment=False, pixel_spp=6)[2]
+    lay = np.stack([synthetic_frame(i, 20, 24, 4, scene_seed=9, frame=i % 2, num_frames=2)["layers"] for i in (4, 5)])
+    expect = (2 * lay[:, 1] + 4 * lay[:, 2]) / 6                          # 6 = 2 + 4
+    np.testing.assert_allclose(px["pixel_radiance"].numpy(), expect.transpose(0, 3, 1, 2), rtol=1e-5)
     with pytest.raises(SplitError, match="consecutive"):
         ClipDataset(store, split=None, frames=3, spp=2, crop=8)
 
