@@ -68,20 +68,24 @@ def project_pixels(world_to_clip_m: np.ndarray, pts: np.ndarray, res: tuple[int,
     """
     W, H = res
     pts = np.asarray(pts, np.float64)
-    hom = np.concatenate([pts, np.broadcast_to(np.asarray(w, np.float64), pts.shape[:-1])[..., None]], axis=-1)
-    clip = hom @ world_to_clip_m.T
-    cw = clip[..., 3]
+    w = np.broadcast_to(np.asarray(w, np.float64), pts.shape[:-1])
+    m = np.asarray(world_to_clip_m, np.float64)
+    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+    # row by row instead of a matmul: no BLAS thread pool for an N×4 @ 4×4 product
+    cx, cy, cw = (m[i, 0] * x + m[i, 1] * y + m[i, 2] * z + m[i, 3] * w for i in (0, 1, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         ok = cw > 1e-12
-        nx = np.where(ok, clip[..., 0] / np.where(ok, cw, 1.0), np.nan)
-        ny = np.where(ok, clip[..., 1] / np.where(ok, cw, 1.0), np.nan)
+        nx = np.where(ok, cx / np.where(ok, cw, 1.0), np.nan)
+        ny = np.where(ok, cy / np.where(ok, cw, 1.0), np.nan)
     return np.stack([(nx + 1.0) * 0.5 * W, (1.0 - ny) * 0.5 * H], axis=-1)
 
 
 def camera_depth(cam: CameraSpec, pts: np.ndarray) -> np.ndarray:
     """Camera-space z (float64, N) of world points: distance along the view axis."""
     c2w = camera_to_world(cam)
-    return (np.asarray(pts, np.float64) - c2w[:3, 3]) @ c2w[:3, 2]
+    p = np.asarray(pts, np.float64)
+    o, f = c2w[:3, 3], c2w[:3, 2]
+    return (p[..., 0] - o[0]) * f[0] + (p[..., 1] - o[1]) * f[1] + (p[..., 2] - o[2]) * f[2]
 
 
 def coc_pixels(cam: CameraSpec, z: np.ndarray, width: int) -> np.ndarray:

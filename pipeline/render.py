@@ -320,7 +320,7 @@ def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float
     ap = sampler.next_2d()
     wav = sampler.next_1d()
     ray, weight = fs.sensor.sample_ray_differential(dr.opaque(mi.Float, float(fs.tau(t))), wav, film, ap)
-    si = fs.scene.ray_intersect(ray)
+    si = fs.scene.ray_intersect(ray, mi.RayFlags.All, True)
     hit = si.is_valid()
     albedo = si.bsdf(ray).eval_diffuse_reflectance(si, hit)
     L, _valid, _ = fs.integrator.sample(fs.scene, sampler, ray, None, True)
