@@ -138,7 +138,9 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
             st.read_array("inputs/radiance", i, (y, x, crop, crop), samples=spp)
             st.read_array("inputs/features", i, (y, x, crop, crop), samples=spp)
 
+        st2 = open_store(store, threads=2)
         ways = {"fast": lambda i, y, x: read(s, i, y, x), "zarr": lambda i, y, x: read(zs, i, y, x),
+                "threads2": lambda i, y, x: read(st2, i, y, x),
                 "tensors": lambda i, y, x: ds._samples(i, (y, x, crop, crop), spp),
                 "ceiling": lambda i, y, x: np.load(npy)}
         if lay.tile_x == t:
@@ -161,6 +163,8 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
             "fraction_of_ceiling": med["ceiling"] / med["fast"],
             "tensor_fraction_of_ceiling": med["ceiling"] / med["tensors"],
         })
+        out.update({"threads2_crops_per_s": 1 / med["threads2"], "threads2_mb_per_s": mb / med["threads2"],
+                    "threads2_fraction_of_ceiling": med["ceiling"] / med["threads2"]})
         if "aligned" in med:
             out.update({"aligned_crops_per_s": 1 / med["aligned"], "aligned_mb_per_s": mb / med["aligned"],
                         "aligned_fraction_of_ceiling": med["ceiling"] / med["aligned"]})
@@ -183,6 +187,7 @@ def format_report(r: dict) -> str:
     lines = [f"stores bench: {r['crops']} random {r['crop']}x{r['crop']} crops x {r['spp']} samples "
              f"(radiance + 17 features, {r['mb_per_crop']:.1f} MB float32 each)",
              f"  store (fast path) {r['crops_per_s']:8.1f} crops/s {r['mb_per_s']:8.0f} MB/s",
+             f"  store, 2 read threads {r['threads2_crops_per_s']:4.1f} crops/s {r['threads2_mb_per_s']:8.0f} MB/s",
              f"  store (zarr-python) {r['zarr_crops_per_s']:6.1f} crops/s {r['zarr_mb_per_s']:8.0f} MB/s",
              f"  as float32 tensors (S,C,h,w) {r['tensor_crops_per_s']:6.1f} crops/s {r['tensor_mb_per_s']:6.0f} MB/s"
              f"  (SampleDataset's read)",

@@ -80,7 +80,8 @@ class _ShardReader:
         except (KeyError, IndexError, TypeError):
             return False
 
-    def read(self, frame: int, y0: int, y1: int, x0: int, x1: int, samples: int | None = None) -> np.ndarray:
+    def read(self, frame: int, y0: int, y1: int, x0: int, x1: int, samples: int | None = None,
+             pool=None) -> np.ndarray:
         """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis (and only the first
         ``samples`` samples, for arrays with a sample axis), storage dtype."""
         from numcodecs import blosc
@@ -106,23 +107,30 @@ class _ShardReader:
             size = os.fstat(fd).st_size
             n = self.ny * self.nx
             idx = np.frombuffer(os.pread(fd, n * 16, size - n * 16 - 4), "<u8").reshape(self.ny, self.nx, 2)
-            for cy in range(y0 // ty, (y1 - 1) // ty + 1):
-                for cx in range(x0 // tx, (x1 - 1) // tx + 1):
-                    ys, ye = max(y0, cy * ty), min(y1, (cy + 1) * ty)
-                    xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
-                    dst = [slice(None)] * len(out_shape)
-                    dst[iy], dst[ix] = slice(ys - y0, ye - y0), slice(xs - x0, xe - x0)
-                    off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
-                    if off == _EMPTY:
-                        out[tuple(dst)] = self.fill
-                        continue
-                    buf = os.pread(fd, nbytes, off)
-                    if self.blosc:
-                        buf = blosc.decompress(buf)
-                    chunk = np.frombuffer(buf, self.dtype).reshape(inner)
-                    src = list(keep)
-                    src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
-                    out[tuple(dst)] = chunk[tuple(src)]
+            def one(cy: int, cx: int) -> None:
+                ys, ye = max(y0, cy * ty), min(y1, (cy + 1) * ty)
+                xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
+                dst = [slice(None)] * len(out_shape)
+                dst[iy], dst[ix] = slice(ys - y0, ye - y0), slice(xs - x0, xe - x0)
+                off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
+                if off == _EMPTY:
+                    out[tuple(dst)] = self.fill
+                    return
+                buf = os.pread(fd, nbytes, off)
+                if self.blosc:
+                    buf = blosc.decompress(buf)     # releases the GIL outside the main thread
+                chunk = np.frombuffer(buf, self.dtype).reshape(inner)
+                src = list(keep)
+                src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
+                out[tuple(dst)] = chunk[tuple(src)]
+
+            tiles = [(cy, cx) for cy in range(y0 // ty, (y1 - 1) // ty + 1)
+                     for cx in range(x0 // tx, (x1 - 1) // tx + 1)]
+            if pool is not None and len(tiles) > 1:
+                list(pool.map(lambda t: one(*t), tiles))
+            else:
+                for t in tiles:
+                    one(*t)
         finally:
             os.close(fd)
         return out
@@ -131,9 +139,11 @@ class _ShardReader:
 class Store:
     """A read-only view of a store. Cheap to pickle (re-opens lazily in each process)."""
 
-    def __init__(self, path, *, fast: bool = True):
+    def __init__(self, path, *, fast: bool = True, threads: int = 0):
         self.path = path
         self.fast = fast
+        self.threads = int(threads)
+        self._pool = None
         self._local = None
         self.root, self.layout = schema.open_group(path, mode="r")
         self._init_local()
@@ -147,10 +157,18 @@ class Store:
         self._meta_cache = None
 
     def __getstate__(self):
-        return {"path": self.path, "fast": self.fast}
+        return {"path": self.path, "fast": self.fast, "threads": self.threads}
 
     def __setstate__(self, state):
-        self.__init__(state["path"], fast=state["fast"])
+        self.__init__(state["path"], fast=state["fast"], threads=state.get("threads", 0))
+
+    def _get_pool(self):
+        if self.threads < 2:
+            return None
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="stores-read")
+        return self._pool
 
     # ---------------------------------------------------------------- metadata
     @property
@@ -280,7 +298,7 @@ class Store:
             samples = None
         r = self._reader(path) if spec.image else None
         if r is not None:
-            a = r.read(i, y, y + h, x, x + w, samples)
+            a = r.read(i, y, y + h, x, x + w, samples, self._get_pool())
         else:
             sel = [i] + [slice(None)] * (len(spec.dims) - 1)
             if spec.image:
@@ -354,10 +372,11 @@ class Store:
         return {c: sorted(v, key=lambda j: int(t["frame"][j])) for c, v in sorted(groups.items())}
 
 
-def open_store(path, *, fast: bool = True) -> Store:
+def open_store(path, *, fast: bool = True, threads: int = 0) -> Store:
     """Open an existing store for reading (``StoreNotFoundError``, ``ForeignStoreError`` and
-    ``SchemaVersionError`` otherwise)."""
-    return Store(path, fast=fast)
+    ``SchemaVersionError`` otherwise). ``threads >= 2`` decodes the tiles of a crop in a thread pool
+    (Blosc and numpy release the GIL); leave 0 inside DataLoader workers, which already parallelise."""
+    return Store(path, fast=fast, threads=threads)
 
 
 __all__ = ["Store", "open_store", "split_of_clip", "DEFAULT_SPLIT", "StoreLayout"]

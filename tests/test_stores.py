@@ -62,8 +62,10 @@ def test_crop_and_spp_match_full_frame_and_zarr_path(store3):
     crop = (3, 5, 15, 17)                         # crosses inner-chunk borders (tile 16)
     a = fast.read_frame(1, ["radiance", "features", "layers", "guides_depth"], crop=crop, spp=2)
     b = slow.read_frame(1, ["radiance", "features", "layers", "guides_depth"], crop=crop, spp=2)
+    c = open_store(path, threads=2).read_frame(1, list(a), crop=crop, spp=2)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+        np.testing.assert_array_equal(a[k], c[k])
     np.testing.assert_array_equal(a["radiance"], frames[1]["radiance"][3:18, 5:22, :2])
     np.testing.assert_array_equal(a["layers"], frames[1]["layers"][:, 3:18, 5:22])
 
@@ -242,3 +244,19 @@ def test_split_is_by_scene_and_deterministic(tmp_path):
     # the hash split is uniform: ~80/10/10 over many ids
     names = [split_of_clip(k) for k in range(4000)]
     assert abs(names.count("train") / 4000 - 0.8) < 0.03 and abs(names.count("test") / 4000 - 0.1) < 0.02
+
+
+def test_black_frame_overwrites_stale_data(store3):
+    """A hard case: an all-black re-render over a frame with data leaves zeros, not the old values
+    (zarr drops all-fill chunks; the old shard must not survive)."""
+    path, frames = store3
+    black = synthetic_frame(10, H, W, S)
+    for k in ("radiance", "layers", "reference", "reference_stderr", "features", "guides_albedo",
+              "guides_normal", "guides_depth", "guides_motion"):
+        black[k][...] = 0.0
+    StoreWriter(path).write_frame(0, black)
+    for fast in (True, False):
+        out = open_store(path, fast=fast).read_frame(0)
+        for k in ("radiance", "layers", "reference", "features", "guides_depth"):
+            assert not out[k].any(), (k, fast)
+    np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"], frames[1]["radiance"])
