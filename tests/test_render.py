@@ -51,15 +51,25 @@ def cfg(**kw):
     return RenderConfig(**base)
 
 
-def oracle(mi, spec, frame, spp, seed, taus=None, res=RES):
-    """Plain mi.render of a freshly built scene (float64 HWC), averaged over scene times ``taus``."""
+def oracle(mi, spec, frame, spp, seed, taus=None, res=RES, with_var=False, passes=8):
+    """Plain mi.render of a freshly built scene (float64 HWC), averaged over scene times ``taus``.
+
+    ``with_var``: also the per-sample variance (HWC) at those times, from ``passes`` independent
+    passes per time (the variance of a time-sliced mean of n samples is its mean over times / n).
+    """
     from scene_gen import to_mitsuba
     taus = [None] if taus is None else list(taus)
-    acc = 0.0
+    acc, var = 0.0, 0.0
     for i, tau in enumerate(taus):
         scene = to_mitsuba.load(spec, frame, res, tau=tau)
-        acc = acc + np.asarray(mi.render(scene, spp=spp, seed=seed + 7919 * i), np.float64)[..., :3]
-    return acc / len(taus)
+        if not with_var:
+            acc = acc + np.asarray(mi.render(scene, spp=spp, seed=seed + 7919 * i), np.float64)[..., :3]
+            continue
+        runs = np.stack([np.asarray(mi.render(scene, spp=spp // passes, seed=seed + 7919 * i + 31 * j),
+                                    np.float64)[..., :3] for j in range(passes)])
+        acc = acc + runs.mean(0)
+        var = var + runs.var(0, ddof=1) * (spp // passes)
+    return (acc / len(taus), var / len(taus)) if with_var else acc / len(taus)
 
 
 def blocks(a, b=4):
@@ -148,8 +158,10 @@ def _check_unbiased(mi, spec, out, cfg_, layer_taus=None, input_taus=None, ref_t
     allsum = 0.0
     for lvl in range(cfg_.layer_levels):
         n = 2 ** lvl
-        ora_l = ora if layer_taus is None else oracle(mi, spec, 0, ora_spp, 50021 + lvl, layer_taus[lvl])
-        assert zmax(out["layers"][lvl], var1 / n, ora_l, var1 / ora_spp) < 4.5, f"layer {lvl}"
+        ora_l, var_l = ora, var1
+        if layer_taus is not None:  # condition on the layer's slice times; variance at those times
+            ora_l, var_l = oracle(mi, spec, 0, ora_spp, 50021 + lvl, layer_taus[lvl], with_var=True)
+        assert zmax(out["layers"][lvl], var_l / n, ora_l, var_l / ora_spp) < 4.5, f"layer {lvl}"
         allsum = allsum + out["layers"][lvl] * n
     if layer_taus is None:
         total = 2 ** cfg_.layer_levels - 1
