@@ -36,6 +36,7 @@ class FrameReport:
     ranges: dict = field(default_factory=dict)           # array -> [min, max] of finite values
     ref_rel_stderr: float | None = None                  # measured mean relative standard error
     ref_rel_stderr_meta: float | None = None             # the renderer's figure
+    renderer_nonfinite: int = 0                          # NaN/Inf the renderer replaced (frames/nonfinite_*)
     problems: list = field(default_factory=list)
 
 
@@ -69,14 +70,20 @@ class StoreReport:
         lines.append(f"  complete {len(done)}/{len(self.frames)} checked; incomplete: {self.incomplete or 'none'}")
         rel = [f.ref_rel_stderr for f in done if f.ref_rel_stderr is not None]
         if rel:
-            lines.append(f"  reference rel. stderr: mean {np.mean(rel):.4g}, max {np.max(rel):.4g}")
+            lines.append(f"  reference rel. stderr: mean {np.mean(rel):.4g}, median {np.median(rel):.4g}, "
+                         f"max {np.max(rel):.4g} (frame {done[int(np.argmax(rel))].index})")
+        replaced = sum(f.renderer_nonfinite for f in done)
+        if replaced:
+            lines.append(f"  NaN/Inf replaced by the renderer: {replaced} values in "
+                         f"{sum(1 for f in done if f.renderer_nonfinite)} frame(s)")
         for p in self.problems:
             lines.append(f"  PROBLEM: {p}")
         for f in self.frames:
             if f.problems or verbose:
                 status = "ok" if not f.problems else "; ".join(f.problems)
                 rs = f"{f.ref_rel_stderr:.4g}" if f.ref_rel_stderr is not None else "-"
-                lines.append(f"  frame {f.index:6d}: complete={f.complete} rel_stderr={rs} {status}")
+                lines.append(f"  frame {f.index:6d}: complete={f.complete} rel_stderr={rs} "
+                             f"replaced_nonfinite={f.renderer_nonfinite} {status}")
                 if verbose and f.ranges:
                     for k, (lo, hi) in f.ranges.items():
                         lines.append(f"      {k:18s} [{lo:.4g}, {hi:.4g}] nonfinite={f.nonfinite.get(k, 0)}")
@@ -170,6 +177,8 @@ def validate_store(path, frames=None) -> StoreReport:
             fr_rep.problems.append("incomplete" + (f" (error: {meta['error']})" if meta["error"] else ""))
         else:
             fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
+            fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
+                                            + meta["nonfinite_reference"])
             check_frame_values(store.read_frame(i, [k for k in _IMAGE_KEYS]), fr_rep)
         rep.frames.append(fr_rep)
     return rep
