@@ -260,3 +260,29 @@ def test_black_frame_overwrites_stale_data(store3):
         for k in ("radiance", "layers", "reference", "features", "guides_depth"):
             assert not out[k].any(), (k, fast)
     np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"], frames[1]["radiance"])
+
+
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(1, 40), w=st.integers(1, 40), tile=st.sampled_from([3, 8, 16, 32]), s=st.integers(1, 3),
+       data=st.data())
+def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, s, data):
+    """The direct shard reader returns exactly numpy's slice for any frame size, tile and crop."""
+    from stores.reader import _ShardReader
+    lay = StoreLayout(num_frames=2, height=h, width=w, spp=s, tile=tile)
+    spec = schema.ARRAY_BY_PATH["inputs/radiance"]
+    path = tmp_path_factory.mktemp("prop")
+    root = zarr.open_group(str(path), mode="w")
+    arr = root.create_array("a", shape=spec.shape(lay), dtype="float32", chunks=spec.chunks(lay),
+                            shards=spec.shards(lay), compressors=codecs.compressor(), fill_value=0,
+                            dimension_names=spec.dims)
+    full = np.random.default_rng(h * 100 + w).random(spec.shape(lay), dtype=np.float32)
+    full[1, :, :, : h // 2] = 0                        # some all-fill inner chunks
+    arr[...] = full
+    r = _ShardReader(str(path / "a"), arr.metadata.to_dict(), spec.dims)
+    y0 = data.draw(st.integers(0, h - 1))
+    x0 = data.draw(st.integers(0, w - 1))
+    y1 = data.draw(st.integers(y0 + 1, h))
+    x1 = data.draw(st.integers(x0 + 1, w))
+    k = data.draw(st.integers(1, s))
+    for f in (0, 1):
+        np.testing.assert_array_equal(r.read(f, y0, y1, x0, x1, k), full[f, :k, :, y0:y1, x0:x1])
