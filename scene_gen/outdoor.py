@@ -75,6 +75,9 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
                 a, rr = rng.uniform(0, 2 * math.pi), 30 * math.sqrt(rng.uniform())
                 p = target * np.array([1, 0, 1]) + rr * np.array([math.cos(a), 0, math.sin(a)])
             cam_d = float(np.linalg.norm(p - origin))
+            if bound > MAX_SCREEN * cam_d * tx:    # no object fills the view: shrink it
+                bound = MAX_SCREEN * cam_d * tx
+                size = bound / 1.2
             if cam_d < 2.5 * bound + 0.5 or cam_d > 70.0:
                 continue
             if curve_line is not None and np.dot(p - curve_line[0], curve_line[1]) > -bound:
@@ -117,6 +120,7 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
 
 
 # Radiance scales chosen so a 64-spp preview with the fixed log tone map is well exposed.
+MAX_SCREEN = 0.3  # largest object radius as a share of the half-width of the view at its distance
 SUN_SCALE = 2.0   # Mitsuba sunsky at scale 1: the sun lights a 0.5-albedo ground to ~0.17 (at 45°)
 SKY_SCALE = 5.0   # ... the sky alone to ~0.04, and the sky itself is ~0.1 (sunsky turned y-up)
 OUTDOOR_PROBE_SCALE = 1.0

@@ -192,7 +192,7 @@ def random_openings(rng: np.random.Generator, room_type: str, rects, height: flo
         for s0, s1 in zip(slots[:-1], slots[1:]):
             if n_win <= 0:
                 break
-            ww = min(rng.uniform(0.8, 2.0), s1 - s0 - 0.8)
+            ww = min(rng.uniform(0.8, 2.0), s1 - s0 - 0.9)
             if ww < 0.5:
                 continue
             c = rng.uniform(s0 + 0.4 + ww / 2, s1 - 0.4 - ww / 2)
@@ -395,23 +395,31 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
     # camera: near the boundary, looking across the room with a clear line of sight
     clamp = _clamp_into(rects, H)
     origin = target = None
-    for _ in range(200):
+    best = -1.0
+    for _ in range(200):   # the longest of a few clear sight lines: views across the room
         o = _sample_in_plan(r_cam, rects, 0.4)
         t = _sample_in_plan(r_cam, rects, 0.3)
-        if np.linalg.norm(t - o) < 2.2:
+        dist = float(np.linalg.norm(t - o))
+        if dist < 2.2 or dist <= best:
             continue
         line = o[None] + np.linspace(0, 1, 24)[:, None] * (t - o)[None]
         if not inside_plan(rects, line, 0.1).all():
             continue
+        best = dist
+        # the target is low (the floor near it is in view); the eye at standing or sitting height
         origin = np.array([o[0], r_cam.uniform(1.1, min(1.9, H - 0.4)), o[1]])
-        target = np.array([t[0], r_cam.uniform(0.3, 1.3), t[1]])
-        break
+        target = np.array([t[0], r_cam.uniform(0.1, 0.7), t[1]])
+        if best > 4.0:
+            break
     if origin is None:  # pragma: no cover - every plan has a 2.2 m line of sight
         origin, target = np.array([0.0, 1.5, 0.0]), np.array([1.0, 0.8, 1.0])
     cam0 = cams_make(origin, target, fov)
 
     from scene_gen.cameras import frustum_test
     in_view = frustum_test(cam0, (res, res))
+    tan_x = math.tan(math.radians(fov) / 2)
+    from scene_gen.cameras import basis
+    rt, up_, fw = basis(cam0)
 
     n_total = cfg.indoor_objects
     count = [0]
@@ -450,7 +458,7 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
         wi = int(rng.integers(len(walls)))
         a, b, nin = (np.asarray(x, float) for x in walls[wi])
         L = float(np.linalg.norm(b - a))
-        w = min(rng.uniform(0.8, 2.0), L - 0.6)
+        w = min(rng.uniform(0.8, 2.0), L - 0.7)
         if w < 0.6:
             continue
         c = rng.uniform(0.3 + w / 2, L - 0.3 - w / 2)
@@ -492,11 +500,23 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
                 base_y = sy
             else:
                 size = math.exp(rng.uniform(math.log(0.08), math.log(0.5)))
-                x, z = _sample_in_plan(rng, rects, size + 0.05)
                 base_y = 0.0
+                if must_see:   # where a ray through a random image point meets the floor
+                    px, py = rng.uniform(-1, 1, 2)
+                    d = fw + rt * px * tan_x + up_ * py * tan_x
+                    if d[1] >= -1e-3:
+                        continue
+                    hit = origin + d * (-origin[1] / d[1])
+                    x, z = float(hit[0]), float(hit[2])
+                    if not inside_plan(rects, np.array([[x, z]]), size + 0.05)[0]:
+                        continue
+                else:
+                    x, z = _sample_in_plan(rng, rects, size + 0.05)
             if must_see and not in_view([x, base_y + size, z], size * 1.2):
                 continue
-            if math.dist((x, base_y + size, z), origin) < 1.2 * size + 0.3:
+            dist = math.dist((x, base_y + size, z), origin)
+            size = min(size, 0.3 * dist * tan_x / 1.2)   # no object fills the view
+            if dist < 1.2 * size + 0.3:
                 continue
             pos = (x, z, base_y, size)
             break

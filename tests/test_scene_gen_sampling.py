@@ -327,3 +327,19 @@ def test_model_folder_errors_and_broken_files(tmp_path):
     for o in files:
         if o.transform.rotate[0] == 0.0:
             assert o.transform.translate[1] == pytest.approx(o.transform.scale[1], rel=1e-3)
+
+
+@pytest.mark.parametrize("kind", ["indoor", "outdoor"])
+def test_clip_camera_path_is_smooth_and_stays_in_the_room(kind):
+    s = sample_scene(9, kind, num_frames=24)
+    o = np.array([c.origin for c in s.cameras])
+    step = np.linalg.norm(np.diff(o, axis=0), axis=1)
+    assert step.max() > 0 and step.max() < 3 * np.median(step) + 1e-6     # no jumps
+    accel = np.linalg.norm(np.diff(o, 2, axis=0), axis=1)
+    assert accel.max() < step.max()                                        # direction changes gently
+    if kind == "indoor":
+        room = next(x for x in s.objects if x.name == "room_floor").mesh.params
+        assert rooms.inside_plan(room["rects"], o[:, [0, 2]]).all()
+        assert ((o[:, 1] > 0) & (o[:, 1] < room["height"])).all()
+        t = np.array([c.target for c in s.cameras])
+        assert rooms.inside_plan(room["rects"], t[:, [0, 2]]).all()
