@@ -1,0 +1,209 @@
+"""The real chain on real processes: ``python -m pipeline dataset`` with configs/smoke.yaml (2 scenes,
+4 frames of 16x16, 64-spp references) on a LocalCluster, killed and resumed, and on a real
+``dask scheduler`` with two ``dask worker`` processes on 127.0.0.1, one of them SIGKILLed mid-run.
+Both stores must validate and be identical array for array (only the timing metadata differs).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+ROOT = Path(__file__).resolve().parent.parent
+SMOKE = ROOT / "configs" / "smoke.yaml"
+PY = sys.executable
+DASK = str(Path(PY).parent / "dask")
+TIMING = {"frames/render_seconds"}           # metadata that is a clock reading, not data
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _cli(out: Path, summary: Path, *extra: str) -> list[str]:
+    return [PY, "-m", "pipeline", "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress",
+            "--summary-json", str(summary), *extra]
+
+
+def _complete(store: Path) -> np.ndarray:
+    try:
+        return zarr.open_group(str(store), mode="r")["status/complete"][:]
+    except Exception:  # noqa: BLE001 - not created yet
+        return np.zeros(0, bool)
+
+
+def _wait_for_frames(store: Path, proc: subprocess.Popen, n: int, timeout: float) -> np.ndarray:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        done = _complete(store)
+        if done.sum() >= n or proc.poll() is not None:
+            return done
+        time.sleep(0.3)
+    raise TimeoutError(f"no {n} complete frame(s) in {store} after {timeout} s")
+
+
+def _frame_files(store: Path, index: int) -> dict[str, int]:
+    """mtime (ns) of every chunk/shard file that holds frame ``index`` (its first chunk coordinate)."""
+    out = {}
+    for p in store.rglob("*"):
+        parts = p.relative_to(store).parts
+        if p.is_file() and "c" in parts:
+            i = parts.index("c")
+            if i + 1 < len(parts) and parts[i + 1] == str(index):
+                out[str(p)] = p.stat().st_mtime_ns
+    return out
+
+
+def _arrays(store: Path) -> dict[str, np.ndarray]:
+    g = zarr.open_group(str(store), mode="r")
+    return {path: arr[...] for path, arr in g.arrays()} | {
+        f"{grp}/{name}": a[...] for grp, sub in g.groups() for name, a in sub.arrays()}
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def local_store(tmp_path_factory):
+    """The smoke dataset on a LocalCluster: the CLI (and its worker processes) SIGKILLed after the first
+    complete frame, then the same command again. Returns what the test needs to judge the resume."""
+    d = tmp_path_factory.mktemp("local")
+    out = d / "smoke.zarr"
+    p = subprocess.Popen(_cli(out, d / "first.json"), env=_env(), cwd=ROOT, start_new_session=True,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        before = _wait_for_frames(out, p, 1, timeout=400).copy()
+        killed_running = p.poll() is None
+    finally:
+        _kill_group(p)
+    before = _complete(out)                     # the kill may have landed after one more frame
+    mtimes = {i: _frame_files(out, i) for i in np.nonzero(before)[0]}
+    t0 = time.monotonic()
+    r = subprocess.run(_cli(out, d / "second.json"), env=_env(), cwd=ROOT, capture_output=True, text=True,
+                       timeout=500)
+    return {"out": out, "before": before, "killed_running": killed_running, "mtimes": mtimes, "run": r,
+            "summary": json.loads((d / "second.json").read_text()) if r.returncode in (0, 1) else None,
+            "seconds": time.monotonic() - t0}
+
+
+def test_resume_after_kill_renders_only_the_missing_frames(local_store):
+    r, s, before = local_store["run"], local_store["summary"], local_store["before"]
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert local_store["killed_running"] and 1 <= before.sum() < 4       # it really was cut mid-run
+    assert s["skipped"] == int(before.sum()) and s["rendered"] == 4 - int(before.sum())
+    assert s["complete"] == 4 and s["failed"] == {} and s["ok"] and s["validation"]["ok"]
+    assert _complete(local_store["out"]).all()
+    for i, files in local_store["mtimes"].items():          # complete frames were not rewritten
+        assert files and _frame_files(local_store["out"], i) == files
+    assert f"resume: {int(before.sum())} frame(s) already complete" in r.stdout
+    assert "dashboard:  http://127.0.0.1:" in r.stdout and "elapsed:" in r.stdout
+
+
+def test_store_contents_are_real_frames(local_store):
+    from stores.validate import validate_store
+    rep = validate_store(str(local_store["out"]))
+    assert rep.ok, rep.format()
+    g = zarr.open_group(str(local_store["out"]), mode="r")
+    assert list(g["frames/frame"][:]) == [0, 0, 1, 2] and list(g["frames/num_frames"][:]) == [1, 3, 3, 3]
+    seeds = g["frames/scene_seed"][:]
+    assert seeds[1] == seeds[2] == seeds[3] != seeds[0]
+    from pipeline.config import load_config
+    cfg = load_config(SMOKE)
+    assert [int(s) for s in seeds] == [f.seed for f in cfg.frames()]
+    assert g.attrs["config"] == json.loads(json.dumps(cfg.content_dict()))
+    assert list(g["frames/reference_spp"][:]) == [64] * 4
+    ref = g["reference/radiance"][:]
+    assert ref.shape == (4, 3, 16, 16) and np.isfinite(ref).all() and (ref.reshape(4, -1).max(axis=1) > 0).all()
+
+
+def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
+    """Independent oracle: ``pipeline.render.render_frame`` (one call, no Dask, no split streams) on the
+    scene stored with frame 2 (scene 1, frame 1 of its clip) gives the stored bytes, array by array."""
+    from pipeline.config import load_config
+    from pipeline.render import render_frame
+    from scene_gen.spec import SceneSpec
+    from stores.schema import ARRAY_BY_SOURCE, layout_of
+    g = zarr.open_group(str(local_store["out"]), mode="r")
+    spec = SceneSpec.from_json(str(g["frames/scene_json"][2]))
+    cfg = load_config(SMOKE)
+    assert spec.to_json() == __import__("pipeline.tasks", fromlist=["x"]).make_spec(
+        cfg.frames()[2].seed, "outdoor", 3, cfg.resolution, cfg.scene_gen)      # the spec is reproducible
+    want = render_frame(spec, 1, cfg.render_config())
+    layout = layout_of(g)
+    for source, aspec in ARRAY_BY_SOURCE.items():
+        got = g[aspec.path][2]
+        np.testing.assert_array_equal(got, aspec.to_store(want[source], layout), err_msg=aspec.path)
+    for k in ("reference_spp", "nonfinite_inputs", "has_motion", "has_defocus"):
+        assert g[f"frames/{k}"][2] == want["meta"][k], k
+    assert g["frames/reference_rel_stderr"][2] == want["meta"]["reference_rel_stderr"]
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes (no nanny) on 127.0.0.1."""
+    sf = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(sf)], env=_env(), cwd=ROOT, start_new_session=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        t0 = time.monotonic()
+        while not sf.exists() and time.monotonic() - t0 < 60:
+            time.sleep(0.2)
+        workers = [subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--no-nanny",
+                                     "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}"], env=_env(), cwd=ROOT,
+                                    start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                   for i in range(2)]
+        procs += workers
+        from distributed import Client
+        with Client(scheduler_file=str(sf), timeout=60, set_as_default=False) as c:
+            c.wait_for_workers(2, timeout=120)
+            address = c.scheduler.address
+        yield address, workers
+    finally:
+        for p in reversed(procs):
+            _kill_group(p)
+
+
+def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(local_store, dask_cluster, tmp_path):
+    address, workers = dask_cluster
+    out = tmp_path / "dist.zarr"
+    p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address), env=_env(), cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        done = _wait_for_frames(out, p, 1, timeout=400)
+        assert p.poll() is None and done.sum() < 4, "the run ended before a worker could be killed"
+        os.kill(workers[0].pid, signal.SIGKILL)              # one worker dies mid-run
+        workers[0].wait(timeout=30)
+        log, _ = p.communicate(timeout=500)
+    finally:
+        if p.poll() is None:
+            _kill_group(p)
+    assert p.returncode == 0, log[-4000:]
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["cluster"] == "scheduler" and s["complete"] == 4 and s["ok"] and s["validation"]["ok"]
+    assert f"cluster: scheduler at {address}, 2 worker(s)" in log
+    a, b = _arrays(local_store["out"]), _arrays(out)
+    assert a.keys() == b.keys() and "inputs/radiance" in a
+    for k in sorted(a):
+        if k in TIMING:
+            continue
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
+        assert a[k].tobytes() == b[k].tobytes(), f"{k} differs between the LocalCluster and the distributed run"
+    ga, gb = zarr.open_group(str(local_store["out"]), mode="r"), zarr.open_group(str(out), mode="r")
+    assert ga.attrs["config"] == gb.attrs["config"]
