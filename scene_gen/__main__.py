@@ -161,8 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         if v is not None and v < 1:
             print(f"error: --{name} must be >= 1, got {v}", file=sys.stderr)
             return 2
-    if getattr(args, "frame", 0) is not None and hasattr(args, "frames") and hasattr(args, "frame") \
-            and not 0 <= args.frame < args.frames:
+    if hasattr(args, "frame") and not 0 <= args.frame < args.frames:
         print(f"error: --frame must lie in [0, {args.frames - 1}], got {args.frame}", file=sys.stderr)
         return 2
     try:

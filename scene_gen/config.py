@@ -63,7 +63,7 @@ class SceneGenConfig:
     p_user_model: float = 0.5             # share of meshes taken from model_folder when it is set
     max_triangles: int = 20000            # per-object triangle budget ceiling
     min_triangles: int = 64               # per-object triangle budget floor
-    tris_per_px: float = 2.0              # budget per pixel of projected radius (see meshes.triangle_budget)
+    tris_per_px: float = 1.0              # triangles per pixel of the projected bounding disc (meshes.triangle_budget)
     max_depth: int = 5                    # path bounces
     shutter: float = 0.5                  # exposure as a fraction of the frame interval
 
