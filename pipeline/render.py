@@ -530,8 +530,9 @@ def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *
     cfg = cfg or RenderConfig()
     if not isinstance(cfg, RenderConfig):
         raise ConfigError(f"cfg must be a RenderConfig, got {type(cfg).__name__}")
-    if not isinstance(frame, int) or not 0 <= frame < spec.num_frames:
+    if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= frame < spec.num_frames:
         raise RenderError(f"frame {frame!r} out of range: the scene has {spec.num_frames} frame(s)")
+    frame = int(frame)
     t0 = _time.perf_counter()
     fs = FrameScene(spec, frame, cfg, on_scene_loaded)
     radiance, features, bad_in = render_inputs(fs, sample_hook)

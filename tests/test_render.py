@@ -487,3 +487,12 @@ def test_nan_emitter_counted_in_every_stream(mi):
     assert m["nonfinite_inputs"] > 0 and m["nonfinite_layers"] > 0 and m["nonfinite_reference"] > 0
     for k in ("radiance", "features", "layers", "reference", "reference_stderr"):
         assert np.isfinite(out[k]).all(), k
+
+
+def test_bad_frame_and_config_type():
+    from pipeline.errors import ConfigError, RenderError
+    from pipeline.render import render_frame
+    with pytest.raises(RenderError, match="out of range"):
+        render_frame(ball_scene(), 1, cfg())
+    with pytest.raises(ConfigError, match="RenderConfig"):
+        render_frame(ball_scene(), 0, {"spp": 8})
