@@ -113,7 +113,7 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
                                            "sky_scale": _f(SKY_SCALE * rng.uniform(0.6, 1.3))}))
     else:
         s = math.exp(rng.uniform(math.log(0.5), math.log(1.5)))
-        lights.append(LightSpec("envmap", {"probe": probe_params(rng, sky=0.5 * s, sun=1.0e4 * s),
+        lights.append(LightSpec("envmap", {"probe": probe_params(rng, sky=0.5 * s, sun_irradiance=OUTDOOR_SUN * s),
                                            "scale": OUTDOOR_PROBE_SCALE, "rotation": _f(rng.uniform(0, 360))}))
     return Layout(objects=objects, lights=lights, origin=origin, target=target,
                   camera_step=_f(rng.uniform(0.05, 0.3)))
@@ -124,3 +124,4 @@ MAX_SCREEN = 0.3  # largest object radius as a share of the half-width of the vi
 SUN_SCALE = 2.0   # Mitsuba sunsky at scale 1: the sun lights a 0.5-albedo ground to ~0.17 (at 45°)
 SKY_SCALE = 5.0   # ... the sky alone to ~0.04, and the sky itself is ~0.1 (sunsky turned y-up)
 OUTDOOR_PROBE_SCALE = 1.0
+OUTDOOR_SUN = 3.0  # probe sun irradiance: a 0.5-albedo ground in full sun ~0.5 (x sin elevation)

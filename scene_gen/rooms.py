@@ -326,6 +326,7 @@ def build_room_mesh(params: dict):
 AREA_POWER = (1.5, 6.0)       # radiance x area of each emissive rectangle (log-uniform)
 POINT_INTENSITY = (1.0, 6.0)  # point light intensity (log-uniform)
 INDOOR_SKY = (0.8, 2.5)       # probe sky radiance seen through the windows (log-uniform)
+INDOOR_SUN = 8.0              # probe sun irradiance: sunlit patches through windows stand out
 
 
 def _logu(rng, lo_hi) -> float:
@@ -554,7 +555,7 @@ def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov
     p = _sample_in_plan(rng, rects, 0.4)
     lights = [LightSpec("point", {"position": [_f(p[0]), _f(rng.uniform(0.6, H - 0.3)), _f(p[1])],
                                   "intensity": [_f(c) for c in light_color(rng) * _logu(rng, POINT_INTENSITY)]}),
-              LightSpec("envmap", {"probe": probe_params(rng, sky=_logu(rng, INDOOR_SKY), sun=3.0e4),
+              LightSpec("envmap", {"probe": probe_params(rng, sky=_logu(rng, INDOOR_SKY), sun_irradiance=INDOOR_SUN),
                                    "scale": 1.0, "rotation": _f(rng.uniform(0, 360))})]
     return Layout(objects=objects, lights=lights, origin=origin, target=target,
                   camera_step=_f(rng.uniform(0.02, 0.08)), clamp=clamp)

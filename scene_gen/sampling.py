@@ -283,12 +283,18 @@ def light_color(rng: np.random.Generator) -> np.ndarray:
     return c / c.max()
 
 
-def probe_params(rng: np.random.Generator, *, sky: float, sun: float) -> dict:
-    """Parameters of a procedural HDR probe (``scene_gen.probes.make_probe``)."""
+def probe_params(rng: np.random.Generator, *, sky: float, sun_irradiance: float) -> dict:
+    """Parameters of a procedural HDR probe (``scene_gen.probes.make_probe``).
+
+    ``sky`` scales the sky radiance; the sun disc's radiance is set so that it delivers
+    ``sun_irradiance`` at normal incidence whatever its random size (radius in degrees)."""
     zen = np.array([0.25, 0.45, 0.9]) * np.exp(rng.normal(0, 0.15, 3))
     hor = np.array([0.85, 0.9, 1.0]) * np.exp(rng.normal(0, 0.08, 3))
     gnd = np.array([0.25, 0.22, 0.2]) * np.exp(rng.normal(0, 0.25, 3))
+    size = rng.uniform(0.8, 2.0)
+    solid_angle = 2 * math.pi * (1 - math.cos(math.radians(size)))
     return {"seed": int(rng.integers(0, 2**31 - 1)), "sun_elevation": _f(rng.uniform(8, 70)),
-            "sun_azimuth": _f(rng.uniform(0, 360)), "sun_radiance": _f(sun), "sun_size": _f(rng.uniform(0.8, 2.0)),
-            "zenith": [_f(x) for x in np.clip(zen, 0, 1)], "horizon": [_f(x) for x in np.clip(hor, 0, 1)],
-            "ground": [_f(x) for x in np.clip(gnd, 0, 1)], "sky_radiance": _f(sky), "clouds": _f(rng.uniform(0, 0.7))}
+            "sun_azimuth": _f(rng.uniform(0, 360)), "sun_radiance": _f(sun_irradiance / solid_angle),
+            "sun_size": _f(size), "zenith": [_f(x) for x in np.clip(zen, 0, 1)],
+            "horizon": [_f(x) for x in np.clip(hor, 0, 1)], "ground": [_f(x) for x in np.clip(gnd, 0, 1)],
+            "sky_radiance": _f(sky), "clouds": _f(rng.uniform(0, 0.7))}

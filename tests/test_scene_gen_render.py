@@ -73,7 +73,7 @@ def test_every_light_kind_lights_the_scene(mi, kind):
     elif kind == "point":
         lights = (LightSpec("point", {"position": [1.0, 2.0, -1.0], "intensity": [5.0, 5.0, 5.0]}),)
     elif kind == "envmap":
-        lights = (LightSpec("envmap", {"probe": probe_params(rng, sky=1.0, sun=1e4), "scale": 1.0, "rotation": 30.0}),)
+        lights = (LightSpec("envmap", {"probe": probe_params(rng, sky=1.0, sun_irradiance=3.0), "scale": 1.0, "rotation": 30.0}),)
     elif kind == "sunsky":
         lights = (LightSpec("sunsky", {"sun_direction": [0.3, 0.8, -0.5], "turbidity": 3.0, "albedo": 0.2,
                                        "sun_scale": 2.0, "sky_scale": 5.0}),)
