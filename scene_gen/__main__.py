@@ -43,13 +43,7 @@ def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, thre
     from scene_gen import to_mitsuba
     mi = mitsuba(threads=threads)
     tau = frame + 0.5 * spec.shutter if spec.has_motion else None
-    d = to_mitsuba.scene_dict(spec, frame, res=(res, res), tau=tau)
-    for v in d.values():
-        # Mitsuba 3.9's sunsky has a z-up local frame: without this turn its sky lies on its side
-        # (y-up world). Applied here only where to_mitsuba does not set a to_world itself.
-        if isinstance(v, dict) and v.get("type") == "sunsky" and "to_world" not in v:
-            v["to_world"] = mi.ScalarTransform4f().rotate([1, 0, 0], -90)
-    scene = mi.load_dict(d)
+    scene = to_mitsuba.load(spec, frame, res=(res, res), tau=tau)
     img = mi.render(scene, spp=spp, seed=seed)
     return np.asarray(img, dtype=np.float32)[..., :3]
 

@@ -166,7 +166,9 @@ def light_dict(light: LightSpec, mi=None) -> dict:
     if light.kind == "sunsky":
         d = {"type": "sunsky", "sun_direction": [float(x) for x in p["sun_direction"]],
              "turbidity": float(p.get("turbidity", 3.0)), "albedo": float(p.get("albedo", 0.3)),
-             "sun_scale": float(p.get("sun_scale", 1.0)), "sky_scale": float(p.get("sky_scale", 1.0))}
+             "sun_scale": float(p.get("sun_scale", 1.0)), "sky_scale": float(p.get("sky_scale", 1.0)),
+             # Mitsuba's sunsky is z-up; our world is y-up. With this turn sun_direction is a world direction.
+             "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90)}
         return d
     raise ValueError(f"light kind {light.kind!r} is attached to shapes, not a standalone emitter")
 

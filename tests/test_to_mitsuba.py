@@ -111,3 +111,15 @@ def test_probe_sun_is_where_its_parameters_say(mi):
     # looking away from it sees only sky
     cam_away = CameraSpec((0, 0, 0), tuple(-s * 10 + np.array([0, 15, 0])), fov=2.0)
     assert _render(mi, _scene([], [LightSpec("envmap", {"probe": params})], cam_away), res=9, spp=4).max() < 10
+
+
+def test_sunsky_sun_is_in_the_world_direction_given(mi):
+    # y is up: a sun low in the -z direction (z <= 0 used to be "below the horizon" in Mitsuba's z-up frame)
+    d = np.array([0.2, 0.35, -0.9])
+    d /= np.linalg.norm(d)
+    light = LightSpec("sunsky", {"sun_direction": d.tolist(), "turbidity": 3})
+    toward = _render(mi, _scene([], [light], CameraSpec((0, 0, 0), tuple(d * 10), fov=1.0)), res=5, spp=16)
+    assert toward[2, 2].max() > 1e4                      # the sun disc itself
+    up = _render(mi, _scene([], [light], CameraSpec((0, 0, 0), (0, 10, 0.01), fov=20.0)), res=5, spp=16)
+    down = _render(mi, _scene([], [light], CameraSpec((0, 0, 0), (0, -10, 0.01), fov=20.0)), res=5, spp=16)
+    assert 0 < up.mean() < 1e3 and up.mean() > 10 * down.mean()   # sky above, (dark) ground below
