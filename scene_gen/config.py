@@ -10,11 +10,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from scene_gen.errors import SpecError
-
-
-class ConfigError(SpecError):
-    """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
+from scene_gen.errors import ConfigError, SpecError  # noqa: F401  (ConfigError re-exported)
 
 
 def _int_in(name: str, v, lo: int, hi: int) -> None:

@@ -11,3 +11,7 @@ class SpecError(SceneGenError, ValueError):
 
 class MeshError(SceneGenError, RuntimeError):
     """A mesh could not be built or loaded (the message names the file or mesh kind)."""
+
+
+class ConfigError(SpecError):
+    """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
