@@ -192,7 +192,7 @@ def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None) -> dict:
     mi = mi or _mi()
     w, h = res
     d = {"type": "thinlens" if cam.defocus else "perspective", "fov": float(cam.fov), "fov_axis": "x",
-         "near_clip": 1e-3, "far_clip": 1e5, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
+         "near_clip": 1e-2, "far_clip": 1e4, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
          "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
                   "rfilter": {"type": "box"}, "sample_border": False},
          "sampler": {"type": "independent"}}
