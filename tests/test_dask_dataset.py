@@ -204,6 +204,9 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
         if k in TIMING:
             continue
         assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
-        assert a[k].tobytes() == b[k].tobytes(), f"{k} differs between the LocalCluster and the distributed run"
+        if a[k].dtype.kind in "biuf":               # numbers: the exact bytes
+            assert a[k].tobytes() == b[k].tobytes(), f"{k} differs between the LocalCluster and the distributed run"
+        else:                                       # strings (numpy StringDType holds pointers): the values
+            assert a[k].tolist() == b[k].tolist(), f"{k} differs between the LocalCluster and the distributed run"
     ga, gb = zarr.open_group(str(local_store["out"]), mode="r"), zarr.open_group(str(out), mode="r")
     assert ga.attrs["config"] == gb.attrs["config"]
