@@ -26,9 +26,7 @@ import math
 import numpy as np
 
 from scene_gen.spec import CameraSpec
-
-NEAR = 1e-3     # the sensor's near_clip in scene_gen.to_mitsuba
-FAR = 1e5
+from scene_gen.to_mitsuba import FAR_CLIP as FAR, NEAR_CLIP as NEAR  # the sensor's clip planes
 
 
 def camera_to_world(cam: CameraSpec) -> np.ndarray:

@@ -229,6 +229,7 @@ class FrameScene:
         self.has_motion = bool(spec.has_motion)
         self.has_defocus = bool(self.cam.defocus)
         self.camera_to_world = cam_geom.camera_to_world(self.cam)
+        self.view_axis = self.camera_to_world[:3, 2]
         self.world_to_clip = cam_geom.world_to_clip(self.cam, cfg.res)
         self.prev_world_to_clip = cam_geom.world_to_clip(self.prev_cam, cfg.res)
         self._check_sensor()
@@ -349,7 +350,10 @@ def _features(fs: FrameScene, tr: dict, t: float) -> np.ndarray:
     f = np.zeros((n, NUM_FEATURES))
     g = FEATURE_GROUPS
     f[:, g["normal"]] = np.where(hit[:, None], tr["n"], 0.0)
-    f[:, g["depth"]] = np.where(hit, tr["depth"], 0.0)[:, None]
+    # Mitsuba starts camera rays on the near plane (t = NEAR / cos to the view axis): add that back so
+    # depth is the distance from the eye (pinhole) or lens point to the hit.
+    cos_view = np.abs(tr["d"] @ fs.view_axis)
+    f[:, g["depth"]] = np.where(hit, tr["depth"] + cam_geom.NEAR / np.maximum(cos_view, 1e-6), 0.0)[:, None]
     f[:, g["albedo"]] = np.clip(np.where(hit[:, None], tr["albedo"], 0.0), 0.0, 1.0)
     idx = np.where(hit, fs.shape_index(tr["sid"]), 0)
     f[:, g["specular"]] = fs.specular[idx]

@@ -22,6 +22,8 @@ from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, Scen
 
 TEXTURE_SIZE = 256
 PROBE_HEIGHT = 256
+NEAR_CLIP = 1e-2   # sensor clip planes (world units); Mitsuba starts camera rays on the near plane
+FAR_CLIP = 1e4
 
 
 def _mi():
@@ -192,7 +194,7 @@ def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None) -> dict:
     mi = mi or _mi()
     w, h = res
     d = {"type": "thinlens" if cam.defocus else "perspective", "fov": float(cam.fov), "fov_axis": "x",
-         "near_clip": 1e-2, "far_clip": 1e4, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
+         "near_clip": NEAR_CLIP, "far_clip": FAR_CLIP, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
          "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
                   "rfilter": {"type": "box"}, "sample_border": False},
          "sampler": {"type": "independent"}}

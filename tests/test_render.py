@@ -236,7 +236,7 @@ def test_features_top_down_depth_normal_albedo(mi):
     near2 = np.clip(0, X0, X1) ** 2 + np.clip(0, Y0, Y1) ** 2
     far2 = np.maximum(X0 ** 2, X1 ** 2) + np.maximum(Y0 ** 2, Y1 ** 2)
     depth = f[..., 3]
-    # 1e-3: Mitsuba's float32 sample-to-camera transform bends rays (by ~4e-4 relative with near_clip 1e-3 / far_clip 1e5)
+    # 1e-3: Mitsuba's float32 sample-to-camera transform bends rays (~1e-4 relative)
     # the depth range inside one pixel is 0.5-5 %
     assert np.all(depth >= D * np.sqrt(1 + near2)[..., None] * (1 - 1e-3))
     assert np.all(depth <= D * np.sqrt(1 + far2)[..., None] * (1 + 1e-3))
