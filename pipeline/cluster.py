@@ -65,27 +65,18 @@ class Connection:
                 pass
 
 
-def _env_for_workers() -> None:
-    """Environment the LocalCluster's worker processes inherit: drjit's LLVM, no thread oversubscription."""
-    from pipeline.variant import find_libllvm
-    try:
-        lib = find_libllvm()
-    except PipelineError:
-        lib = None
-    if lib:
-        os.environ.setdefault("DRJIT_LIBLLVM_PATH", lib)
-    for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(k, "1")
+PRELOAD = "pipeline.worker_init"   # every worker imports it first (see that module); `dask worker --preload`
 
 
 def local_cluster(cfg: ClusterConfig, workers: int | None = None):
     """A LocalCluster of ``workers`` (or ``cfg.workers``, or one per core) single-purpose processes."""
     from distributed import LocalCluster
-    _env_for_workers()
+    from pipeline import worker_init
+    worker_init.prepare_environment()
     n = workers or cfg.workers or max(1, machine_cores() // cfg.threads_per_worker)
     return LocalCluster(n_workers=n, threads_per_worker=cfg.threads_per_worker, processes=True,
                         memory_limit=cfg.memory_limit, dashboard_address=cfg.dashboard_address,
-                        host="127.0.0.1", silence_logs=logging.ERROR)
+                        host="127.0.0.1", silence_logs=logging.ERROR, preload=[PRELOAD])
 
 
 def jobqueue_cluster(cfg: ClusterConfig):
@@ -97,6 +88,9 @@ def jobqueue_cluster(cfg: ClusterConfig):
                            "(or pip install -e .[cluster])") from e
     cls = {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[cfg.kind]
     kw = dict(cfg.jobqueue)
+    extra = list(kw.get("worker_extra_args") or [])
+    if PRELOAD not in extra:
+        kw["worker_extra_args"] = extra + ["--preload", PRELOAD]
     if cfg.dashboard_address is not None:
         kw.setdefault("scheduler_options", {"dashboard_address": cfg.dashboard_address})
     try:

@@ -54,6 +54,20 @@ import numpy as np
 from scene_gen.errors import MeshError, SpecError
 from scene_gen.spec import MESH_KINDS, MeshSpec
 
+
+def _pymeshlab():
+    """pymeshlab, refusing a first import from a non-main thread: its Qt plugins then corrupt the heap
+    (glibc's ``malloc_consolidate(): unaligned fastbin chunk detected``). Dask workers import it in
+    their main thread through the ``pipeline.worker_init`` preload."""
+    import sys
+    import threading
+    if "pymeshlab" not in sys.modules and threading.current_thread() is not threading.main_thread():
+        raise MeshError("pymeshlab must first be imported in the main thread (it corrupts the heap otherwise): "
+                        "`import pymeshlab` there first, or start Dask workers with "
+                        "`--preload pipeline.worker_init`")
+    import pymeshlab
+    return pymeshlab
+
 log = logging.getLogger(__name__)
 
 MODEL_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
@@ -526,7 +540,7 @@ def _fan_or_earclip(p: np.ndarray) -> np.ndarray:
 
 
 def _blob(spec):
-    import pymeshlab
+    pymeshlab = _pymeshlab()
     import trimesh
     rng = _rng(spec)
     sub = _param(spec, "subdivisions", 4, 1, 6, integer=True)
@@ -559,7 +573,7 @@ BOOLEAN_OPS = ("union", "difference", "intersection")
 
 
 def _boolean(spec):
-    import pymeshlab
+    pymeshlab = _pymeshlab()
     import trimesh
     rng = _rng(spec)
     op = spec.params.get("op", "difference")
@@ -737,7 +751,7 @@ def _finish(v: np.ndarray, f: np.ndarray, *, crease_deg: float = CREASE_DEG) -> 
 
 def _decimate_vf(v: np.ndarray, f: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray]:
     """Quadric edge collapse to <= budget faces (pymeshlab); falls back to unconstrained topology."""
-    import pymeshlab
+    pymeshlab = _pymeshlab()
     if len(f) <= budget:
         return v, f
     target = budget

@@ -166,7 +166,8 @@ def dask_cluster(tmp_path):
         while not sf.exists() and time.monotonic() - t0 < 60:
             time.sleep(0.2)
         workers = [subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--no-nanny",
-                                     "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}"], env=_env(), cwd=ROOT,
+                                     "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}",
+                                     "--preload", "pipeline.worker_init"], env=_env(), cwd=ROOT,
                                     start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
                    for i in range(2)]
         procs += workers

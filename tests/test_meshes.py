@@ -295,3 +295,20 @@ def test_empty_boolean_is_a_mesh_error():
                     children=(MeshSpec("box"), MeshSpec("sphere")))
     with pytest.raises(MeshError, match="empty"):
         M.build(spec)
+
+
+def test_first_pymeshlab_import_from_a_thread_is_refused_not_heap_corruption():
+    import subprocess
+    import sys
+    code = ("import threading\nfrom scene_gen import meshes\nfrom scene_gen.errors import MeshError\n"
+            "from scene_gen.spec import MeshSpec\nout = []\n"
+            "def work():\n    try:\n        meshes.build(MeshSpec('sphere', triangle_budget=50))\n        out.append('built')\n"
+            "    except MeshError as e:\n        out.append(str(e))\n"
+            "t = threading.Thread(target=work); t.start(); t.join(); print(out[0])\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "main thread" in r.stdout and "pipeline.worker_init" in r.stdout, (r.stdout, r.stderr)
+    assert "malloc" not in r.stderr
+    # with the preload imported first, the same work in a thread succeeds cleanly
+    r = subprocess.run([sys.executable, "-c", "import pipeline.worker_init\n" + code], capture_output=True, text=True,
+                       timeout=120)
+    assert r.stdout.strip() == "built" and "malloc" not in r.stderr, (r.stdout, r.stderr)
