@@ -12,7 +12,8 @@ def _train(a) -> int:
     cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, batch=a.batch,
                       crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, checkpoint_every=a.checkpoint_every, device=a.device)
-    res = train(cfg, a.store, a.out, progress=not a.no_progress)
+    out = a.out or f"data/runs/{a.model}"
+    res = train(cfg, a.store, out, progress=not a.no_progress)
     print(json.dumps(res, default=float))
     return 0
 
@@ -44,47 +45,55 @@ def _fma(a) -> int:
     return 0
 
 
+def _model_names() -> str:
+    try:
+        from .models.registry import names
+        return ", ".join(names())
+    except Exception:  # noqa: BLE001 - help text only
+        return "see training/models"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m training", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train", help="train a denoiser; writes OUT/checkpoint.pt and OUT/metrics.csv (resumes)")
-    t.add_argument("--model", required=True)
-    t.add_argument("--store", required=True)
-    t.add_argument("--out", required=True)
-    t.add_argument("--steps", type=int, default=1000)
-    t.add_argument("--crop", type=int, default=128)
-    t.add_argument("--batch", type=int, default=4)
-    t.add_argument("--spp", type=int, default=8)
-    t.add_argument("--lr", type=float, default=0.005)
-    t.add_argument("--loss", default="smape")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--val-every", type=int, default=100)
-    t.add_argument("--val-frames", type=int, default=8)
-    t.add_argument("--checkpoint-every", type=int, default=100)
-    t.add_argument("--device", default="cpu")
+    t.add_argument("--model", required=True, help="a registered model: " + _model_names())
+    t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`")
+    t.add_argument("--out", help="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
+    t.add_argument("--steps", type=int, default=1000, help="optimiser steps (default 1000)")
+    t.add_argument("--crop", type=int, default=128, help="square training crop in pixels (default 128, the paper's)")
+    t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
+    t.add_argument("--spp", type=int, default=8, help="samples per pixel fed to the model (<= stored samples)")
+    t.add_argument("--lr", type=float, default=0.005, help="Adam learning rate (default 0.005, the paper's)")
+    t.add_argument("--loss", default="smape", help="smape (default, eq. 9), l2 (tone-mapped), l1")
+    t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
+    t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")
+    t.add_argument("--val-frames", type=int, default=8, help="validation frames (from the 'val' split)")
+    t.add_argument("--checkpoint-every", type=int, default=100, help="write checkpoint.pt every N steps")
+    t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(fn=_train)
 
     e = sub.add_parser("evaluate", help="per-frame and mean metrics with ms per megapixel, as JSON")
     e.add_argument("--checkpoint", required=True, help="a checkpoint.pt, or 'input' / 'oidn' for a baseline")
-    e.add_argument("--store", required=True)
-    e.add_argument("--split", default="test")
-    e.add_argument("--spp", type=int, default=8)
+    e.add_argument("--store", required=True, help="the Zarr store to evaluate on")
+    e.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
+    e.add_argument("--spp", type=int, default=8, help="input samples per pixel (default 8)")
     e.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
-    e.add_argument("--out", required=True)
-    e.add_argument("--no-flip", action="store_true")
+    e.add_argument("--out", required=True, help="JSON file for per-frame and mean metrics")
+    e.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
     e.set_defaults(fn=_evaluate)
 
     r = sub.add_parser("report", help="evaluate runs and baselines; Markdown table, plot and crops")
-    r.add_argument("--runs", nargs="+", required=True)
-    r.add_argument("--store", required=True)
-    r.add_argument("--out", required=True)
-    r.add_argument("--split", default="test")
-    r.add_argument("--spp", type=int, default=8)
-    r.add_argument("--frames", type=int, default=0)
-    r.add_argument("--no-flip", action="store_true")
+    r.add_argument("--runs", nargs="+", required=True, help="run folders (each with checkpoint.pt)")
+    r.add_argument("--store", required=True, help="the Zarr store to evaluate on")
+    r.add_argument("--out", required=True, help="report folder: report.md, speed_vs_error.png, crops.png")
+    r.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
+    r.add_argument("--spp", type=int, default=8, help="input samples per pixel (default 8)")
+    r.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
+    r.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
     r.set_defaults(fn=_report)
 
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN")
