@@ -165,7 +165,7 @@ class _StoreDataset(torch.utils.data.Dataset):
 
     def _guides(self, i: int, region) -> dict:
         s = self.store
-        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+        t = _tensor32
         return {
             "reference": t(s.read_array("reference/radiance", i, region)),
             "stderr": t(s.read_array("reference/stderr", i, region)),
@@ -179,10 +179,13 @@ class _StoreDataset(torch.utils.data.Dataset):
         s = self.store
         rad = s.read_array("inputs/radiance", i, region, samples=spp)     # (S, 3, h, w)
         feat = s.read_array("inputs/features", i, region, samples=spp)    # (S, 17, h, w)
-        return {
-            "radiance": torch.from_numpy(np.ascontiguousarray(rad, dtype=np.float32)),
-            "features": torch.from_numpy(np.ascontiguousarray(feat, dtype=np.float32)),
-        }
+        # float16 -> float32 in torch: about twice as fast as numpy's astype
+        return {"radiance": _tensor32(rad), "features": _tensor32(feat)}
+
+
+def _tensor32(a: np.ndarray) -> torch.Tensor:
+    """float32 tensor of ``a`` (no copy when it already is contiguous float32)."""
+    return torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32)
 
 
 def _split_frames(store: Store, split) -> list[int]:
