@@ -198,6 +198,7 @@ class DatasetConfig:
     render: dict = field(default_factory=dict)
     scene_gen: dict = field(default_factory=dict)
     store: dict = field(default_factory=dict)
+    split: dict | None = None     # scene split fractions, e.g. {train: 0.8, val: 0.1, test: 0.1} (the default)
     tasks: TaskConfig = TaskConfig()
     cluster: ClusterConfig = ClusterConfig()
 
@@ -222,6 +223,12 @@ class DatasetConfig:
             _need(isinstance(getattr(self, n), dict), f"dataset.{n}", "a mapping", getattr(self, n))
         if "res" in self.render:
             raise ConfigError("dataset.render.res is not allowed: set dataset.resolution (shared with scene_gen)")
+        if self.split is not None:
+            sp = self.split
+            _need(isinstance(sp, dict) and sp and set(sp) <= {"train", "val", "test"}
+                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in sp.values())
+                  and sum(sp.values()) > 0, "dataset.split",
+                  "null or a mapping of train/val/test to fractions >= 0 with a positive sum", sp)
         self.tasks.validate()
         self.cluster.validate()
         rc = self.render_config()   # the owners validate their sections (raise ConfigError naming the field)
@@ -317,6 +324,8 @@ class DatasetConfig:
             "render": _plain(self.render), "scene_gen": _plain(self.scene_gen), "store": _plain(self.store),
             "tasks": _plain({f.name: getattr(self.tasks, f.name) for f in fields(TaskConfig)}),
             "cluster": _plain({f.name: getattr(self.cluster, f.name) for f in fields(ClusterConfig)}),
+            # only when set, so stores made before `split` existed still resume
+            **({"split": _plain(self.split)} if self.split is not None else {}),
         }
 
     def content_dict(self) -> dict:

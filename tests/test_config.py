@@ -191,3 +191,17 @@ def test_cli_unreachable_scheduler_fails_fast(tmp_path, capsys):
     assert rc == 2 and f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in err
     assert not out.exists()                          # nothing created, nothing rendered
     assert time.perf_counter() - t0 < 20
+
+
+def test_split_fractions_reach_the_store_reader(tmp_path):
+    import yaml
+    from pipeline.config import load_config
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump({"name": "s", "scenes": [{"kind": "indoor", "count": 2}],
+                                 "split": {"train": 0.5, "val": 0.0, "test": 0.5}}))
+    cfg = load_config(p)
+    assert cfg.content_dict()["split"] == {"train": 0.5, "val": 0.0, "test": 0.5}
+    assert load_config(p).to_dict() == cfg.to_dict()
+    p.write_text(yaml.safe_dump({"name": "s", "scenes": [{"kind": "indoor", "count": 2}], "split": {"train": -1}}))
+    with pytest.raises(ConfigError, match="dataset.split"):
+        load_config(p)
