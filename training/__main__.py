@@ -65,7 +65,8 @@ def main(argv=None) -> int:
     t.add_argument("--crop", type=int, default=128, help="square training crop in pixels (default 128, the paper's)")
     t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
     t.add_argument("--spp", type=int, default=8, help="samples per pixel fed to the model (<= stored samples)")
-    t.add_argument("--lr", type=float, default=0.005, help="Adam learning rate (default 0.005, the paper's)")
+    t.add_argument("--lr", type=float, default=0.0005,
+                   help="Adam learning rate (default 0.0005, NVlabs/layerdenoise's; the paper's text says 0.005)")
     t.add_argument("--loss", default="smape", help="smape (default, eq. 9), l2 (tone-mapped), l1")
     t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
     t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")

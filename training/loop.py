@@ -35,8 +35,9 @@ def pick_device(name: str) -> torch.device:
     return dev
 
 
-def train_step(model, optimizer, loss_fn, batch: dict) -> float:
-    """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss."""
+def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0) -> float:
+    """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
+    Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise."""
     model.train()
     optimizer.zero_grad(set_to_none=True)
     out = model(batch)
@@ -44,6 +45,10 @@ def train_step(model, optimizer, loss_fn, batch: dict) -> float:
     if not torch.isfinite(loss):
         raise NonFiniteError(f"loss is {loss.item()} (non-finite)")
     loss.backward()
+    if clip_norm:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), clip_norm)
+    if clip_value:
+        torch.nn.utils.clip_grad_value_(model.parameters(), clip_value)
     optimizer.step()
     return float(loss.detach())
 
@@ -133,7 +138,8 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     try:
         for _ in range(max(todo, 0)):
             batch, epoch = get_batch(train_ds, cfg.seed, step, cfg.batch)
-            loss = train_step(model, optimizer, loss_fn, to_device(batch, device))
+            loss = train_step(model, optimizer, loss_fn, to_device(batch, device), cfg.grad_clip_norm,
+                              cfg.grad_clip_value)
             step += 1
             if bar:
                 bar.update(1)
