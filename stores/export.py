@@ -35,7 +35,7 @@ import numpy as np
 from stores.contract import FEATURE_GROUPS
 from stores.errors import ExportError, StoreError
 from stores.reader import Store, open_store
-from stores.validate import parse_frames
+from stores.validate import cli_main, parse_frames
 
 FORMATS = ("exr", "oidn", "layerdenoise")
 
@@ -214,15 +214,8 @@ def run(args) -> int:
 
 def main(argv=None) -> int:
     """``export STORE --format F --out DIR``: exit 0 on success, 2 on any error (message on stderr)."""
-    ap = argparse.ArgumentParser(prog="export", description="Export store frames to OpenEXR, the OIDN "
-                                 "training layout, or layerdenoise HDF5.")
-    add_arguments(ap)
-    args = ap.parse_args(argv)
-    try:
-        return run(args)
-    except StoreError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, or layerdenoise HDF5.",
+                    add_arguments, run, argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

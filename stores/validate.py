@@ -208,17 +208,22 @@ def run(args) -> int:
     return 0 if rep.ok else 1
 
 
-def main(argv=None) -> int:
-    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store of this schema)."""
-    ap = argparse.ArgumentParser(prog="validate", description="Check a store: schema, completeness, "
-                                 "NaN/Inf counts, value ranges and reference standard error, per frame.")
-    add_arguments(ap)
+def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
+    """A stand-alone command (``python -m stores PROG``): parse, run, StoreError -> message and exit 2."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    add_args(ap)
     args = ap.parse_args(argv)
     try:
-        return run(args)
+        return run_fn(args)
     except StoreError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+
+
+def main(argv=None) -> int:
+    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store of this schema)."""
+    return cli_main("validate", "Check a store: schema, completeness, NaN/Inf counts, value ranges and "
+                    "reference standard error, per frame.", add_arguments, run, argv)
 
 
 if __name__ == "__main__":  # pragma: no cover
