@@ -216,16 +216,23 @@ def test_conv_fmas_match_flop_counter(name):
     with torch.no_grad(), FlopCounterMode(display=False) as fc:
         m(make_batch(b=1, s=s, h=h, w=w))
     counts = fc.get_flop_counts()["Global"]
-    conv_flops = sum(v for k, v in counts.items() if "convolution" in str(k))
+    # 1x1 convolutions run as bmm (training.models.common.MLP); samplesplat's per-pixel sample
+    # reduction is a bmm too (4 x S times S x k2)
+    flops = sum(v for k, v in counts.items() if "convolution" in str(k) or "bmm" in str(k))
     from training.models.common import conv_fmas
+    ctx = m.unet.cout
     if name == "pixelgather":
         analytic = conv_fmas(m.reducer) + m.unet.fmas_per_pixel() + conv_fmas(m.kernel_gen)
     elif name == "samplesplat":
-        analytic = s * (conv_fmas(m.reducer) + conv_fmas(m.kernel_gen)) + m.unet.fmas_per_pixel()
+        # kernel generator on cat(sample embedding, context): the context part once per pixel
+        analytic = s * conv_fmas(m.reducer) + m.unet.fmas_per_pixel() \
+            + s * conv_fmas(m.kernel_gen) - (s - 1) * ctx * m.kernel_gen[0].out_channels \
+            + 4 * s * m.kernel_size ** 2
     else:
-        analytic = s * (conv_fmas(m.reducer) + conv_fmas(m.partitioner)) + m.unet.fmas_per_pixel() \
-            + m.layers * conv_fmas(m.kernel_gen)
-    assert conv_flops == pytest.approx(2 * analytic * h * w, rel=1e-9)
+        analytic = s * conv_fmas(m.reducer) + m.unet.fmas_per_pixel() \
+            + s * conv_fmas(m.partitioner) - (s - 1) * ctx * m.partitioner[0].out_channels \
+            + m.layers * conv_fmas(m.kernel_gen) - (m.layers - 1) * ctx * m.kernel_gen[0].out_channels
+    assert flops == pytest.approx(2 * analytic * h * w, rel=1e-9)
 
 
 def test_paper_defaults():
@@ -241,3 +248,46 @@ def test_paper_defaults():
     assert opt.fmas_per_pixel(8) < m.fmas_per_pixel(8) / 2
     pg = build("pixelgather")
     assert pg.reducer[0].in_channels == 40
+
+
+def test_mlp_shared_split_equals_broadcast_concat():
+    """MLP(items, shared) computes the shared input's part of the first layer once per pixel; it must
+    equal running the same 1x1 convolutions (torch's conv2d) on the materialised concatenation."""
+    import torch.nn.functional as F
+
+    from training.models.common import mlp
+    torch.manual_seed(3)
+    m = mlp(7 + 5, (16, 8), 3)
+    items, shared = torch.randn(2, 4, 7, 6, 5), torch.randn(2, 5, 6, 5)
+    got = m(items, shared)
+    x = torch.cat((items, shared.unsqueeze(1).expand(2, 4, 5, 6, 5)), dim=2).reshape(8, 12, 6, 5)
+    for layer in m:
+        x = F.conv2d(x, layer.weight, layer.bias) if isinstance(layer, torch.nn.Conv2d) else F.leaky_relu(x, 0.01)
+    assert got.shape == (2, 4, 3, 6, 5)
+    torch.testing.assert_close(got, x.view(2, 4, 3, 6, 5), rtol=1e-5, atol=1e-5)
+    assert m.fmas(items=4, shared=5) == 4 * (7 * 16 + 16 * 8 + 8 * 3) + 5 * 16
+
+
+@pytest.mark.parametrize("name", ["layer", "pixelgather", "samplesplat"])
+def test_kernels_start_as_a_gaussian_not_a_box(name):
+    """A fresh 17x17 model's kernels are close to the Gaussian of ``kernel_sigma`` (bias init), not
+    the box filter that zero biases give; kernel_sigma 0 restores the box (all taps equal)."""
+    torch.manual_seed(0)
+    batch = make_batch(b=1, s=2, h=32, w=32)
+    r = torch.arange(17.0) - 8
+    d2 = (r[:, None] ** 2 + r[None, :] ** 2).flatten()
+    for sigma in (2.0, 0.0):
+        m = build(name, kernel_sigma=sigma, **TINY_UNET)
+        with torch.no_grad():
+            if name == "pixelgather":
+                k = m.pixel_kernels(batch["radiance"], batch["features"])            # B k2 H W
+            elif name == "samplesplat":
+                k = m.sample_kernels(batch["radiance"], batch["features"])[:, 0]
+            else:
+                e, ctx = m.embed_samples(batch["radiance"], batch["features"])
+                k = m.layer_kernels(e[:, :2], ctx)[:, 0]
+        p = (k / k.sum(dim=1, keepdim=True)).mean(dim=(0, 2, 3))
+        want = torch.exp(-d2 / (2 * sigma * sigma)) if sigma else torch.ones(289)
+        torch.testing.assert_close(p, want / want.sum(), rtol=0.0, atol=5e-3)   # box vs Gaussian: 0.036
+    with pytest.raises(ConfigError, match="kernel_sigma"):
+        build(name, kernel_sigma=-1)

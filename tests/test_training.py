@@ -126,3 +126,11 @@ def test_loss_decreases_on_the_store(store, tmp_path):
                       build_loss("smape"), torch.device("cpu"), 2)
     res = train(c, store, tmp_path / "p", progress=False)
     assert res["val"]["loss"] < before["loss"] * 0.9
+
+
+def test_warmup_ramps_the_learning_rate():
+    from training.loop import warmup_lr
+    assert [warmup_lr(1e-3, 4, s) for s in range(6)] == pytest.approx([2.5e-4, 5e-4, 7.5e-4, 1e-3, 1e-3, 1e-3])
+    assert warmup_lr(1e-3, 0, 0) == 1e-3
+    with pytest.raises(ConfigError, match="warmup"):
+        TrainConfig(warmup=-1)

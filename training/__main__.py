@@ -9,7 +9,7 @@ import sys
 def _train(a) -> int:
     from .config import TrainConfig
     from .loop import train
-    cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, batch=a.batch,
+    cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup, batch=a.batch,
                       crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, checkpoint_every=a.checkpoint_every, device=a.device)
     out = a.out or f"data/runs/{a.model}"
@@ -67,6 +67,7 @@ def main(argv=None) -> int:
     t.add_argument("--spp", type=int, default=8, help="samples per pixel fed to the model (<= stored samples)")
     t.add_argument("--lr", type=float, default=0.0005,
                    help="Adam learning rate (default 0.0005, NVlabs/layerdenoise's; the paper's text says 0.005)")
+    t.add_argument("--warmup", type=int, default=50, help="steps of linear learning-rate warm-up (default 50)")
     t.add_argument("--loss", default="smape", help="smape (default, eq. 9), l2 (tone-mapped), l1")
     t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
     t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")

@@ -14,7 +14,12 @@ class TrainConfig:
     text says lr 0.005; without clamping that lets the unnormalised U-net's context features grow
     to ~1e31 within 40 steps, which saturates every kernel to one tap (measured on
     ``configs/train-cpu.yaml``). ``steps`` is the budget in optimiser steps; ``model_cfg`` overrides
-    the model's (paper) defaults, e.g. ``{"layers": 3}``; a clamp of 0 disables it."""
+    the model's (paper) defaults, e.g. ``{"layers": 3}``; a clamp of 0 disables it.
+
+    ``warmup`` ramps the learning rate linearly from lr/warmup to lr over its first steps. Adam's first
+    steps move every weight by about lr in a coherent direction; through the unnormalised 512-wide
+    U-net that multiplied the context features 2500x within 5 steps at lr 0.0005 (and 5000x within 20
+    at lr 0.0001), saturating the kernels and the sample partition. With warm-up they stay near 1-4."""
 
     model: str = "layer"
     model_cfg: dict = field(default_factory=dict)
@@ -22,6 +27,7 @@ class TrainConfig:
     lr: float = 0.0005
     grad_clip_norm: float = 0.001
     grad_clip_value: float = 0.25
+    warmup: int = 50            # optimiser steps of linear learning-rate warm-up (0: off)
     batch: int = 4
     crop: int = 128
     spp: int = 8
@@ -44,7 +50,7 @@ class TrainConfig:
         need("grad_clip_value", self.grad_clip_value >= 0, ">= 0 (0: off)")
         for name in ("batch", "crop", "spp", "log_every", "checkpoint_every"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 1, "an integer >= 1")
-        for name in ("steps", "val_every", "val_frames", "val_crop", "seed"):
+        for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")
         need("model_cfg", isinstance(self.model_cfg, dict), "a dict of model settings")
         need("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda"),

@@ -35,9 +35,19 @@ def pick_device(name: str) -> torch.device:
     return dev
 
 
-def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0) -> float:
+def warmup_lr(lr: float, warmup: int, step: int) -> float:
+    """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup`` steps."""
+    return lr * min(1.0, (step + 1) / warmup) if warmup else lr
+
+
+def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
+               lr: float | None = None) -> float:
     """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
-    Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise."""
+    Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise.
+    ``lr``: this step's learning rate (None: leave the optimiser's)."""
+    if lr is not None:
+        for group in optimizer.param_groups:
+            group["lr"] = lr
     model.train()
     optimizer.zero_grad(set_to_none=True)
     out = model(batch)
@@ -139,7 +149,7 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
         for _ in range(max(todo, 0)):
             batch, epoch = get_batch(train_ds, cfg.seed, step, cfg.batch)
             loss = train_step(model, optimizer, loss_fn, to_device(batch, device), cfg.grad_clip_norm,
-                              cfg.grad_clip_value)
+                              cfg.grad_clip_value, lr=warmup_lr(cfg.lr, cfg.warmup, step))
             step += 1
             if bar:
                 bar.update(1)

@@ -17,8 +17,9 @@ from __future__ import annotations
 import torch
 
 from ..errors import ConfigError
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, clean_radiance,
-                     conv_fmas, exp_kernels, mlp, prepare_inputs, splat, xavier_init)
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat,
+                     xavier_init)
 from .registry import register
 
 MAX_LAYERS = 5
@@ -28,7 +29,7 @@ MAX_LAYERS = 5
 class LayerDenoiser(Denoiser):
     compositing = "alpha"
 
-    def __init__(self, layers: int = 2, kernel_size: int = 17, embed: int = 32, context: int = 128,
+    def __init__(self, layers: int = 2, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
                  partition_hidden=(32, 16), kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
                  unet_decoder=PAPER_UNET["unet_decoder"]):
@@ -36,7 +37,8 @@ class LayerDenoiser(Denoiser):
         if not 1 <= layers <= MAX_LAYERS:
             raise ConfigError(f'"layers" must be in 1..{MAX_LAYERS}, got {layers}')
         kernel_size = check_kernel_size(kernel_size)
-        super().__init__(layers=layers, kernel_size=kernel_size, embed=embed, context=context,
+        kernel_sigma = check_sigma(kernel_sigma)
+        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
                          partition_hidden=tuple(partition_hidden), kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.layers, self.kernel_size, self.embed, self.context = layers, kernel_size, embed, context
@@ -45,6 +47,7 @@ class LayerDenoiser(Denoiser):
         self.partitioner = mlp(context + embed, partition_hidden, layers)
         self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
         xavier_init(self)
+        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)
 
     # -- stages ----------------------------------------------------------------------------------
     def embed_samples(self, radiance, features):
@@ -57,17 +60,12 @@ class LayerDenoiser(Denoiser):
 
     def partition(self, e, ctx):
         """Per-sample layer weights w (float32, BSLHW): softmax over layers, divided by S (eq. 1)."""
-        b, s, _, h, w = e.shape
-        inp = torch.cat((e, ctx.unsqueeze(1).expand(b, s, -1, h, w)), dim=2).reshape(b * s, -1, h, w)
-        logits = self.partitioner(inp).view(b, s, self.layers, h, w)
-        return torch.softmax(logits, dim=2) / s
+        logits = self.partitioner(e, ctx)                              # B S L H W
+        return torch.softmax(logits, dim=2) / e.shape[1]
 
     def layer_kernels(self, layer_e, ctx):
         """Kernels (float32, B L k*k H W), exponentiated with the max over all layers' taps subtracted."""
-        b, nl, _, h, w = layer_e.shape
-        inp = torch.cat((layer_e, ctx.unsqueeze(1).expand(b, nl, -1, h, w)), dim=2).reshape(b * nl, -1, h, w)
-        logits = self.kernel_gen(inp).view(b, nl, -1, h, w)
-        return exp_kernels(logits, dims=(1, 2))
+        return exp_kernels(self.kernel_gen(layer_e, ctx), dims=(1, 2))
 
     def denoise(self, radiance, features):
         e, ctx = self.embed_samples(radiance, features)
@@ -96,7 +94,8 @@ class LayerDenoiser(Denoiser):
     # -- cost ------------------------------------------------------------------------------------
     def fmas_per_pixel(self, spp: int) -> float:
         k2 = self.kernel_size ** 2
-        # per sample: reducer, partitioner, and splatting radiance (3) + embedding into every layer
-        per_sample = conv_fmas(self.reducer) + conv_fmas(self.partitioner) + self.layers * (3 + self.embed)
-        per_layer = conv_fmas(self.kernel_gen) + 5 * k2        # kernel generator + splat of (L, w, n)
-        return spp * per_sample + self.unet.fmas_per_pixel() + self.layers * per_layer
+        # per sample: reducer, and splatting radiance (3) + embedding into every layer; the partitioner
+        # and kernel generator see the context once per pixel (MLP's split first layer)
+        per_sample = conv_fmas(self.reducer) + self.layers * (3 + self.embed)
+        return spp * per_sample + self.partitioner.fmas(spp, self.context) + self.unet.fmas_per_pixel() \
+            + self.kernel_gen.fmas(self.layers, self.context) + self.layers * 5 * k2   # + splat of (L, w, n)

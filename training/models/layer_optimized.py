@@ -20,8 +20,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..errors import ConfigError
-from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, clean_radiance, conv_fmas,
-                     exp_kernels, mlp, prepare_inputs, splat, xavier_init)
+from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
+                     exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat, xavier_init)
 from .layer import MAX_LAYERS, LayerDenoiser
 from .registry import register
 
@@ -34,7 +34,7 @@ OPT_UNET = dict(
 
 @register("layer-optimized")
 class LayerOptimizedDenoiser(Denoiser):
-    def __init__(self, layers: int = 2, kernel_size: int = 5, levels: int = 3, embed: int = 32, context: int = 64,
+    def __init__(self, layers: int = 2, kernel_size: int = 5, kernel_sigma: float = 1.0, levels: int = 3, embed: int = 32, context: int = 64,
                  partition_hidden=(32, 16), kernel_hidden=(32, 32), unet_encoder=OPT_UNET["unet_encoder"],
                  unet_bottleneck=OPT_UNET["unet_bottleneck"], unet_decoder=OPT_UNET["unet_decoder"]):
         layers, levels = int(layers), int(levels)
@@ -43,7 +43,8 @@ class LayerOptimizedDenoiser(Denoiser):
         if not 1 <= levels <= len(unet_decoder):
             raise ConfigError(f'"levels" must be in 1..{len(unet_decoder)} (U-net depth), got {levels}')
         kernel_size = check_kernel_size(kernel_size)
-        super().__init__(layers=layers, kernel_size=kernel_size, levels=levels, embed=embed, context=context,
+        kernel_sigma = check_sigma(kernel_sigma)
+        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, levels=levels, embed=embed, context=context,
                          partition_hidden=tuple(partition_hidden), kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.layers, self.kernel_size, self.levels, self.embed = layers, kernel_size, levels, embed
@@ -55,6 +56,8 @@ class LayerOptimizedDenoiser(Denoiser):
         # one extra output: the scale weight lambda_i, read from the first layer only (eq. 10)
         self.kernel_gens = nn.ModuleList(mlp(embed + c, kernel_hidden, k2 + 1) for c in chans)
         xavier_init(self)
+        for g in self.kernel_gens:                                      # each scale starts as a Gaussian
+            gaussian_kernel_bias(g[-1], kernel_size, kernel_sigma)
 
     embed_samples = LayerDenoiser.embed_samples
     composite = LayerDenoiser.composite
@@ -87,8 +90,7 @@ class LayerOptimizedDenoiser(Denoiser):
             g = guides[i]
             g = F.pad(g, (0, wi - g.shape[-1], 0, hi - g.shape[-2]), mode="replicate")
             d = d.view(b, nl, 5 + self.embed, hi, wi)
-            inp = torch.cat((d[:, :, 5:], g.unsqueeze(1).expand(b, nl, -1, hi, wi)), dim=2)
-            out = self.kernel_gens[i](inp.reshape(b * nl, -1, hi, wi)).view(b, nl, -1, hi, wi)
+            out = self.kernel_gens[i](d[:, :, 5:], g)                    # B L k2+1 hi wi
             lambdas.append(out[:, 0, -1:])                               # first layer's extra channel
             kernels = exp_kernels(out[:, :, :-1], dims=(1, 2))
             f = splat(d[:, :, :5].reshape(b * nl, 5, hi, wi), kernels.reshape(b * nl, -1, hi, wi), self.kernel_size)
@@ -104,6 +106,8 @@ class LayerOptimizedDenoiser(Denoiser):
 
     def fmas_per_pixel(self, spp: int) -> float:
         k2 = self.kernel_size ** 2
-        per_sample = conv_fmas(self.reducer) + conv_fmas(self.partitioner) + self.layers * (3 + self.embed)
-        per_layer = sum((conv_fmas(g) + 5 * k2) / 4 ** i for i, g in enumerate(self.kernel_gens))
-        return spp * per_sample + self.unet.fmas_per_pixel() + self.layers * per_layer
+        per_sample = conv_fmas(self.reducer) + self.layers * (3 + self.embed)
+        context = self.unet.cout
+        filters = sum((g.fmas(self.layers, g[0].in_channels - self.embed) + self.layers * 5 * k2) / 4 ** i
+                      for i, g in enumerate(self.kernel_gens))
+        return spp * per_sample + self.partitioner.fmas(spp, context) + self.unet.fmas_per_pixel() + filters

@@ -10,29 +10,36 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, clean_radiance,
-                     conv_fmas, exp_kernels, gather, mlp, prepare_inputs, xavier_init)
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+                     clean_radiance, conv_fmas, exp_kernels, gather, gaussian_kernel_bias, mlp,
+                     prepare_inputs, xavier_init)
 from .registry import register
 
 
 @register("pixelgather")
 class PixelGatherDenoiser(Denoiser):
-    def __init__(self, kernel_size: int = 17, embed: int = 32, context: int = 128, kernel_hidden=(128, 128),
+    def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
+                 kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
                  unet_decoder=PAPER_UNET["unet_decoder"]):
         kernel_size = check_kernel_size(kernel_size)
-        super().__init__(kernel_size=kernel_size, embed=embed, context=context, kernel_hidden=tuple(kernel_hidden),
+        kernel_sigma = check_sigma(kernel_sigma)
+        super().__init__(kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
+                         kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.kernel_size, self.embed = kernel_size, embed
         self.reducer = mlp(2 * IN_FEATURES, (embed, embed), embed, last_act=True)
         self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
         self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
         xavier_init(self)
+        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)
 
     def pixel_kernels(self, radiance, features):
         """Per-pixel kernels (float32, B k*k H W), exponentiated with the per-pixel max subtracted."""
         x = prepare_inputs(radiance, features)
-        stats = torch.cat((x.mean(dim=1), x.var(dim=1, unbiased=False)), dim=1)
+        mean = x.mean(dim=1)
+        var = (x - mean.unsqueeze(1)).square().mean(dim=1)              # 20x faster than Tensor.var(dim=1)
+        stats = torch.cat((mean, var), dim=1)
         e = self.reducer(stats)
         ctx, _ = self.unet(e)
         return exp_kernels(self.kernel_gen(torch.cat((e, ctx), dim=1)), dims=1)

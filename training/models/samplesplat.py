@@ -12,24 +12,29 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, clean_radiance,
-                     conv_fmas, exp_kernels, mlp, prepare_inputs, splat_columns, xavier_init)
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs,
+                     splat_columns, xavier_init)
 from .registry import register
 
 
 @register("samplesplat")
 class SampleSplatDenoiser(Denoiser):
-    def __init__(self, kernel_size: int = 17, embed: int = 32, context: int = 128, kernel_hidden=(128, 128),
+    def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
+                 kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
                  unet_decoder=PAPER_UNET["unet_decoder"]):
         kernel_size = check_kernel_size(kernel_size)
-        super().__init__(kernel_size=kernel_size, embed=embed, context=context, kernel_hidden=tuple(kernel_hidden),
+        kernel_sigma = check_sigma(kernel_sigma)
+        super().__init__(kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
+                         kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.kernel_size, self.embed = kernel_size, embed
         self.reducer = mlp(IN_FEATURES, (embed, embed), embed, last_act=True)
         self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
         self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
         xavier_init(self)
+        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)
 
     def sample_kernels(self, radiance, features):
         """Per-sample kernels (float32, B S k*k H W), max over (S, taps) subtracted before exp."""
@@ -37,9 +42,7 @@ class SampleSplatDenoiser(Denoiser):
         b, s, c, h, w = x.shape
         e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
         ctx, _ = self.unet(e.mean(dim=1))
-        inp = torch.cat((e, ctx.unsqueeze(1).expand(b, s, -1, h, w)), dim=2).reshape(b * s, -1, h, w)
-        logits = self.kernel_gen(inp).view(b, s, -1, h, w)
-        return exp_kernels(logits, dims=(1, 2))
+        return exp_kernels(self.kernel_gen(e, ctx), dims=(1, 2))
 
     def denoise(self, radiance, features):
         kernels = self.sample_kernels(radiance, features)               # B S k2 H W
@@ -53,5 +56,6 @@ class SampleSplatDenoiser(Denoiser):
         return f[:, :3] / (f[:, 3:4] + EPS)
 
     def fmas_per_pixel(self, spp: int) -> float:
-        per_sample = conv_fmas(self.reducer) + conv_fmas(self.kernel_gen) + 4 * self.kernel_size ** 2
-        return spp * per_sample + self.unet.fmas_per_pixel()
+        per_sample = conv_fmas(self.reducer) + 4 * self.kernel_size ** 2
+        context = self.unet.cout
+        return spp * per_sample + self.kernel_gen.fmas(spp, context) + self.unet.fmas_per_pixel()
