@@ -33,17 +33,42 @@ def test_cli_train_evaluate_report(store, tmp_path):
         assert {"relmse", "smape", "psnr", "ssim", "flip", "ms_per_megapixel"} <= set(f)
         assert f["ms_per_megapixel"] > 0 and 0 <= f["flip"] <= 1 and np.isfinite(f["relmse"])
     assert res["mean"]["relmse"] == pytest.approx(np.mean([f["relmse"] for f in res["frames"]]))
+    from training.data import open_store
+    from training.evaluate import frame_kinds
+    st = open_store(store)
+    for f in res["frames"]:      # kinds come from the store's frame metadata
+        assert f["has_defocus"] == bool(st.meta_column("has_defocus")[f["index"]])
+        assert f["has_motion"] == bool(st.meta_column("has_motion")[f["index"]])
+    for kind, agg in res["by_kind"].items():
+        sel = [f for f in res["frames"] if kind in frame_kinds(f)]
+        assert agg["frames"] == len(sel) > 0
+        assert agg["relmse"] == pytest.approx(np.mean([f["relmse"] for f in sel]))
 
     rep = tmp_path / "report"
     assert main(["report", "--runs", str(runs / "layer"), str(runs / "layer-optimized"), str(runs / "missing*"),
                  "--store", store, "--out", str(rep)]) == 0
     md = (rep / "report.md").read_text()
-    for label in ("| input |", "| layer |", "| layer-optimized |", "| oidn |", "relMSE", "FMAs", "figure 10"):
+    for label in ("| input |", "| layer |", "| layer-optimized |", "| oidn |", "relMSE", "FMAs", "figure 10",
+                  "relMSE by kind of frame"):
         assert label in md
     assert Image.open(rep / "speed_vs_error.png").size[0] > 100
     crops = Image.open(rep / "crops.png")
     assert crops.size == (5 * (32 * 3 + 4), 32 * 3 + 16)   # 5 panels: input, 2 models, oidn, reference
     assert main(["report", "--runs", str(tmp_path / "nothing"), "--store", store, "--out", str(rep)]) == 2
+
+
+def test_firefly_share_counts_outlier_pixels():
+    """A pixel holds a firefly when one sample is 16x brighter than its reference (+0.05)."""
+    import torch
+
+    from training.evaluate import firefly_share
+    ref = torch.full((3, 10, 10), 0.5)
+    rad = torch.full((4, 3, 10, 10), 0.5)
+    assert firefly_share(rad, ref) == 0.0
+    rad[1, :, 2, 3] = 100.0                  # one sample, 200x its pixel's reference
+    rad[0, :, 5, 5] = 8.0                    # 16x, below 16 * (0.5 + 0.05)
+    rad[2, 0, 7, 7] = float("nan")           # renderer NaN: not a firefly
+    assert firefly_share(rad, ref) == pytest.approx(0.01)
 
 
 def test_oidn_baseline_denoises(store):

@@ -4,7 +4,9 @@
 metrics (relMSE, SMAPE, PSNR, SSIM, FLIP; see :mod:`training.metrics`) with the inference time of
 each frame in milliseconds per megapixel, their means, the parameter count and the analytic FMAs per
 pixel. Baselines: ``"input"`` (the per-pixel mean of the samples) and ``"oidn"`` (Intel Open Image
-Denoise on that mean, with the albedo and normal guides).
+Denoise on that mean, with the albedo and normal guides). Each frame is tagged with its kinds (defocus
+and motion from the store's frame metadata; fireflies from the input samples, see ``firefly_share``)
+and ``by_kind`` holds the means over the frames of each kind.
 """
 from __future__ import annotations
 
@@ -22,6 +24,29 @@ from .errors import ConfigError
 from .oidn import oidn_denoise
 
 BASELINES = ("input", "oidn")
+KINDS = ("defocus", "motion", "fireflies", "plain")
+
+# A sample 16x brighter than its reference pixel (plus 0.05, for black pixels) alone doubles an 8-spp
+# mean; a frame "has fireflies" when at least 0.2% of its pixels hold one (test frames of
+# configs/train-cpu.yaml: 0 to 1.05%).
+FIREFLY_RATIO = 16.0
+FIREFLY_SHARE = 0.002
+
+
+def firefly_share(radiance: torch.Tensor, reference: torch.Tensor) -> float:
+    """Share of pixels with a firefly sample: radiance (S 3 H W) linear, reference (3 H W)."""
+    lum = torch.tensor([0.2126, 0.7152, 0.0722]).view(3, 1, 1)
+    s = (torch.nan_to_num(radiance.float(), nan=0.0, posinf=0.0).clamp(min=0) * lum).sum(dim=-3)   # S H W
+    r = (reference.float().clamp(min=0) * lum).sum(dim=0)
+    return float((s.amax(dim=0) > FIREFLY_RATIO * (r + 0.05)).float().mean())
+
+
+def frame_kinds(row: dict) -> list[str]:
+    """The kinds of an evaluated frame (``row`` from ``evaluate``): any of defocus, motion, fireflies,
+    else plain."""
+    kinds = [k for k, key in (("defocus", "has_defocus"), ("motion", "has_motion"),
+                              ("fireflies", "has_fireflies")) if row.get(key)]
+    return kinds or ["plain"]
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
@@ -76,6 +101,7 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
                 torch.cuda.synchronize()
             return _hwc(out[0])
 
+    defocus, motion = st.meta_column("has_defocus"), st.meta_column("has_motion")
     frames, images = [], {}
     for pos in range(n):
         item = ds[pos]
@@ -86,14 +112,23 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
         ms = (time.perf_counter() - t) * 1e3
         ref = _hwc(item["reference"])
         h, w = ref.shape[:2]
-        row = {"index": int(item["index"]), "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6),
-               **metrics.all_metrics(out, ref, with_flip=with_flip)}
+        idx = int(item["index"])
+        share = firefly_share(item["radiance"], item["reference"])
+        row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6),
+               **metrics.all_metrics(out, ref, with_flip=with_flip),
+               "has_defocus": bool(defocus[idx]), "has_motion": bool(motion[idx]),
+               "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
         frames.append(row)
         if pos in keep:
             images[pos] = out
-    keys = [k for k in frames[0] if k not in ("index",)] if frames else []
+    keys = [k for k in frames[0] if k != "index" and not k.startswith("has_")] if frames else []
     info["frames"] = frames
     info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
+    info["by_kind"] = {}
+    for kind in KINDS:                                          # frames of each kind (they overlap)
+        sel = [f for f in frames if kind in frame_kinds(f)]
+        if sel:
+            info["by_kind"][kind] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
     info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
     if keep:
         info["images"] = images

@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from .errors import DataError
-from .evaluate import evaluate, write_json
+from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, evaluate, write_json
 from .fma import figure10, figure10_markdown
 from .tonemap import tonemap
 
@@ -46,6 +46,20 @@ def table_markdown(results: list[dict]) -> str:
         fm = r.get("fmas_per_pixel")
         lines.append(f"| {r['label']} | " + " | ".join(cells) +
                      f" | {r.get('params', 0):,} | {'–' if fm is None else f'{fm / 1e3:.0f}k'} |")
+    return "\n".join(lines)
+
+
+def kinds_markdown(results: list[dict], key: str = "relmse", fmt: str = "{:.4f}") -> str:
+    """Mean ``key`` per method over the frames of each kind (defocus, motion, fireflies, plain; a frame
+    may have several kinds), with the frame counts in the header."""
+    from .evaluate import KINDS
+    kinds = [k for k in KINDS if k in results[0].get("by_kind", {})]
+    counts = {k: results[0]["by_kind"][k]["frames"] for k in kinds}
+    head = "| method | all | " + " | ".join(f"{k} ({counts[k]})" for k in kinds) + " |"
+    lines = [head, "|---|---|" + "---|" * len(kinds)]
+    for r in results:
+        cells = [_fmt(r["mean"].get(key), fmt)] + [_fmt(r["by_kind"][k].get(key), fmt) for k in kinds]
+        lines.append(f"| {r['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -137,7 +151,11 @@ def report(runs, store, out, split: str = "test", spp: int = 8, max_frames: int 
              "PSNR and SSIM on tone-mapped values (sRGB(log(x+1)), eq. 7); FLIP is HDR-FLIP. "
              f"Times are wall-clock per frame on this machine ({results[0]['torch_threads']} torch threads), "
              "after one warm-up frame.", "", table_markdown(results), "",
-             "![speed against error](speed_vs_error.png)", "", "Crops (input / models / OIDN / reference):", "",
+             "![speed against error](speed_vs_error.png)", "",
+             f"relMSE by kind of frame (frame counts in brackets; defocus and motion from the scene, "
+             f"fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x brighter "
+             "than the reference; plain: none of these):", "", kinds_markdown(results), "",
+             "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "", "Crops (input / models / OIDN / reference):", "",
              "![crops](crops.png)", "", "## Training budgets", ""]
     for r in results:
         if "train_config" in r:
