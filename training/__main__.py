@@ -9,7 +9,8 @@ import sys
 def _train(a) -> int:
     from .config import TrainConfig
     from .loop import train
-    cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup, batch=a.batch,
+    cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
+                      batch=a.batch,
                       crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, checkpoint_every=a.checkpoint_every, device=a.device)
     out = a.out or f"data/runs/{a.model}"

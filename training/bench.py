@@ -45,7 +45,8 @@ def run(size: int = 128, spp: int = 8, repeats: int = 3, models=BENCH_MODELS, oi
         m = build(name).eval()
         with torch.no_grad():
             s, c = _best(lambda: m(batch), repeats)
-        res[name] = {"ms_per_megapixel": s * 1e3 / mp, "cpu_ms_per_megapixel": c * 1e3 / mp, "fmas_per_pixel": float(m.fmas_per_pixel(spp)),
+        res[name] = {"ms_per_megapixel": s * 1e3 / mp, "cpu_ms_per_megapixel": c * 1e3 / mp,
+                     "fmas_per_pixel": float(m.fmas_per_pixel(spp)),
                      "params": m.param_count()}
         del m
     if oidn:
@@ -54,7 +55,8 @@ def run(size: int = 128, spp: int = 8, repeats: int = 3, models=BENCH_MODELS, oi
         alb = rng.random((size, size, 3), dtype=np.float32)
         nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
         s, c = _best(lambda: oidn_denoise(color, alb, nrm), repeats)
-        res["oidn"] = {"ms_per_megapixel": s * 1e3 / mp, "cpu_ms_per_megapixel": c * 1e3 / mp, "fmas_per_pixel": None, "params": None}
+        res["oidn"] = {"ms_per_megapixel": s * 1e3 / mp, "cpu_ms_per_megapixel": c * 1e3 / mp,
+                       "fmas_per_pixel": None, "params": None}
     if print_table:
         print(f"inference at {spp} spp, {size}x{size}, {torch.get_num_threads()} threads (best of {repeats})")
         print(f"{'model':<16} {'ms/MP':>12} {'cpu ms/MP':>12} {'kFMA/px':>10} {'params':>12}")
@@ -64,7 +66,9 @@ def run(size: int = 128, spp: int = 8, repeats: int = 3, models=BENCH_MODELS, oi
             print(f"{k:<16} {v['ms_per_megapixel']:>12.0f} {v['cpu_ms_per_megapixel']:>12.0f} {fm:>10} {pc:>12}")
         if "layer" in res and "layer-optimized" in res:
             r = {k: res["layer"][k] / res["layer-optimized"][k] for k in ("ms_per_megapixel", "cpu_ms_per_megapixel")}
-            print(f"layer / layer-optimized: wall {r['ms_per_megapixel']:.1f}x, cpu {r['cpu_ms_per_megapixel']:.1f}x")
+            f = res["layer"]["fmas_per_pixel"] / res["layer-optimized"]["fmas_per_pixel"]
+            print(f"layer / layer-optimized: wall {r['ms_per_megapixel']:.1f}x, cpu {r['cpu_ms_per_megapixel']:.1f}x "
+                  f"(FMAs {f:.1f}x: the bound where convolutions are compute-bound, as on a CPU)")
     return res
 
 

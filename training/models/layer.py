@@ -29,8 +29,8 @@ MAX_LAYERS = 5
 class LayerDenoiser(Denoiser):
     compositing = "alpha"
 
-    def __init__(self, layers: int = 2, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
-                 partition_hidden=(32, 16), kernel_hidden=(128, 128),
+    def __init__(self, layers: int = 2, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32,
+                 context: int = 128, partition_hidden=(32, 16), kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
                  unet_decoder=PAPER_UNET["unet_decoder"]):
         layers = int(layers)
@@ -38,8 +38,9 @@ class LayerDenoiser(Denoiser):
             raise ConfigError(f'"layers" must be in 1..{MAX_LAYERS}, got {layers}')
         kernel_size = check_kernel_size(kernel_size)
         kernel_sigma = check_sigma(kernel_sigma)
-        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
-                         partition_hidden=tuple(partition_hidden), kernel_hidden=tuple(kernel_hidden),
+        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed,
+                         context=context, partition_hidden=tuple(partition_hidden),
+                         kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.layers, self.kernel_size, self.embed, self.context = layers, kernel_size, embed, context
         self.reducer = mlp(IN_FEATURES, (embed, embed), embed, last_act=True)

@@ -34,7 +34,8 @@ OPT_UNET = dict(
 
 @register("layer-optimized")
 class LayerOptimizedDenoiser(Denoiser):
-    def __init__(self, layers: int = 2, kernel_size: int = 5, kernel_sigma: float = 1.0, levels: int = 3, embed: int = 32, context: int = 64,
+    def __init__(self, layers: int = 2, kernel_size: int = 5, kernel_sigma: float = 1.0, levels: int = 3,
+                 embed: int = 32, context: int = 64,
                  partition_hidden=(32, 16), kernel_hidden=(32, 32), unet_encoder=OPT_UNET["unet_encoder"],
                  unet_bottleneck=OPT_UNET["unet_bottleneck"], unet_decoder=OPT_UNET["unet_decoder"]):
         layers, levels = int(layers), int(levels)
@@ -44,7 +45,8 @@ class LayerOptimizedDenoiser(Denoiser):
             raise ConfigError(f'"levels" must be in 1..{len(unet_decoder)} (U-net depth), got {levels}')
         kernel_size = check_kernel_size(kernel_size)
         kernel_sigma = check_sigma(kernel_sigma)
-        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, levels=levels, embed=embed, context=context,
+        super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, levels=levels,
+                         embed=embed, context=context,
                          partition_hidden=tuple(partition_hidden), kernel_hidden=tuple(kernel_hidden),
                          unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
         self.layers, self.kernel_size, self.levels, self.embed = layers, kernel_size, levels, embed
@@ -77,7 +79,8 @@ class LayerOptimizedDenoiser(Denoiser):
         l_w = wts.sum(dim=1)
         l_e = (wts.unsqueeze(3) * e.unsqueeze(2)).sum(dim=1)
         l_n = torch.flip(torch.cumsum(torch.flip(l_w, (1,)), dim=1), (1,))
-        data = torch.cat((l_rad, l_w.unsqueeze(2), l_n.unsqueeze(2), l_e), dim=2).reshape(b, nl * (5 + self.embed), h, w)
+        data = torch.cat((l_rad, l_w.unsqueeze(2), l_n.unsqueeze(2), l_e), dim=2)
+        data = data.reshape(b, nl * (5 + self.embed), h, w)
         m = 2 ** (self.levels - 1)
         ph, pw = (-h) % m, (-w) % m
         data = F.pad(data, (0, pw, 0, ph))                              # padded pixels hold no samples
