@@ -33,8 +33,10 @@ def _best(fn, repeats: int) -> tuple[float, float]:
 def run(size: int = 128, spp: int = 8, repeats: int = 3, models=BENCH_MODELS, oidn: bool = True,
         print_table: bool = True) -> dict:
     from .models import build
+    from .models.common import flush_denormals
     from .oidn import oidn_denoise
 
+    flush_denormals()
     g = torch.Generator().manual_seed(0)
     batch = {"radiance": torch.rand(1, spp, 3, size, size, generator=g) * 4,
              "features": torch.rand(1, spp, NUM_FEATURES, size, size, generator=g)}

@@ -21,6 +21,7 @@ from . import checkpoint as ckpt
 from . import metrics
 from .data import open_store, sample_dataset
 from .errors import ConfigError
+from .models.common import flush_denormals
 from .oidn import oidn_denoise
 
 BASELINES = ("input", "oidn")
@@ -68,6 +69,7 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
     ``"images"`` (not written to JSON). Times are wall-clock per frame after one warm-up frame."""
     if threads:
         torch.set_num_threads(int(threads))
+    flush_denormals()
     st, ds, n, spp = _frames(store, split, spp, max_frames)
     info: dict = {"split": split, "spp": spp, "store": str(st.path), "torch_threads": torch.get_num_threads()}
     if isinstance(method, str) and method in BASELINES:

@@ -24,6 +24,7 @@ from .data import get_batch, open_store, sample_dataset, to_device
 from .errors import CheckpointError, ConfigError, NonFiniteError
 from .losses import build_loss
 from .models import build
+from .models.common import flush_denormals
 
 CSV_FIELDS = ("step", "epoch", "kind", "loss", "relmse", "smape", "psnr", "seconds")
 
@@ -108,6 +109,7 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(cfg.device)
+    flush_denormals()
     store = open_store(store)
     store_info = {"path": str(store.path), "schema_version": store.schema_version}
     loss_fn = build_loss(cfg.loss)
