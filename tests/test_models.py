@@ -291,3 +291,19 @@ def test_kernels_start_as_a_gaussian_not_a_box(name):
         torch.testing.assert_close(p, want / want.sum(), rtol=0.0, atol=5e-3)   # box vs Gaussian: 0.036
     with pytest.raises(ConfigError, match="kernel_sigma"):
         build(name, kernel_sigma=-1)
+
+
+def test_soft_bound_caps_the_context_scale():
+    """soft_bound is the identity for small features and caps the per-pixel RMS at 1 for huge ones,
+    so the U-net cannot scale the context up without limit (LAYER's reached 1e26 without it)."""
+    from training.models.common import soft_bound
+    small = torch.randn(2, 16, 5, 5) * 1e-3
+    torch.testing.assert_close(soft_bound(small), small, rtol=1e-5, atol=0)
+    huge = torch.randn(2, 16, 5, 5) * 1e20
+    rms = soft_bound(huge).square().mean(dim=1).sqrt()
+    assert torch.isfinite(rms).all() and (rms <= 1.0 + 1e-6).all() and (rms > 0.99).all()
+    m = build("layer", **TINY_UNET)
+    with torch.no_grad():
+        m.unet.final.weight.mul_(1e15)
+        _, ctx = m.embed_samples(*make_batch().values())
+    assert ctx.square().mean(dim=1).sqrt().max() <= 1.0 + 1e-6

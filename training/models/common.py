@@ -158,6 +158,12 @@ def _check_widths(name: str, widths) -> tuple:
     return widths
 
 
+def soft_bound(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """x / sqrt(1 + mean over ``dim`` of x^2): the identity while the features are small (at
+    initialisation the context has RMS ~0.02), their RMS capped at 1 when they grow."""
+    return x * torch.rsqrt(1.0 + x.square().mean(dim=dim, keepdim=True))
+
+
 class UNet(nn.Module):
     """U-net of figure 3: 3x3 convolutions, leaky ReLU 0.01, 2x2 max-pooling, bilinear upsampling,
     skip connections concatenated with the upsampled features, a final 3x3 convolution to ``cout``.
@@ -166,6 +172,13 @@ class UNet(nn.Module):
     output of the decoder block at 1/2^i resolution (i = 0 .. depth-1; i = 0 is the last block, before
     the final convolution). Any H, W: the input is padded (replicate) to a multiple of 2^depth and the
     outputs are cropped back to ceil(H / 2^i).
+
+    Both outputs pass through :func:`soft_bound` (per pixel, over channels), the one departure from
+    figure 3. Nothing in the unnormalised U-net limits the scale of its output, and Adam grows it:
+    kernel sharpness and the sample partition are set by logit magnitudes, and scaling the whole
+    context is the cheapest way to change them. On configs/train-cpu.yaml LAYER's context reached RMS
+    1e26 by step 1000 (every kernel a single centre tap, the partition all in one layer, the output
+    the noisy input, gradients exactly zero). The bound is the identity at initialisation.
     """
 
     def __init__(self, cin: int, cout: int, encoder, bottleneck, decoder):
@@ -228,8 +241,8 @@ class UNet(nn.Module):
         decoder = []
         for level in range(self.depth):
             d = outs[self.depth - 1 - level]
-            decoder.append(d[..., : -(-h // 2 ** level), : -(-w // 2 ** level)])
-        return out[..., :h, :w], decoder
+            decoder.append(soft_bound(d[..., : -(-h // 2 ** level), : -(-w // 2 ** level)]))
+        return soft_bound(out[..., :h, :w]), decoder
 
     def fmas_per_pixel(self) -> float:
         """Convolution FMAs per full-resolution pixel (each level costs 1/4 of the one above)."""
