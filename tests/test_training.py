@@ -117,7 +117,7 @@ def test_resume_refuses_other_settings_and_schema(store, tmp_path):
 def test_loss_decreases_on_the_store(store, tmp_path):
     """A few dozen steps of a tiny pixelgather on real (synthetic) frames lower the validation loss."""
     c = cfg(model="pixelgather", model_cfg={k: v for k, v in TINY.items() if k != "partition_hidden"},
-            steps=30, val_every=30, checkpoint_every=30, batch=2, crop=24, val_crop=32, val_frames=2)
+            steps=60, warmup=5, val_every=60, checkpoint_every=60, batch=2, crop=24, val_crop=32, val_frames=2)
     from training.data import sample_dataset
     from training.loop import validate
     from training.losses import build_loss

@@ -161,7 +161,9 @@ def _check_widths(name: str, widths) -> tuple:
 def soft_bound(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
     """x / sqrt(1 + mean over ``dim`` of x^2): the identity while the features are small (at
     initialisation the context has RMS ~0.02), their RMS capped at 1 when they grow."""
-    return x * torch.rsqrt(1.0 + x.square().mean(dim=dim, keepdim=True))
+    s = x.abs().amax(dim=dim, keepdim=True).clamp(min=1.0)       # computed on x / s: x^2 may overflow
+    y = x / s
+    return y * torch.rsqrt(s.reciprocal().square() + y.square().mean(dim=dim, keepdim=True))
 
 
 class UNet(nn.Module):
