@@ -31,7 +31,7 @@ report: setup    ## evaluate RUNS on STORE and write a report
 	$(PY) -m training report --runs $(or $(RUNS),data/runs/*) --store $(or $(STORE),data/default.zarr) --out $(or $(REPORT),data/report)
 
 COMPARE_MODELS ?= layer pixelgather layer-optimized samplesplat
-COMPARE_STEPS ?= 1000
+COMPARE_STEPS ?= 800
 compare: setup   ## the CPU comparison of docs/training.md: train-cpu + eval-cpu stores, each model, report (hours)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
