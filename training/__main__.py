@@ -6,15 +6,28 @@ import json
 import sys
 
 
+def _model_cfg(text: str) -> dict:
+    from .errors import ConfigError
+    try:
+        cfg = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"--model-cfg is not valid JSON ({e.msg} at character {e.pos}): {text!r}") from None
+    if not isinstance(cfg, dict):
+        raise ConfigError(f'--model-cfg must be a JSON object such as \'{{"layers": 3}}\', got {text!r}')
+    return cfg
+
+
 def _train(a) -> int:
     from .config import TrainConfig
     from .loop import train
-    cfg = TrainConfig(model=a.model, model_cfg=json.loads(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
-                      batch=a.batch,
-                      crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
-                      val_frames=a.val_frames, checkpoint_every=a.checkpoint_every, device=a.device)
+    cfg = TrainConfig(model=a.model, model_cfg=_model_cfg(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
+                      batch=a.batch, crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
+                      val_frames=a.val_frames, val_split=a.val_split, checkpoint_every=a.checkpoint_every,
+                      device=a.device, workers=a.workers)
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress)
+    if res["checkpoint"] is None:
+        print(f"no step to run (--steps {cfg.steps}); no checkpoint written to {out}", file=sys.stderr)
     print(json.dumps(res, default=float))
     return 0
 
@@ -36,7 +49,11 @@ def _report(a) -> int:
 
 def _bench(a) -> int:
     from .bench import run
-    run(size=a.size, spp=a.spp, repeats=a.repeats)
+    res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn)
+    if a.json:
+        from pathlib import Path
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(res, indent=2, default=float))
     return 0
 
 
@@ -65,14 +82,23 @@ def main(argv=None) -> int:
     t.add_argument("--steps", type=int, default=1000, help="optimiser steps (default 1000)")
     t.add_argument("--crop", type=int, default=128, help="square training crop in pixels (default 128, the paper's)")
     t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
-    t.add_argument("--spp", type=int, default=8, help="samples per pixel fed to the model (<= stored samples)")
-    t.add_argument("--lr", type=float, default=0.0005,
-                   help="Adam learning rate (default 0.0005, NVlabs/layerdenoise's; the paper's text says 0.005)")
-    t.add_argument("--warmup", type=int, default=50, help="steps of linear learning-rate warm-up (default 50)")
-    t.add_argument("--loss", default="smape", help="smape (default, eq. 9), l2 (tone-mapped), l1")
+    t.add_argument("--spp", type=int, default=None,
+                   help="samples per pixel fed to the model (default: the model's, 8 for the layer family, 1 for "
+                        "nbg and wskpn; at most what the store holds)")
+    t.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate (default: the model's; layer family 0.0005, NVlabs/layerdenoise's; "
+                        "nbg 1e-4, wskpn 1e-3, their papers')")
+    t.add_argument("--warmup", type=int, default=None,
+                   help="steps of linear learning-rate warm-up (default: 50 for the layer family, 0 otherwise)")
+    t.add_argument("--loss", default=None,
+                   help="smape (eq. 9), l2-tonemap, l1 (tone-mapped); default: the model's (smape; nbg: l1)")
     t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
     t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")
-    t.add_argument("--val-frames", type=int, default=8, help="validation frames (from the 'val' split)")
+    t.add_argument("--val-frames", type=int, default=8, help="validation frames (from the --val-split split)")
+    t.add_argument("--val-split", default="val",
+                   help="split to validate on (default val; a store without it trains without validation)")
+    t.add_argument("--workers", type=int, default=1,
+                   help="DataLoader worker processes (default 1; 0 loads in the training process)")
     t.add_argument("--checkpoint-every", type=int, default=100, help="write checkpoint.pt every N steps")
     t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
@@ -83,7 +109,9 @@ def main(argv=None) -> int:
     e.add_argument("--checkpoint", required=True, help="a checkpoint.pt, or 'input' / 'oidn' for a baseline")
     e.add_argument("--store", required=True, help="the Zarr store to evaluate on")
     e.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
-    e.add_argument("--spp", type=int, default=8, help="input samples per pixel (default 8)")
+    e.add_argument("--spp", type=int, default=None,
+                   help="input samples per pixel (default: what the checkpoint was trained at; for a baseline "
+                        "all the store holds); a count the store does not hold is refused")
     e.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     e.add_argument("--out", required=True, help="JSON file for per-frame and mean metrics")
     e.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
@@ -94,15 +122,21 @@ def main(argv=None) -> int:
     r.add_argument("--store", required=True, help="the Zarr store to evaluate on")
     r.add_argument("--out", required=True, help="report folder: report.md, speed_vs_error.png, crops.png")
     r.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
-    r.add_argument("--spp", type=int, default=8, help="input samples per pixel (default 8)")
+    r.add_argument("--spp", type=int, default=None,
+                   help="input samples per pixel for every run (default: each run at its training spp, with the "
+                        "baselines at each of those spp)")
     r.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     r.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
     r.set_defaults(fn=_report)
 
-    b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN")
-    b.add_argument("--size", type=int, default=128)
-    b.add_argument("--spp", type=int, default=8)
-    b.add_argument("--repeats", type=int, default=3)
+    b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")
+    b.add_argument("--models", nargs="*", help="registered models to time (default: all)")
+    b.add_argument("--size", type=int, default=128, help="square frame size in pixels (default 128)")
+    b.add_argument("--spp", type=int, default=None,
+                   help="samples per pixel fed to every model (default: each model's own, 8 or 1)")
+    b.add_argument("--repeats", type=int, default=3, help="timed forward passes; the best counts (default 3)")
+    b.add_argument("--json", help='write {name: {"ms_per_mp": ...}} (with "oidn") to this file')
+    b.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
     b.set_defaults(fn=_bench)
 
     f = sub.add_parser("fma", help="figure 10: FMAs against spp")

@@ -6,6 +6,10 @@ from dataclasses import asdict, dataclass, field, fields
 from .errors import ConfigError
 
 
+# The layer family's training settings (see TrainConfig), for models that declare none of their own.
+LAYER_FAMILY_DEFAULTS = dict(loss="smape", lr=0.0005, grad_clip_norm=0.001, grad_clip_value=0.25, warmup=50)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. Defaults are the layer paper's (sec. 4: Adam, batch 4, 128 px crops, 8 spp,
@@ -19,18 +23,24 @@ class TrainConfig:
     ``warmup`` ramps the learning rate linearly from lr/warmup to lr over its first steps. Adam's first
     steps move every weight by about lr in a coherent direction; through the unnormalised 512-wide
     U-net that multiplied the context features 2500x within 5 steps at lr 0.0005 (and 5000x within 20
-    at lr 0.0001), saturating the kernels and the sample partition. With warm-up they stay near 1-4."""
+    at lr 0.0001), saturating the kernels and the sample partition. With warm-up they stay near 1-4.
+
+    Settings left at None take the model's own defaults (its class's ``train_defaults``, e.g. NBG's L1
+    loss at lr 1e-4 and WSKPN's SMAPE at lr 1e-3, without clamping or warm-up, and ``spp`` from its
+    input declaration: 1 for the per-pixel models), else the layer family's values above; the
+    resolved values are what a checkpoint records. ``workers`` is the number of DataLoader worker
+    processes (0: load in the training process); it does not change what is trained."""
 
     model: str = "layer"
     model_cfg: dict = field(default_factory=dict)
-    loss: str = "smape"
-    lr: float = 0.0005
-    grad_clip_norm: float = 0.001
-    grad_clip_value: float = 0.25
-    warmup: int = 50            # optimiser steps of linear learning-rate warm-up (0: off)
+    loss: str | None = None     # None: the model's default (below: the layer family's)
+    lr: float | None = None
+    grad_clip_norm: float | None = None
+    grad_clip_value: float | None = None
+    warmup: int | None = None   # optimiser steps of linear learning-rate warm-up (0: off)
     batch: int = 4
     crop: int = 128
-    spp: int = 8
+    spp: int | None = None      # None: the model's declared default (8 for the layer family)
     steps: int = 1000
     seed: int = 0
     val_every: int = 100        # optimiser steps between validations (0: only at the end)
@@ -40,8 +50,11 @@ class TrainConfig:
     log_every: int = 10
     checkpoint_every: int = 100
     device: str = "cpu"
+    workers: int = 1            # DataLoader worker processes (0: in-process)
 
     def __post_init__(self):
+        self._resolve_defaults()
+
         def need(name, ok, rng):
             if not ok:
                 raise ConfigError(f'"{name}" must be {rng}, got {getattr(self, name)!r}')
@@ -50,13 +63,21 @@ class TrainConfig:
         need("grad_clip_value", self.grad_clip_value >= 0, ">= 0 (0: off)")
         for name in ("batch", "crop", "spp", "log_every", "checkpoint_every"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 1, "an integer >= 1")
-        for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed"):
+        for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")
         need("model_cfg", isinstance(self.model_cfg, dict), "a dict of model settings")
         need("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda"),
              '"cpu" or "cuda[:N]"')
         from .losses import build_loss
         build_loss(self.loss)
+
+    def _resolve_defaults(self) -> None:
+        """Fill the settings left at None from the model's declaration (frozen: set once, here)."""
+        from .models import get
+        cls = get(self.model)
+        for name, value in {**LAYER_FAMILY_DEFAULTS, "spp": cls.inputs.default_spp, **cls.train_defaults}.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -75,6 +96,6 @@ class TrainConfig:
     def identity(self) -> dict:
         """Settings that must match to resume a run (everything except the step budget and logging)."""
         d = self.to_dict()
-        for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device"):
+        for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device", "workers"):
             d.pop(k)
         return d

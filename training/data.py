@@ -1,15 +1,18 @@
-"""Data for training and evaluation, from the store package's PyTorch datasets (``stores.datasets``).
+"""Data for training and evaluation: the model's declared input kind (:mod:`training.inputs`) builds
+the dataset; batches come through a ``torch.utils.data.DataLoader`` with worker processes.
 
-The loop needs only a map-style dataset whose items are dicts of channel-first float32 tensors
-(``radiance (S,3,h,w)``, ``features (S,17,h,w)``, ``reference (3,h,w)``, guides) with ``set_epoch(e)``;
-:class:`stores.datasets.SampleDataset` is one. Batches are built here, in-process, in an order that
-is a pure function of (seed, epoch), so a resumed run sees exactly the batches it would have seen.
+The batch order is a pure function of (seed, epoch): epoch e visits the items in
+``epoch_order(n, seed, e)`` in batches of ``batch`` (the last partial batch dropped), and every item
+is asked for as ``(index, epoch)`` so each worker's copy of the dataset draws that epoch's crop and
+augmentation (a function of (seed, epoch, frame), see ``stores.datasets``). A run resumed at step k
+starts the same sequence at batch k, so it sees exactly the batches an uninterrupted run would,
+whatever the number of workers.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
+from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 from .errors import DataError
 
@@ -28,14 +31,25 @@ def open_store(store):
         raise DataError(f"cannot open store {store!s}: {e}") from e
 
 
-def sample_dataset(store, split: str, spp: int, crop: int | None, augment: bool, seed: int):
-    """``stores.datasets.SampleDataset`` with the store errors turned into :class:`DataError`."""
-    from stores.datasets import SampleDataset
+def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True):
+    """The dataset of input declaration ``spec`` (:class:`training.inputs.InputSpec`) on ``store``'s
+    ``split``: checks that the store holds every array the kind needs and the sample count, and turns
+    store errors into :class:`DataError`."""
     from stores.errors import StoreError
+    st = open_store(store)
+    kind = spec.input_kind
+    kind.check_store(st)
+    kind.check_spp(st, spp)
     try:
-        return SampleDataset(open_store(store), split=split, spp=spp, crop=crop, augment=augment, seed=seed)
+        return kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
     except StoreError as e:
-        raise DataError(f"{split!r} data from {getattr(store, 'path', store)!s}: {e}") from e
+        raise DataError(f"{split!r} data from {st.path!s}: {e}") from e
+
+
+def sample_dataset(store, split: str, spp: int, crop: int | None, augment: bool, seed: int):
+    """Per-sample frames (kind ``samples``), e.g. for the noisy-input baselines' reference crops."""
+    from .inputs import InputSpec
+    return model_dataset(InputSpec("samples", 1, spp), store, split, spp, crop, augment, seed)
 
 
 def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:
@@ -46,21 +60,63 @@ def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:
 def batches_per_epoch(n: int, batch: int) -> int:
     if n < 1:
         raise DataError("the training split is empty")
-    return max(1, n // batch)
+    if batch > n:
+        raise DataError(f"--batch {batch} is larger than the {n} training items of the store; "
+                        f"use --batch {n} or fewer")
+    return n // batch
+
+
+class EpochBatches(Sampler):
+    """Batches ``start .. stop - 1`` of a run as lists of ``(item, epoch)``."""
+
+    def __init__(self, n: int, batch: int, seed: int, start: int, stop: int):
+        self.n, self.batch, self.seed, self.start, self.stop = n, batch, seed, start, stop
+        self.per_epoch = batches_per_epoch(n, batch)
+
+    def __len__(self) -> int:
+        return max(0, self.stop - self.start)
+
+    def __iter__(self):
+        order, have = None, None
+        for step in range(self.start, self.stop):
+            epoch, pos = divmod(step, self.per_epoch)
+            if epoch != have:
+                order, have = epoch_order(self.n, self.seed, epoch), epoch
+            yield [(int(i), epoch) for i in order[pos * self.batch:(pos + 1) * self.batch]]
+
+
+class _ByEpoch(Dataset):
+    """``dataset[(i, epoch)]``: item i as drawn in that epoch (the dataset's ``set_epoch``)."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, key):
+        i, epoch = key
+        if hasattr(self.dataset, "set_epoch"):
+            self.dataset.set_epoch(epoch)
+        return self.dataset[i]
+
+
+def _worker_init(_):
+    torch.set_num_threads(1)          # the training process owns the cores' math libraries
+
+
+def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers: int = 0) -> DataLoader:
+    """DataLoader over batches ``start .. stop - 1`` (see the module docstring)."""
+    return DataLoader(_ByEpoch(dataset), batch_sampler=EpochBatches(len(dataset), batch, seed, start, stop),
+                      num_workers=workers, collate_fn=default_collate, worker_init_fn=_worker_init if workers else None,
+                      persistent_workers=False, prefetch_factor=2 if workers else None)
 
 
 def get_batch(dataset, seed: int, step: int, batch: int) -> tuple[dict, int]:
-    """Batch number ``step`` of the run (epochs of ``n // batch`` batches, last partial batch dropped)
-    and its epoch. Items are dicts of tensors; the batch has a leading B axis."""
-    n = len(dataset)
-    per_epoch = batches_per_epoch(n, batch)
-    epoch, pos = divmod(step, per_epoch)
-    order = epoch_order(n, seed, epoch)
-    b = min(batch, n)
-    idx = order[pos * b:(pos + 1) * b]
-    if hasattr(dataset, "set_epoch"):
-        dataset.set_epoch(epoch)
-    return default_collate([dataset[int(i)] for i in idx]), epoch
+    """Batch number ``step`` of the run, built in this process, and its epoch (the same batches as
+    :func:`batch_loader`)."""
+    keys = next(iter(EpochBatches(len(dataset), batch, seed, step, step + 1)))
+    return default_collate([_ByEpoch(dataset)[k] for k in keys]), keys[0][1]
 
 
 def to_device(batch: dict, device) -> dict:

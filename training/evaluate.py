@@ -1,10 +1,11 @@
 """Evaluation of a checkpoint (or a baseline) on held-out frames of a store.
 
-``evaluate(checkpoint, store, split="test", spp=8)`` returns (and ``write_json`` writes) per-frame
+``evaluate(checkpoint, store, split="test")`` returns (and ``write_json`` writes) per-frame
 metrics (relMSE, SMAPE, PSNR, SSIM, FLIP; see :mod:`training.metrics`) with the inference time of
 each frame in milliseconds per megapixel, their means, the parameter count and the analytic FMAs per
-pixel. Baselines: ``"input"`` (the per-pixel mean of the samples) and ``"oidn"`` (Intel Open Image
-Denoise on that mean, with the albedo and normal guides). Each frame is tagged with its kinds (defocus
+pixel. The model's input declaration (``training.inputs``) chooses what it is fed. Baselines:
+``"input"`` (the per-pixel mean of N samples) and ``"oidn"`` (Intel Open Image Denoise on that mean,
+with the mean albedo and normal of the same N samples). Each frame is tagged with its kinds (defocus
 and motion from the store's frame metadata; fireflies from the input samples, see ``firefly_share``)
 and ``by_kind`` holds the means over the frames of each kind.
 """
@@ -19,7 +20,7 @@ import torch
 
 from . import checkpoint as ckpt
 from . import metrics
-from .data import open_store, sample_dataset
+from .data import model_dataset, open_store
 from .errors import ConfigError
 from .models.common import flush_denormals
 from .oidn import oidn_denoise
@@ -54,25 +55,43 @@ def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().permute(1, 2, 0).cpu().numpy()
 
 
-def _frames(store, split, spp, max_frames):
-    st = open_store(store)
-    spp = min(int(spp), st.layout.spp)
-    ds = sample_dataset(st, split, spp, None, augment=False, seed=0)
-    n = len(ds) if not max_frames else min(int(max_frames), len(ds))
-    return st, ds, n, spp
+def baseline_spec(spp: int):
+    """The baselines see per-pixel frames: the mean of the first ``spp`` samples with those samples'
+    albedo and normal (kind ``pixels``), the same input a per-pixel model gets at that spp."""
+    from .inputs import InputSpec
+    return InputSpec("pixels", frames=1, default_spp=spp)
 
 
-def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int = 0, with_flip: bool = True,
-             keep: tuple[int, ...] = (), device: str = "cpu", threads: int | None = None) -> dict:
+def frame_tags(store, idx: int) -> dict:
+    """Kinds of store frame ``idx``, whatever the model reads: defocus and motion from the frame's
+    metadata, fireflies from all of its stored input samples against its reference."""
+    rad = torch.from_numpy(np.ascontiguousarray(store.read_array("inputs/radiance", idx)))
+    ref = torch.from_numpy(np.ascontiguousarray(store.read_array("reference/radiance", idx)))
+    share = firefly_share(rad, ref)
+    return {"has_defocus": bool(store.meta_column("has_defocus")[idx]),
+            "has_motion": bool(store.meta_column("has_motion")[idx]),
+            "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
+
+
+def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
+             with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
+             threads: int | None = None) -> dict:
     """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
-    ``keep``: positions (in the split) of frames whose output images (float32 HW3) are returned under
-    ``"images"`` (not written to JSON). Times are wall-clock per frame after one warm-up frame."""
+
+    The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
+    ``spp``, windows of a clip ending on each frame). ``spp`` None: the checkpoint's training spp, the
+    model's declared default, or for a baseline the store's full sample count; a count the store does
+    not hold is refused. Models run in their inference form (``for_inference``). ``keep``: positions
+    (in the split) of frames whose output images (float32 HW3) are returned under ``"images"`` (not
+    written to JSON). Times are wall-clock per frame after one warm-up frame."""
     if threads:
         torch.set_num_threads(int(threads))
     flush_denormals()
-    st, ds, n, spp = _frames(store, split, spp, max_frames)
-    info: dict = {"split": split, "spp": spp, "store": str(st.path), "torch_threads": torch.get_num_threads()}
+    st = open_store(store)
+    info: dict = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads()}
     if isinstance(method, str) and method in BASELINES:
+        spp = int(st.layout.spp if spp is None else spp)
+        spec = baseline_spec(spp)
         info.update(method=method, params=0, fmas_per_pixel=0.0 if method == "input" else None)
         model = None
     else:
@@ -80,22 +99,29 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
             ck = ckpt.load(method, map_location=device)
             ckpt.check_store(ck, st.schema_version, method)
             model = ckpt.build_model(ck, device)
+            spp = int(ck["train_config"].get("spp") or model.input_spec().default_spp) if spp is None else spp
             info.update(method=ck["model"], checkpoint=str(method), train_steps=ck["step"],
                         train_config=ck["train_config"])
         elif isinstance(method, torch.nn.Module):
             model = method.to(device).eval()
+            spp = model.input_spec().default_spp if spp is None else spp
             info.update(method=getattr(model, "name", type(model).__name__))
         else:
             raise ConfigError(f"method must be a checkpoint path, a model or one of {BASELINES}, got {method!r}")
+        spec = model.input_spec()
         info.update(params=model.param_count(), fmas_per_pixel=float(model.fmas_per_pixel(spp)),
-                    model_config=model.config)
+                    model_config=model.config, input_kind=spec.kind)
+        model = model.for_inference()
+    ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False)
+    kind = spec.input_kind
+    n = len(ds) if not max_frames else min(int(max_frames), len(ds))
+    info["spp"] = int(spp)
 
     def run(item):
         if model is None:
-            mean = item["radiance"].mean(dim=0)
             if method == "input":
-                return _hwc(mean)
-            return oidn_denoise(_hwc(mean), _hwc(item["albedo"]), _hwc(item["normal"]))
+                return _hwc(item["radiance"])
+            return oidn_denoise(_hwc(item["radiance"]), _hwc(item["albedo"]), _hwc(item["normal"]))
         with torch.no_grad():
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items()}
             out = model(batch)
@@ -103,7 +129,6 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
                 torch.cuda.synchronize()
             return _hwc(out[0])
 
-    defocus, motion = st.meta_column("has_defocus"), st.meta_column("has_motion")
     frames, images = [], {}
     for pos in range(n):
         item = ds[pos]
@@ -112,14 +137,11 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
         t = time.perf_counter()
         out = run(item)
         ms = (time.perf_counter() - t) * 1e3
-        ref = _hwc(item["reference"])
+        ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
         h, w = ref.shape[:2]
-        idx = int(item["index"])
-        share = firefly_share(item["radiance"], item["reference"])
+        idx = int(item["index"].reshape(-1)[-1])
         row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6),
-               **metrics.all_metrics(out, ref, with_flip=with_flip),
-               "has_defocus": bool(defocus[idx]), "has_motion": bool(motion[idx]),
-               "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
+               **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
         frames.append(row)
         if pos in keep:
             images[pos] = out
@@ -127,10 +149,10 @@ def evaluate(method, store, split: str = "test", spp: int = 8, max_frames: int =
     info["frames"] = frames
     info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
     info["by_kind"] = {}
-    for kind in KINDS:                                          # frames of each kind (they overlap)
-        sel = [f for f in frames if kind in frame_kinds(f)]
+    for kind_name in KINDS:                                     # frames of each kind (they overlap)
+        sel = [f for f in frames if kind_name in frame_kinds(f)]
         if sel:
-            info["by_kind"][kind] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
+            info["by_kind"][kind_name] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
     info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
     if keep:
         info["images"] = images

@@ -11,7 +11,9 @@ another schema version is refused.
 from __future__ import annotations
 
 import csv
+import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +22,10 @@ import torch
 from . import checkpoint as ckpt
 from . import metrics
 from .config import TrainConfig
-from .data import get_batch, open_store, sample_dataset, to_device
-from .errors import CheckpointError, ConfigError, NonFiniteError
+from stores.errors import SplitError
+
+from .data import batch_loader, batches_per_epoch, model_dataset, open_store, to_device
+from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from .losses import build_loss
 from .models import build
 from .models.common import flush_denormals
@@ -42,17 +46,18 @@ def warmup_lr(lr: float, warmup: int, step: int) -> float:
 
 
 def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
-               lr: float | None = None) -> float:
+               lr: float | None = None, target=None) -> float:
     """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
     Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise.
-    ``lr``: this step's learning rate (None: leave the optimiser's)."""
+    ``lr``: this step's learning rate (None: leave the optimiser's). ``target``: the reference the
+    output is compared with (default ``batch["reference"]``; the input kind's ``target``)."""
     if lr is not None:
         for group in optimizer.param_groups:
             group["lr"] = lr
     model.train()
     optimizer.zero_grad(set_to_none=True)
     out = model(batch)
-    loss = loss_fn(out, batch["reference"])
+    loss = loss_fn(out, batch["reference"] if target is None else target)
     if not torch.isfinite(loss):
         raise NonFiniteError(f"loss is {loss.item()} (non-finite)")
     loss.backward()
@@ -65,20 +70,40 @@ def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, c
 
 
 @torch.no_grad()
-def validate(model, dataset, loss_fn, device, max_frames: int = 0) -> dict:
-    """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, fp32."""
+def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None) -> dict:
+    """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, fp32. ``kind``:
+    the model's input kind (its ``target``); default: the item's ``reference``."""
     model.eval()
     n = len(dataset) if not max_frames else min(max_frames, len(dataset))
     rows = []
     for i in range(n):
         item = to_device({k: v.unsqueeze(0) for k, v in dataset[i].items()}, device)
         out = model(item).float()
-        ref = item["reference"].float()
+        ref = (item["reference"] if kind is None else kind.target(item)).float()
         d = out[0].permute(1, 2, 0).cpu().numpy()
         r = ref[0].permute(1, 2, 0).cpu().numpy()
         rows.append({"loss": float(loss_fn(out, ref)), "relmse": metrics.relmse(d, r),
                      "smape": metrics.smape(d, r), "psnr": metrics.psnr(d, r)})
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+
+
+def store_identity(store) -> dict:
+    """What identifies the data a run trains on: the store's real path, schema version, layout and a
+    hash of the config that built it. A resumed run must see the same."""
+    import hashlib
+    import json
+    cfg = json.dumps(store.config, sort_keys=True, default=str).encode()
+    return {"path": os.path.realpath(os.fspath(store.path)), "schema_version": store.schema_version,
+            "layout": store.layout.to_dict(), "config_sha256": hashlib.sha256(cfg).hexdigest()}
+
+
+def check_same_store(ck: dict, now: dict, path) -> None:
+    """Refuse to resume checkpoint ``ck`` on another store, naming the differing fields."""
+    was = ck.get("store", {})
+    diff = {k: (was[k], now[k]) for k in now if k in was and was[k] != now[k]}
+    if diff:
+        raise CheckpointError(f"{path} was trained on another store (field: (checkpoint, now)): {diff}; "
+                              "resume on the same store, or train into a new --out")
 
 
 class _Log:
@@ -100,22 +125,40 @@ class _Log:
             csv.DictWriter(f, CSV_FIELDS).writerow({k: row.get(k, "") for k in CSV_FIELDS})
 
 
-def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: int | None = None) -> dict:
-    """Train ``cfg.model`` on the store's train split; validate on ``cfg.val_split``.
-
-    ``stop_after``: return after this many steps of THIS call (to test and demonstrate resuming).
-    Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint"}``.
-    """
+def _prepare_out(out) -> Path:
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file; it must be a run folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise ConfigError(f"cannot write the run folder --out {out}: {e.strerror or e}") from e
+    return out
+
+
+def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: int | None = None) -> dict:
+    """Train ``cfg.model`` on the store's train split; validate on ``cfg.val_split`` (a store without
+    that split trains without validation, with a warning).
+
+    The model's input declaration (``model.input_spec()``) chooses the dataset and the target.
+    ``stop_after``: return after this many steps of THIS call (to test and demonstrate resuming).
+    Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint"}`` (checkpoint None if no step ran
+    and none existed).
+    """
+    out = _prepare_out(out)
     device = pick_device(cfg.device)
     flush_denormals()
     store = open_store(store)
-    store_info = {"path": str(store.path), "schema_version": store.schema_version}
+    store_info = store_identity(store)
     loss_fn = build_loss(cfg.loss)
 
     torch.manual_seed(cfg.seed)
     model = build(cfg.model, **cfg.model_cfg).to(device)
+    spec = model.input_spec()
+    kind = spec.input_kind
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step = 0
     ck_path = out / "checkpoint.pt"
@@ -126,15 +169,23 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
             diff = {k: (prev.identity()[k], v) for k, v in cfg.identity().items() if prev.identity()[k] != v}
             raise CheckpointError(f"{ck_path} was trained with other settings (setting: (checkpoint, now)): {diff}")
         ckpt.check_store(ck, store.schema_version, ck_path)
+        check_same_store(ck, store_info, ck_path)
         model.load_state_dict(ck["state_dict"])
         optimizer.load_state_dict(ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])
         step = int(ck["step"])
 
-    train_ds = sample_dataset(store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed)
+    train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed)
     lay = store.layout
     val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None   # small stores: whole frames
-    val_ds = sample_dataset(store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed)
+    try:
+        val_ds = model_dataset(spec, store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed)
+    except DataError as e:
+        if not isinstance(e.__cause__, SplitError):
+            raise
+        warnings.warn(f"training without validation: {e.__cause__} (--val-split chooses another split)",
+                      stacklevel=2)
+        val_ds = None
     log = _Log(out / "metrics.csv", step)
 
     def save():
@@ -142,24 +193,26 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
 
     t0 = time.perf_counter()
     loss, val = float("nan"), {}
-    todo = cfg.steps - step if stop_after is None else min(cfg.steps - step, stop_after)
+    todo = max(cfg.steps - step, 0) if stop_after is None else max(min(cfg.steps - step, stop_after), 0)
+    per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
     bar = None
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
-        for _ in range(max(todo, 0)):
-            batch, epoch = get_batch(train_ds, cfg.seed, step, cfg.batch)
-            loss = train_step(model, optimizer, loss_fn, to_device(batch, device), cfg.grad_clip_norm,
-                              cfg.grad_clip_value, lr=warmup_lr(cfg.lr, cfg.warmup, step))
+        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, step, step + todo, cfg.workers):
+            epoch = step // per_epoch
+            batch = to_device(batch, device)
+            loss = train_step(model, optimizer, loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
+                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch))
             step += 1
             if bar:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4f}")
             if step % cfg.log_every == 0 or step == cfg.steps:
                 log.write(step=step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
-            if (cfg.val_every and step % cfg.val_every == 0) or step == cfg.steps:
-                val = validate(model, val_ds, loss_fn, device, cfg.val_frames)
+            if val_ds is not None and ((cfg.val_every and step % cfg.val_every == 0) or step == cfg.steps):
+                val = validate(model, val_ds, loss_fn, device, cfg.val_frames, kind)
                 log.write(step=step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 save()
@@ -168,4 +221,5 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     finally:
         if bar:
             bar.close()
-    return {"step": step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0, "checkpoint": str(ck_path)}
+    return {"step": step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
+            "checkpoint": str(ck_path) if ck_path.exists() else None}

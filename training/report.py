@@ -120,43 +120,56 @@ def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64, scal
     img.save(path)
 
 
-def report(runs, store, out, split: str = "test", spp: int = 8, max_frames: int = 0, with_flip: bool = True,
-           progress: bool = True) -> dict:
-    """Evaluate every run and the baselines; write the report files. Returns the results."""
+def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
+           with_flip: bool = True, progress: bool = True) -> dict:
+    """Evaluate every run and the baselines; write the report files. Returns the results.
+
+    Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
+    for nbg/wskpn) and the noisy input and OIDN at every spp among the runs, so each model stands next
+    to the baselines at its own sample count (labels gain ``@N spp`` when there are several)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run_dirs = find_runs(runs)
     if not run_dirs:
         raise DataError(f"no run directory with a checkpoint.pt among {list(runs)}")
-    methods = [("input", "input"), *((d.name, d / "checkpoint.pt") for d in run_dirs), ("oidn", "oidn")]
-    results = []
-    for label, m in methods:
+
+    def one(label, m, at):
         if progress:
             print(f"evaluating {label} on {split} ...", flush=True)
-        r = evaluate(m, store, split=split, spp=spp, max_frames=max_frames, with_flip=with_flip, keep=(0,))
+        r = evaluate(m, store, split=split, spp=at, max_frames=max_frames, with_flip=with_flip, keep=(0,))
         r["label"] = label
-        write_json(r, out / f"eval-{label}.json")
-        results.append(r)
+        write_json(r, out / f"eval-{label.replace(' ', '')}.json")
+        return r
+
+    models = [one(d.name, d / "checkpoint.pt", spp) for d in run_dirs]
+    spps = sorted({r["spp"] for r in models})
+    tag = (lambda n: f" @{n}spp") if len(spps) > 1 else (lambda n: "")
+    inputs = [one(f"input{tag(n)}", "input", n) for n in spps]
+    oidns = [one(f"oidn{tag(n)}", "oidn", n) for n in spps]
+    results = inputs + models + oidns
 
     # the reference of the first frame, for the crops
     from .data import sample_dataset
-    ds = sample_dataset(store, split, min(spp, results[0]["spp"]), None, augment=False, seed=0)
+    ds = sample_dataset(store, split, 1, None, augment=False, seed=0)
     ref = ds[0]["reference"].permute(1, 2, 0).numpy()
     crops_image([(r["label"], r["images"][0]) for r in results] + [("reference", ref)], out / "crops.png")
     plot_speed_vs_error(results, out / "speed_vs_error.png")
     fig10 = figure10()
 
-    lines = [f"# Denoiser report: {split} split of `{store}` at {results[0]['spp']} spp", "",
+    at = ", ".join(f"{n}" for n in spps)
+    lines = [f"# Denoiser report: {split} split of `{store}` at {at} spp", "",
              f"{len(results[0]['frames'])} held-out frames (split by scene). relMSE and SMAPE on linear radiance; "
              "PSNR and SSIM on tone-mapped values (sRGB(log(x+1)), eq. 7); FLIP is HDR-FLIP. "
              f"Times are wall-clock per frame on this machine ({results[0]['torch_threads']} torch threads), "
-             "after one warm-up frame.", "", table_markdown(results), "",
+             "after one warm-up frame. Each model is evaluated at the samples per pixel it was trained at; "
+             "the noisy input and OIDN at each of those counts.", "", table_markdown(results), "",
              "![speed against error](speed_vs_error.png)", "",
              f"relMSE by kind of frame (frame counts in brackets; defocus and motion from the scene, "
              f"fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x brighter "
              "than the reference; plain: none of these):", "", kinds_markdown(results), "",
-             "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "", "Crops (input / models / OIDN / reference):", "",
-             "![crops](crops.png)", "", "## Training budgets", ""]
+             "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "",
+             "PSNR by kind of frame:", "", kinds_markdown(results, "psnr", "{:.2f}"), "",
+             "Crops (inputs / models / OIDN / reference):", "", "![crops](crops.png)", "", "## Training budgets", ""]
     for r in results:
         if "train_config" in r:
             tc = r["train_config"]

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
 from ..errors import ConfigError
+from ..inputs import InputSpec
 
 NEG_SLOPE = 0.01
 EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)
@@ -340,16 +341,34 @@ def check_kernel_size(k: int) -> int:
 
 
 class Denoiser(nn.Module):
-    """Base of every denoiser. ``forward(batch)`` takes the dataset's batch dict (``radiance``
-    (float32, BS3HW), ``features`` (float32, BS17HW), optional guides) and returns linear radiance
-    (float32, B3HW). ``config`` holds the settings that rebuild the model with ``build(name, **config)``.
+    """Base of every denoiser. ``forward(batch)`` takes a batch dict of the model's input kind (see
+    :mod:`training.inputs`; for the default ``samples`` kind: ``radiance`` (float32, BS3HW),
+    ``features`` (float32, BS17HW), guides) and returns linear radiance (float32, B3HW). ``config``
+    holds the settings that rebuild the model with ``build(name, **config)``.
+
+    Class attributes declare what the model consumes and how it trains by default, so the training
+    stack needs no per-model code: ``inputs`` (an :class:`~training.inputs.InputSpec`; override
+    :meth:`input_spec` when it depends on settings), ``train_defaults`` (TrainConfig settings such as
+    ``loss`` and ``lr`` that differ from the layer family's) and ``tiny`` (settings for test-sized
+    models, used by the contract tests).
     """
 
     name = "?"
+    inputs = InputSpec("samples", frames=1, default_spp=8)
+    train_defaults: dict = {}
+    tiny: dict = {}
 
     def __init__(self, **config):
         super().__init__()
         self.config = dict(config)
+
+    def input_spec(self) -> InputSpec:
+        return type(self).inputs
+
+    def for_inference(self) -> "Denoiser":
+        """The form ``evaluate`` and ``bench`` run (e.g. with re-parameterised branches fused); the same
+        function as this model in eval mode."""
+        return self.eval()
 
     def forward(self, batch: dict) -> torch.Tensor:
         return self.denoise(batch["radiance"], batch["features"])

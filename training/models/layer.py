@@ -28,6 +28,7 @@ MAX_LAYERS = 5
 @register("layer")
 class LayerDenoiser(Denoiser):
     compositing = "alpha"
+    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, partition_hidden=(8,), kernel_hidden=(8,))
 
     def __init__(self, layers: int = 2, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32,
                  context: int = 128, partition_hidden=(32, 16), kernel_hidden=(128, 128),

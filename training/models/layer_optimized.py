@@ -34,6 +34,8 @@ OPT_UNET = dict(
 
 @register("layer-optimized")
 class LayerOptimizedDenoiser(Denoiser):
+    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=3, partition_hidden=(8,), kernel_hidden=(8,))
+
     def __init__(self, layers: int = 2, kernel_size: int = 5, kernel_sigma: float = 1.0, levels: int = 3,
                  embed: int = 32, context: int = 64,
                  partition_hidden=(32, 16), kernel_hidden=(32, 32), unet_encoder=OPT_UNET["unet_encoder"],

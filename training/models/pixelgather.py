@@ -18,6 +18,8 @@ from .registry import register
 
 @register("pixelgather")
 class PixelGatherDenoiser(Denoiser):
+    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
+
     def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
                  kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
