@@ -8,7 +8,7 @@ import torch.nn.functional as F
 
 from stores.contract import NUM_FEATURES
 from training.errors import ConfigError, UnknownModelError
-from training.models import build, names
+from training.models import build, get, names
 from training.models.common import IN_FEATURES, gather, splat
 
 TINY_UNET = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,),
@@ -16,15 +16,8 @@ TINY_UNET = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottl
 
 
 def tiny_cfg(name: str, **over) -> dict:
-    cfg = dict(TINY_UNET)
-    if name in ("layer", "layer-w"):
-        cfg.update(kernel_size=5, partition_hidden=(8,), kernel_hidden=(8,))
-    elif name == "layer-optimized":
-        cfg.update(kernel_size=3, partition_hidden=(8,), kernel_hidden=(8,))
-    elif name in ("pixelgather", "samplesplat"):
-        cfg.update(kernel_size=5, kernel_hidden=(8,))
-    cfg.update(over)
-    return cfg
+    """The model's own test-sized settings (its class's ``tiny``), with overrides."""
+    return {**get(name).tiny, **over}
 
 
 PAPER_MODELS = ["layer", "layer-w", "pixelgather", "samplesplat", "layer-optimized"]
@@ -38,8 +31,14 @@ def make_batch(b=2, s=2, h=24, w=20, seed=0, scale=1.0):
     return {"radiance": rad, "features": feat}
 
 
+def kind_batch(model, b=2, h=24, w=20, seed=0, spp=2):
+    """A random batch of the model's declared input kind."""
+    spec = model.input_spec()
+    return spec.input_kind.example_batch(b, spp, h, w, spec.frames, torch.Generator().manual_seed(seed))
+
+
 def test_registry_has_the_paper_models():
-    assert set(PAPER_MODELS) <= set(names())
+    assert set(PAPER_MODELS) | {"nbg", "wskpn"} <= set(names())
     with pytest.raises(UnknownModelError):
         build("no-such-model")
     with pytest.raises(ConfigError, match="layers"):
@@ -48,45 +47,59 @@ def test_registry_has_the_paper_models():
         build("pixelgather", kernel_size=4)
 
 
-@pytest.mark.parametrize("name", PAPER_MODELS)
+def _radiance_key(batch):
+    return "layers" if "layers" in batch else "radiance"
+
+
+def _hard_case(batch: dict, case: str) -> None:
+    """Make ``batch`` (any input kind) a hard case in place."""
+    rad = batch[_radiance_key(batch)]
+    flat = rad.view(-1)
+    if case == "fireflies":
+        flat[:: max(1, flat.numel() // 7)] = 1e6
+    elif case == "huge":
+        rad.mul_(1e8)
+    elif case == "zeros":
+        for v in batch.values():
+            if v.is_floating_point() and v.dim() >= 4:
+                v.zero_()
+    elif case == "zero_albedo":
+        if "features" in batch:
+            batch["features"][..., 4:7, :, :] = 0.0
+        else:
+            batch["albedo"].zero_()
+    elif case == "nan":
+        flat[:: max(1, flat.numel() // 11)] = float("nan")
+        flat[3] = float("inf")
+
+
+@pytest.mark.parametrize("name", names())
 class TestModelContract:
-    """Every registered model: shapes, rebuild from config, finite forward AND backward on hard inputs."""
+    """Every registered model (a new model file is covered by being registered): shapes, rebuild from
+    its config, its inference form, and finite forward AND backward on the hard inputs."""
 
     def test_shape_and_rebuild(self, name):
         torch.manual_seed(0)
         m = build(name, **tiny_cfg(name))
-        batch = make_batch()
+        batch = kind_batch(m)
         out = m(batch)
         assert out.shape == (2, 3, 24, 20) and out.dtype == torch.float32
         m2 = build(name, **m.config)
         m2.load_state_dict(m.state_dict())
         assert torch.equal(m2(batch), out)
+        with torch.no_grad():
+            fast = m.for_inference()(batch)
+        assert torch.allclose(fast, out, rtol=1e-4, atol=1e-5)
         assert m.param_count() > 0 and m.fmas_per_pixel(8) > m.fmas_per_pixel(1) * 0.99
+        assert m.input_spec().default_spp >= 1
 
-    @pytest.mark.parametrize("case", ["fireflies", "huge", "zeros", "zero_albedo", "one_layer"])
+    @pytest.mark.parametrize("case", ["fireflies", "huge", "zeros", "zero_albedo", "nan"])
     def test_stability(self, name, case):
         torch.manual_seed(1)
         m = build(name, **tiny_cfg(name))
-        batch = make_batch(seed=3)
-        rad, feat = batch["radiance"], batch["features"]
-        if case == "fireflies":
-            rad[0, 0, :, 5, 7] = 1e6
-            rad[1, 1, 1, 10, 3] = 1e6
-        elif case == "huge":
-            rad.mul_(1e8)
-        elif case == "zeros":
-            rad.zero_()
-            feat.zero_()
-        elif case == "zero_albedo":
-            feat[:, :, 4:7] = 0.0
-        elif case == "one_layer" and hasattr(m, "partitioner"):
-            # route every sample to layer 0: the partitioner's last layer outputs +-50 logits
-            last = m.partitioner[-1]
-            with torch.no_grad():
-                last.weight.zero_()
-                last.bias.fill_(-50.0)
-                last.bias[0] = 50.0
-        rad.requires_grad_(True)
+        batch = kind_batch(m, seed=3)
+        _hard_case(batch, case)
+        rad = batch[_radiance_key(batch)].requires_grad_(True)
         ref = torch.rand(2, 3, 24, 20) * (1e8 if case == "huge" else 1.0)
         out = m(batch)
         assert torch.isfinite(out).all()
@@ -97,6 +110,24 @@ class TestModelContract:
         assert torch.isfinite(rad.grad).all()
         if case == "zeros":
             assert torch.allclose(out, torch.zeros_like(out))
+
+
+@pytest.mark.parametrize("name", [n for n in PAPER_MODELS if hasattr(get(n)(**get(n).tiny), "partitioner")])
+def test_stability_with_every_sample_in_one_layer(name):
+    """The partitioner's last layer outputs +-50 logits: every sample goes to layer 0."""
+    torch.manual_seed(1)
+    m = build(name, **tiny_cfg(name))
+    last = m.partitioner[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.fill_(-50.0)
+        last.bias[0] = 50.0
+    batch = make_batch(seed=3)
+    batch["radiance"].requires_grad_(True)
+    out = m(batch)
+    assert torch.isfinite(out).all()
+    out.mean().backward()
+    assert torch.isfinite(batch["radiance"].grad).all()
 
 
 # -- kernel application: vectorised unfold/fold against an explicit loop --------------------------

@@ -135,3 +135,94 @@ def test_warmup_ramps_the_learning_rate():
     assert warmup_lr(1e-3, 0, 0) == 1e-3
     with pytest.raises(ConfigError, match="warmup"):
         TrainConfig(warmup=-1)
+
+
+# -- input kinds and the DataLoader -----------------------------------------------------------------
+
+def test_pixel_frames_are_the_mean_of_the_first_samples_with_their_features(store):
+    from stores.reader import open_store
+    from training.inputs import KINDS, InputSpec
+    from training.data import model_dataset
+    st = open_store(store)
+    ds = model_dataset(InputSpec("pixels", 1, 1), st, "train", 1, None, augment=False, seed=0)
+    item = ds[0]
+    i = int(item["index"])
+    rad = st.read_array("inputs/radiance", i)                      # (S, 3, H, W)
+    feat = st.read_array("inputs/features", i)
+    assert torch.allclose(item["radiance"], torch.from_numpy(rad[0]))
+    assert torch.allclose(item["albedo"], torch.from_numpy(feat[0, 4:7].astype(np.float32)))
+    assert torch.allclose(item["normal"], torch.from_numpy(feat[0, 0:3].astype(np.float32)))
+    ds2 = model_dataset(InputSpec("pixels", 1, 2), st, "train", 2, None, augment=False, seed=0)
+    assert torch.allclose(ds2[0]["radiance"], torch.from_numpy(rad[:2].mean(axis=0)), atol=1e-6)
+    from training.errors import DataError
+    with pytest.raises(DataError, match="1..2 samples"):
+        model_dataset(InputSpec("pixels", 1, 1), st, "train", 3, None, augment=False, seed=0)
+    # every kind builds its dataset on a real store
+    for name, kind in KINDS.items():
+        frames = 1
+        try:
+            d = model_dataset(InputSpec(name, frames, 1), st, "train", 1, 16, augment=True, seed=0)
+        except DataError as e:            # clips need clips: the tiny store holds stills
+            assert name == "clips" and "consecutive" in str(e)
+            continue
+        assert len(d) >= 1 and torch.isfinite(kind.target({k: v[None] for k, v in d[0].items()})).all()
+
+
+def test_a_store_without_a_declared_array_is_refused_by_name(store, tmp_path):
+    import shutil
+    from training.errors import DataError
+    cut = tmp_path / "cut.zarr"
+    shutil.copytree(store, cut)
+    shutil.rmtree(cut / "layers" / "radiance")
+    from training.data import model_dataset
+    from training.inputs import InputSpec
+    with pytest.raises(DataError, match="layers/radiance"):
+        model_dataset(InputSpec("sampled-layers", 1, 4), str(cut), "train", 4, 16, augment=False, seed=0)
+
+
+def test_dataloader_workers_give_the_batches_of_the_pure_order(store):
+    from training.data import batch_loader, get_batch, model_dataset
+    from training.inputs import InputSpec
+    ds = model_dataset(InputSpec("pixels", 1, 1), store, "train", 1, 16, augment=True, seed=5)
+    inproc = [get_batch(ds, 5, s, 2)[0] for s in range(4)]
+    for workers in (0, 2):
+        got = list(batch_loader(ds, 2, 5, 1, 4, workers))          # resumed at step 1
+        assert len(got) == 3
+        for a, b in zip(inproc[1:], got):
+            assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not torch.equal(inproc[0]["radiance"], inproc[2]["radiance"])   # a new epoch: new crops
+
+
+def test_per_pixel_models_train_and_resume_exactly(store, tmp_path):
+    for name in ("nbg", "wskpn"):
+        c = TrainConfig(model=name, steps=4, batch=2, crop=16, val_every=2, val_frames=1, val_crop=16,
+                        checkpoint_every=100, seed=1)
+        assert (c.spp, c.loss) == (1, {"nbg": "l1", "wskpn": "smape"}[name])
+        train(c, store, tmp_path / f"{name}-a", progress=False)
+        train(c, store, tmp_path / f"{name}-b", progress=False, stop_after=2)
+        train(c, store, tmp_path / f"{name}-b", progress=False)
+        wa = _weights(tmp_path / f"{name}-a" / "checkpoint.pt")
+        wb = _weights(tmp_path / f"{name}-b" / "checkpoint.pt")
+        assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def test_train_refuses_bad_requests_clearly(store, tmp_path):
+    from training.errors import DataError
+    with pytest.raises(DataError, match="batch 99"):
+        train(cfg(batch=99), store, tmp_path / "big", progress=False)
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(ConfigError, match="is a file"):
+        train(cfg(), store, f, progress=False)
+    res = train(cfg(steps=0), store, tmp_path / "zero", progress=False)
+    assert res["checkpoint"] is None and not (tmp_path / "zero" / "checkpoint.pt").exists()
+    with pytest.warns(UserWarning, match="without validation"):
+        res = train(cfg(steps=1, val_split="nope-split"), store, tmp_path / "noval", progress=False)
+    assert res["step"] == 1 and res["val"] == {}
+
+
+def test_resume_on_another_store_is_refused(store, tmp_path):
+    train(cfg(steps=1), store, tmp_path / "r", progress=False)
+    other = make_store(tmp_path / "other.zarr", per_split=(3, 1, 1))
+    with pytest.raises(CheckpointError, match="another store"):
+        train(cfg(steps=2), other, tmp_path / "r", progress=False)
