@@ -2,6 +2,8 @@
 
 * ``compressor()``: Blosc LZ4 level 5 with byte shuffle, chosen by measurement (SCHEMA.md): about as
   small as zstd + bitshuffle on per-sample data and 3x faster to decode.
+* ``checksum()`` / ``crc32c(data)``: the Zarr v3 ``crc32c`` codec appended to every chunk in schema v2,
+  and the function the fast reader verifies it with.
 * ``encode_log16`` / ``decode_log16``: an optional lossy radiance encoding (``radiance_encoding='log16'``).
   ``code = 0`` is exact zero; codes ``1 .. 65535`` cover ``[2**LOG16_MIN_EXP, 2**LOG16_MAX_EXP]``
   logarithmically, so the relative error is at most ``LOG16_MAX_REL_ERROR`` (3.4e-4) inside the range.
@@ -36,7 +38,23 @@ def decode_log16(code: np.ndarray) -> np.ndarray:
     return _LUT[np.asarray(code, np.uint16)]
 
 
-def compressor(name: str = "lz4", level: int = 5, shuffle: str = "shuffle"):
+BLOSC = {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}     # the image arrays' compressor (SCHEMA.md)
+
+
+def compressor(name: str = BLOSC["cname"], level: int = BLOSC["clevel"], shuffle: str = BLOSC["shuffle"]):
     """The zarr v3 Blosc codec used for every image array (``name``: lz4, lz4hc, zstd, zlib, blosclz)."""
     from zarr.codecs import BloscCodec
     return BloscCodec(cname=name, clevel=level, shuffle=shuffle)
+
+
+def checksum():
+    """Zarr v3's ``crc32c`` codec: the last codec of every chunk in schema v2 (4 bytes, little-endian
+    CRC-32C of the encoded chunk, appended)."""
+    from zarr.codecs import Crc32cCodec
+    return Crc32cCodec()
+
+
+def crc32c(data) -> int:
+    """CRC-32C (Castagnoli) of ``data`` (bytes-like), as the ``crc32c`` codec and the shard index use it."""
+    import google_crc32c
+    return int(google_crc32c.value(np.frombuffer(data, np.uint8)))     # it takes no memoryview

@@ -51,3 +51,26 @@ class SplitError(StoreError, ValueError):
 
 class ExportError(StoreError, RuntimeError):
     """An export could not be written (bad format, frames or output folder)."""
+
+
+class StoreCorruptionError(StoreError):
+    """The store's files on disk are damaged: a lost shard, a truncated or garbage chunk, a checksum
+    mismatch, or array metadata (``zarr.json``) that disagrees with the schema. ``array``, ``frame``
+    and ``path`` (the file) name the damage where known. The validate command exits 3 on these."""
+
+    def __init__(self, message: str, *, array: str | None = None, frame: int | None = None,
+                 path: str | None = None):
+        super().__init__(message)
+        self.array, self.frame, self.path = array, frame, path
+
+
+class MissingShardError(StoreCorruptionError, FileNotFoundError):
+    """A frame marked complete has no file for one of its chunks (schema v2: every chunk is written)."""
+
+
+class CorruptChunkError(StoreCorruptionError, ValueError):
+    """A chunk or shard file is truncated, holds garbage, or fails its crc32c checksum."""
+
+
+class ArrayMetadataError(StoreCorruptionError, StoreLayoutError):
+    """An array's ``zarr.json`` (dtype, shape, chunks, codecs, fill value, dims) disagrees with the schema."""
