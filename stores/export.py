@@ -17,11 +17,16 @@ frames are exported (an incomplete one is an error naming it).
   inputs are not exported here: their mean would collide with the 8-spp layer's name.)
 * ``layerdenoise``: HDF5 as read by NVlabs/layerdenoise ``datasets.py``: ``NAME_input.h5`` holding
   ``[frames, samples, channels, H, W]`` float16 datasets ``color`` (3), ``normals_depth`` (4: view-space
-  normal, depth normalised by the frame's largest depth), ``albedo`` (3), ``specular`` (4: specular
+  normal, depth divided by the largest sample depth of the frame's clip), ``albedo`` (3), ``specular`` (4: specular
   colour + roughness), ``uvt`` (3: lens u, v + time), ``motionvecs`` (3: NDC motion x, y + signed CoC in
   pixels), and ``NAME_ref.h5`` with ``color [frames, 3, H, W]`` (the loader derives the reference file
-  name by replacing the last ``_...`` with ``_ref.h5``). View space is the camera frame of
-  ``camera_to_world`` (``n_view = R^T n_world``). NDC motion is ``(2 mx / W, -2 my / H)`` (y up).
+  name by replacing the last ``_...`` with ``_ref.h5``). View space is layerdenoise's: +x right, +y up,
+  +z towards the viewer (its ``augment_rot90`` maps ``(nx, ny) -> (-ny, nx)``, its flips negate nx or
+  ny), i.e. Mitsuba's camera frame (``R^T n_world`` with ``R`` of ``camera_to_world``: +x left, +y up,
+  +z forward) turned 180 degrees about y: ``(-x, y, -z)``. Depth is normalised per clip (the same
+  surface keeps its value from frame to frame): divided by the largest per-sample depth over every
+  complete frame of the clip in the store, whichever frames are exported; the scale of each exported
+  frame is in the input file's attribute ``depth_scale``. NDC motion is ``(2 mx / W, -2 my / H)`` (y up).
   float16 saturates at 65504: radiance above it is clamped (the loader clips at 65535 anyway).
 """
 from __future__ import annotations
@@ -131,10 +136,40 @@ def export_oidn(store: Store, frames: list[int], out: str) -> list[str]:
     return written
 
 
+# Mitsuba's camera frame (+x left, +y up, +z forward) -> layerdenoise's view space (+x right, +y up,
+# +z towards the viewer): a 180-degree turn about y, so still a rotation (right-handed to right-handed).
+MITSUBA_TO_VIEW = np.diag([-1.0, 1.0, -1.0])
+
+
 def _view_normals(n_world: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
-    """``n_world (..., 3)`` -> camera-space normals with ``R^T`` of ``camera_to_world``."""
+    """``n_world (..., 3)`` -> view-space normals (+x right, +y up, +z towards the viewer):
+    ``MITSUBA_TO_VIEW @ R^T @ n`` with ``R`` of ``camera_to_world``."""
     R = np.asarray(cam_to_world, np.float64)[:3, :3]
-    return (n_world.astype(np.float64) @ R).astype(np.float32)   # row vectors: n @ R == (R^T n^T)^T
+    M = MITSUBA_TO_VIEW @ R.T
+    return (n_world.astype(np.float64) @ M.T).astype(np.float32)   # row vectors: n @ M^T == (M n^T)^T
+
+
+def clip_depth_scales(store: Store, frames: list[int]) -> dict[int, float]:
+    """frame -> the largest per-sample depth over every complete frame of its clip (1.0 if none is
+    positive), the per-clip depth normalisation of the ``layerdenoise`` export."""
+    from stores.contract import FEATURE_NAMES
+    d = FEATURE_NAMES.index("depth")
+    clip_of = store.meta_column("clip_id")
+    members = store.clips(None)
+    scale_of_clip: dict[int, float] = {}
+    out = {}
+    for i in frames:
+        c = int(clip_of[i])
+        if c not in scale_of_clip:
+            top = 0.0
+            for j in members.get(c, [i]):
+                depth = store.read_array("inputs/features", j)[:, d].astype(np.float32)   # (S, h, w)
+                fin = depth[np.isfinite(depth)]
+                if fin.size:
+                    top = max(top, float(fin.max()))
+            scale_of_clip[c] = top if top > 0 else 1.0
+        out[i] = scale_of_clip[c]
+    return out
 
 
 def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "dataset") -> list[str]:
@@ -148,6 +183,7 @@ def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "
     inp, ref = os.path.join(out, f"{name}_input.h5"), os.path.join(out, f"{name}_ref.h5")
     shapes = {"color": 3, "normals_depth": 4, "albedo": 3, "specular": 4, "uvt": 3, "motionvecs": 3}
     g = FEATURE_GROUPS
+    scales = clip_depth_scales(store, frames)
     with h5py.File(inp, "w") as hi, h5py.File(ref, "w") as hr:
         ds = {k: hi.create_dataset(k, (F, S, c, H, W), dtype=f16, chunks=(1, S, c, H, W))
               for k, c in shapes.items()}
@@ -157,7 +193,7 @@ def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "
             rad, feat = fr["radiance"], fr["features"]                  # (H, W, S, 3), (H, W, S, 17)
             to_sc = lambda a: np.moveaxis(a, (2, 3), (0, 1))           # noqa: E731  (H,W,S,C)->(S,C,H,W)
             depth = feat[..., g["depth"]]
-            dmax = float(depth.max()) if depth.size and depth.max() > 0 else 1.0
+            dmax = scales[i]
             nview = _view_normals(feat[..., g["normal"]], fr["camera_to_world"])
             motion = feat[..., g["motion"]] * np.array([2.0 / W, -2.0 / H], np.float32)
             blocks = {
@@ -172,6 +208,8 @@ def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "
                 ds[k][j] = to_sc(a).astype(f16)
             dref[j] = np.minimum(fr["reference"], 65504.0).transpose(2, 0, 1).astype(f16)
         hi.attrs["frames"] = np.asarray(frames, np.int64)
+        hi.attrs["depth_scale"] = np.asarray([scales[i] for i in frames], np.float64)
+        hi.attrs["normals"] = "view space: +x right, +y up, +z towards the viewer"
         hi.attrs["source"] = os.fspath(store.path)
     return [inp, ref]
 

@@ -172,13 +172,44 @@ def test_export_layerdenoise_matches_its_loader(store2, tmp_path):
         nd = f["normals_depth"][1].astype(np.float32)
         R = fr["camera_to_world"][:3, :3]
         n_world = fr["features"][..., 0:3]
-        n_view = np.einsum("ij,hwsj->hwsi", np.linalg.inv(R), n_world)  # inverse rotation
+        n_cam = np.einsum("ij,hwsj->hwsi", np.linalg.inv(R), n_world)   # Mitsuba camera frame (+x left)
+        n_view = n_cam * np.array([-1.0, 1.0, -1.0])                      # layerdenoise: +x right, +z to viewer
         np.testing.assert_allclose(nd[:, 0:3], n_view.transpose(2, 3, 0, 1), atol=2e-3)
         assert nd[:, 3].max() == pytest.approx(1.0, abs=1e-3) and nd[:, 3].min() >= 0
         spec = f["specular"][1].astype(np.float32)
         np.testing.assert_allclose(spec[:, 3], fr["features"][..., 10].transpose(2, 0, 1), atol=1e-3)
         uvt = f["uvt"][1].astype(np.float32)
         np.testing.assert_allclose(uvt[:, 2], fr["features"][..., 16].transpose(2, 0, 1), atol=1e-3)
+
+
+def test_export_layerdenoise_view_normals_and_per_clip_depth(tmp_path):
+    """Normals in layerdenoise's view space (+x right, +y up, +z towards the viewer), as its
+    augment_rot90 / flips assume; depth divided by one scale per clip, not per frame."""
+    h5py = pytest.importorskip("h5py")
+    path = tmp_path / "c.zarr"
+    w = open_or_create(path, StoreLayout(num_frames=4, height=H, width=W, spp=S, tile=8))
+    frames = [synthetic_frame(5, H, W, S, frame=k, num_frames=3, motion=True) for k in range(3)]
+    frames.append(synthetic_frame(6, H, W, S))
+    frames[2]["features"][..., 3] *= 3.0                    # the clip's deepest frame
+    c2w = frames[0]["camera_to_world"][:3, :3]
+    right, up, to_viewer = -c2w[:, 0], c2w[:, 1], -c2w[:, 2]  # Mitsuba camera: +x left, +z forward
+    f = frames[0]["features"]
+    f[0, 0, :, 0:3], f[0, 1, :, 0:3], f[0, 2, :, 0:3] = right, up, to_viewer
+    for i, fr in enumerate(frames):
+        w.write_frame(i, fr)
+    inp, _ = export.export(path, [0, 1, 3], "layerdenoise", str(tmp_path / "l"))   # frame 2 not exported
+    with h5py.File(inp, "r") as h:
+        nd = h["normals_depth"][...].astype(np.float32)     # (F, S, 4, H, W)
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 0], np.tile([1, 0, 0], (S, 1)), atol=2e-3)
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 1], np.tile([0, 1, 0], (S, 1)), atol=2e-3)
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 2], np.tile([0, 0, 1], (S, 1)), atol=2e-3)
+        scales = h.attrs["depth_scale"]
+        clip_max = max(float(fr["features"][..., 3].max()) for fr in frames[:3])
+        np.testing.assert_allclose(scales, [clip_max, clip_max, frames[3]["features"][..., 3].max()], rtol=1e-3)
+        for j, i in enumerate([0, 1]):                       # the same depth, the same value in every frame
+            np.testing.assert_allclose(nd[j, :, 3], frames[i]["features"][..., 3].transpose(2, 0, 1) / clip_max,
+                                       rtol=2e-3, atol=1e-4)
+        assert nd[1, :, 3].max() < 0.5                        # frame 1 is not stretched to 1 on its own
 
 
 def test_export_errors(store2, tmp_path):
