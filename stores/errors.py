@@ -74,3 +74,24 @@ class CorruptChunkError(StoreCorruptionError, ValueError):
 
 class ArrayMetadataError(StoreCorruptionError, StoreLayoutError):
     """An array's ``zarr.json`` (dtype, shape, chunks, codecs, fill value, dims) disagrees with the schema."""
+
+
+class StoreExistsError(StoreError, FileExistsError):
+    """A store already exists where a new one was to be created (``overwrite`` not given)."""
+
+
+class IncompleteStoreError(StoreError, RuntimeError):
+    """The store's creation was cut short (its root still carries the ``creating`` mark).
+    ``creator`` holds the host, pid and start time of the process that began it."""
+
+    def __init__(self, message: str, creator: dict | None = None):
+        super().__init__(message)
+        self.creator = dict(creator or {})
+
+
+class StoreLockedError(StoreError, RuntimeError):
+    """Another run holds the store's writer lock (``stores.lock``); ``holder`` has its host, pid, start."""
+
+    def __init__(self, message: str, holder: dict | None = None):
+        super().__init__(message)
+        self.holder = dict(holder or {})

@@ -23,8 +23,8 @@ import numpy as np
 
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
-from stores.errors import (ForeignStoreError, SchemaVersionError, StoreError, StoreLayoutError,
-                           StoreNotFoundError)
+from stores.errors import (ForeignStoreError, IncompleteStoreError, SchemaVersionError, StoreError,
+                           StoreExistsError, StoreLayoutError, StoreNotFoundError)
 
 SCHEMA_VERSION = 1
 STORE_KIND = "denoise-datagen.sample-store"
@@ -238,34 +238,130 @@ def _zarr_store(path_or_url):
     return os.fspath(path_or_url) if isinstance(path_or_url, os.PathLike) else path_or_url
 
 
+LOCK_NAME = "dataset.lock"   # the writer's lock file in a store's folder (stores.lock); not store data
+CREATION_ATTR = "creating"   # root attribute present only while create_store is running
+CREATE_HOOK_ENV = "DENOISE_TEST_CREATE_PAUSE"   # tests: a file to touch, then sleep, inside creation
+
+
+def _is_local(p) -> bool:
+    return not (isinstance(p, str) and "://" in p)
+
+
 def _exists(path_or_url) -> bool:
+    """Whether a Zarr v3 group (a root ``zarr.json``) is at ``path_or_url``. Only "not found" means no:
+    any other failure (permissions, network, a broken URL) is raised."""
     p = _zarr_store(path_or_url)
-    if isinstance(p, str) and "://" not in p:
-        return os.path.exists(os.path.join(p, "zarr.json"))
+    if _is_local(p):
+        return os.path.isfile(os.path.join(p, "zarr.json"))
     import zarr
     try:
         zarr.open_group(p, mode="r")
         return True
-    except Exception:   # noqa: BLE001 - any failure to open means "not there"
+    except FileNotFoundError:   # zarr's NodeNotFoundError / GroupNotFoundError are FileNotFoundErrors
         return False
+
+
+def foreign_entries(path_or_url) -> list[str] | None:
+    """What makes ``path_or_url`` something other than a store or an empty place to make one: None when
+    there is nothing (no path, an empty folder, a folder holding only our lock file) or a store (a
+    root ``zarr.json``); else the names found there (sorted; ``['<file>']`` for a plain file)."""
+    p = _zarr_store(path_or_url)
+    if _exists(p) or not _is_local(p):
+        return None
+    if not os.path.lexists(p):
+        return None
+    if not os.path.isdir(p):
+        return ["<file>"]
+    names = sorted(n for n in os.listdir(p) if n != LOCK_NAME)
+    return names or None
+
+
+def _clear(path_or_url) -> None:
+    """Remove everything at ``path_or_url`` but our lock file (``--overwrite``)."""
+    import shutil
+    p = _zarr_store(path_or_url)
+    if not _is_local(p):
+        import zarr
+        zarr.open_group(p, mode="w")            # zarr clears the prefix
+        return
+    if not os.path.isdir(p):
+        raise ForeignStoreError(f"{p} is a file, not a folder; refusing to replace it with a store")
+    for name in os.listdir(p):
+        if name == LOCK_NAME:
+            continue
+        q = os.path.join(p, name)
+        if os.path.isdir(q) and not os.path.islink(q):
+            shutil.rmtree(q)
+        else:
+            os.unlink(q)
+
+
+def _creation_record() -> dict:
+    import socket
+    import time
+    return {"host": socket.gethostname(), "pid": os.getpid(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def _creation_hook() -> None:
+    """Test hook: with ``$DENOISE_TEST_CREATE_PAUSE`` set to a file path, touch it and sleep (a test
+    kills the process here, inside the creation window)."""
+    flag = os.environ.get(CREATE_HOOK_ENV)
+    if flag:
+        import time
+        with open(flag, "w") as f:
+            f.write(str(os.getpid()))
+        time.sleep(120)
 
 
 def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False):
     """Create the group, every array (empty, ``status/complete`` all False) and the root attributes
     (schema version, layout, the full generation ``config``, package versions, git hash).
-    Returns the ``zarr.Group``. Refuses to overwrite an existing store unless ``overwrite``."""
+    Returns the ``zarr.Group``.
+
+    Never deletes what it was not asked to: an existing store raises StoreExistsError and a non-empty
+    folder that is not a store (a Zarr v2 store, a store without its root metadata, any folder)
+    raises ForeignStoreError, unless ``overwrite`` (then its contents go first; our lock file stays).
+    The root ``zarr.json`` is written first with a ``creating`` attribute (host, pid, start) that the
+    last step removes: a store cut mid-creation is recognised (:class:`IncompleteStoreError` from
+    :func:`open_group`) and ``stores.writer.open_or_create`` makes it again."""
     import zarr
-    if _exists(path_or_url) and not overwrite:
-        raise StoreError(f"a store already exists at {path_or_url!s}; open it (open_or_create) or pass overwrite=True")
+    p = _zarr_store(path_or_url)
     try:
         json.dumps(config or {})
     except TypeError as e:
         raise StoreLayoutError(f"config must be JSON-serialisable: {e}") from e
-    root = zarr.open_group(_zarr_store(path_or_url), mode="w")
+    if _is_local(p) and os.path.lexists(p) and not os.path.isdir(p):
+        raise ForeignStoreError(f"{p} is a file, not a folder; refusing to replace it with a store")
+    if not overwrite:
+        if _exists(p):
+            raise StoreExistsError(f"a store already exists at {p!s}; open it (open_or_create) or pass "
+                                   "overwrite=True")
+        found = foreign_entries(p)
+        if found:
+            shown = ", ".join(found[:5]) + (f", ... ({len(found)} entries)" if len(found) > 5 else "")
+            raise ForeignStoreError(f"{p} is a non-empty folder that is not a store (it holds {shown}); "
+                                    "refusing to write into it: choose another path, or overwrite it "
+                                    "(--overwrite) to delete its contents")
+    else:
+        _clear(p)
+    if _is_local(p):
+        from zarr.storage import LocalStore
+        os.makedirs(p, exist_ok=True)
+        target = LocalStore(p)
+    else:
+        target = p
+    # zarr's mode "w-" refuses any non-empty folder (our lock file is in it): create_group with
+    # overwrite=False is the same "never replace a node" guarantee on the root.
+    try:
+        root = zarr.create_group(target, overwrite=False, attributes={
+            "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, CREATION_ATTR: _creation_record()})
+    except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError) as e:
+        raise StoreExistsError(f"a store appeared at {p!s} while it was being created: {e}") from e
     for g in GROUPS:
         root.require_group(g)
     comp = codecs.compressor()
-    for spec in ARRAYS:
+    for n, spec in enumerate(ARRAYS):
         dtype = spec.storage_dtype(layout)
         kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype,
                   chunks=spec.chunks(layout), dimension_names=spec.dims)
@@ -275,6 +371,8 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
             kw.update(compressors=None, fill_value=spec.fill)
         arr = root.create_array(spec.path, **kw)
         arr.attrs.update({"doc": spec.doc, "source": spec.source})
+        if n == len(ARRAYS) // 2:
+            _creation_hook()
     feat = root.create_array("inputs/feature", shape=(NUM_FEATURES,), dtype=str, chunks=(NUM_FEATURES,),
                              dimension_names=("feature",))
     feat[:] = np.array(FEATURE_NAMES)
@@ -286,7 +384,8 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
         root["inputs/radiance"].attrs["log16"] = {
             "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,
             "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
-    root.attrs.update({
+    # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
+    root.attrs.put({
         "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, "layout": layout.to_dict(),
         "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
         "package_versions": package_versions(), "git_hash": git_hash(),
@@ -296,7 +395,8 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
 
 def open_group(path_or_url, mode: str = "r"):
     """Open an existing store's root group after checking it is ours and of this schema version.
-    Returns ``(group, layout)``. Raises StoreNotFoundError, ForeignStoreError, SchemaVersionError."""
+    Returns ``(group, layout)``. Raises StoreNotFoundError, ForeignStoreError, IncompleteStoreError
+    (creation was cut short), SchemaVersionError."""
     import zarr
     if not _exists(path_or_url):
         if isinstance(path_or_url, (str, os.PathLike)) and os.path.exists(os.fspath(path_or_url)):
@@ -310,6 +410,12 @@ def open_group(path_or_url, mode: str = "r"):
     if attrs.get("kind") != STORE_KIND:
         raise ForeignStoreError(f"{path_or_url!s} is a Zarr group but not a {STORE_KIND} store "
                                 f"(root attribute 'kind' is {attrs.get('kind')!r})")
+    if CREATION_ATTR in attrs:
+        c = attrs[CREATION_ATTR] if isinstance(attrs[CREATION_ATTR], dict) else {}
+        raise IncompleteStoreError(
+            f"{path_or_url!s} was never finished: its creation by pid {c.get('pid')} on {c.get('host')} "
+            f"(started {c.get('started')}) was cut short; run `python -m pipeline dataset` again to make it",
+            creator=c)
     version = attrs.get("schema_version")
     if version != SCHEMA_VERSION:
         raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads and writes "

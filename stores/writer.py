@@ -120,16 +120,32 @@ class StoreWriter:
         return {int(i): str(err[i]) for i in range(len(err)) if str(err[i])}
 
 
-def open_or_create(path, layout: StoreLayout, config: dict | None = None) -> StoreWriter:
+def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False) -> StoreWriter:
     """Open the store at ``path`` for writing, creating it if missing. An existing store must have the
     same frame layout (resolution, spp, layers, tile, encodings) and schema version; if ``layout``
     has more frames, every array grows (append). A different ``config`` replaces the recorded one and
-    the previous one goes to ``config_history``. Call from one process before tasks start writing."""
-    exists = schema._exists(path)
-    if not exists:
-        schema.create_store(path, layout, config)
+    the previous one goes to ``config_history``. Call from one process before tasks start writing
+    (``pipeline dataset`` holds the store's ``stores.lock.StoreLock`` around it).
+
+    Nothing that is not ours is deleted: a non-empty folder that is not a store raises
+    ForeignStoreError unless ``overwrite`` (which also replaces an existing store). A store whose
+    creation was cut short (``IncompleteStoreError``) is made again, unless its creator still runs
+    on this host."""
+    from stores.errors import IncompleteStoreError, StoreLockedError
+    if overwrite or not schema._exists(path):
+        schema.create_store(path, layout, config, overwrite=overwrite)
         return StoreWriter(path)
-    root, have = schema.open_group(path, mode="r+")
+    try:
+        root, have = schema.open_group(path, mode="r+")
+    except IncompleteStoreError as e:
+        c = e.creator
+        import socket
+        from stores.lock import pid_alive
+        if c.get("host") == socket.gethostname() and c.get("pid") != os.getpid() and pid_alive(c.get("pid", -1)):
+            raise StoreLockedError(f"{os.fspath(path)!s} is being created by pid {c.get('pid')} on {c.get('host')} "
+                                   f"(started {c.get('started')})", holder=c) from e
+        schema.create_store(path, layout, config, overwrite=True)     # ours, and nothing was written yet
+        return StoreWriter(path)
     if not have.frame_shape_compatible(layout):
         a, b = have.to_dict(), layout.to_dict()
         diff = {k: (a[k], b[k]) for k in a if k != "num_frames" and a[k] != b[k]}

@@ -1,0 +1,195 @@
+"""One writer per store: the lock a ``dataset`` run holds on its store for as long as it runs.
+
+``StoreLock(store)`` is a file ``<store>/dataset.lock`` holding the holder's host, pid, process start
+time and start time (JSON), with a kernel ``flock`` on it while the run lives::
+
+    with StoreLock(store) as lock:      # StoreLockedError if another run holds it
+        ...                            # create / resume the store, render, validate
+
+- A second run on the same store is refused (:class:`~stores.errors.StoreLockedError` naming the
+  holder's host, pid and start) while the first one lives.
+- A lock left behind by a dead process on this host (its pid is gone, a zombie, or reused by a
+  process that started later) is taken over; the kernel drops the ``flock`` of a dead process, so
+  two runs racing for a stale lock cannot both win.
+- A lock from another host cannot be checked from here: it is refused, and the message says which
+  file to delete if that run is known to be dead.
+- Stores at URLs (``s3://...``) have no lock (``StoreLock.supported`` is False): one run at a time is
+  then up to the user.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import socket
+import time
+
+from stores.errors import StoreLockedError
+from stores.schema import LOCK_NAME
+
+
+def _proc_start(pid: int) -> int | None:
+    """Start time of ``pid`` in clock ticks since boot (``/proc/<pid>/stat`` field 22), None if unknown."""
+    try:
+        with open(f"/proc/{int(pid)}/stat") as f:
+            text = f.read()
+    except OSError:
+        return None
+    rest = text[text.rindex(")") + 2:].split()     # fields after "pid (comm)": state is field 3
+    try:
+        return int(rest[19])
+    except (IndexError, ValueError):
+        return None
+
+
+def _proc_state(pid: int) -> str | None:
+    try:
+        with open(f"/proc/{int(pid)}/stat") as f:
+            text = f.read()
+    except OSError:
+        return None
+    return text[text.rindex(")") + 2:].split()[0]
+
+
+def pid_alive(pid: int, proc_start: int | None = None) -> bool:
+    """Whether process ``pid`` runs on this host (not a zombie, and, given ``proc_start``, the same
+    process rather than a later one that reused the pid)."""
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass                            # exists, owned by someone else
+    except (OverflowError, ValueError):
+        return False
+    if _proc_state(pid) == "Z":
+        return False
+    if proc_start is not None:
+        now = _proc_start(pid)
+        if now is not None and now != int(proc_start):
+            return False
+    return True
+
+
+def describe(holder: dict) -> str:
+    return (f"pid {holder.get('pid')} on host {holder.get('host')}, started {holder.get('started')}"
+            + (f" ({holder.get('command')})" if holder.get("command") else ""))
+
+
+class StoreLock:
+    """The writer lock of the store at ``store`` (a local path; URLs are not locked)."""
+
+    def __init__(self, store, command: str | None = None):
+        self.store = os.fspath(store)
+        self.supported = "://" not in self.store
+        self.path = os.path.join(self.store, LOCK_NAME)
+        self.command = command
+        self.took_over: dict | None = None       # the stale holder replaced, if any
+        self._fd: int | None = None
+        self._made_dir = False                   # the folder was made for the lock: removed if left empty
+
+    # ------------------------------------------------------------------------------------------------
+    def _record(self) -> dict:
+        return {"host": socket.gethostname(), "pid": os.getpid(), "proc_start": _proc_start(os.getpid()),
+                "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": self.command}
+
+    @staticmethod
+    def _read(fd: int) -> dict | None:
+        try:
+            data = os.pread(fd, 1 << 16, 0)
+            d = json.loads(data.decode()) if data.strip() else None
+            return d if isinstance(d, dict) else None
+        except (OSError, ValueError):
+            return None
+
+    def _refuse(self, holder: dict | None, why: str) -> StoreLockedError:
+        if self._made_dir:
+            try:
+                os.rmdir(self.store)
+            except OSError:
+                pass
+        h = holder or {}
+        return StoreLockedError(
+            f"the store {self.store} is in use by another dataset run: {describe(h)}{why}; lock file {self.path}",
+            holder=h)
+
+    def acquire(self) -> "StoreLock":
+        """Take the lock or raise StoreLockedError. Creates the store's folder if it is missing."""
+        if not self.supported or self._fd is not None:
+            return self
+        if not os.path.isdir(self.store):
+            os.makedirs(self.store, exist_ok=True)
+            self._made_dir = True
+        me = socket.gethostname()
+        for _ in range(20):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = self._read(fd)
+                os.close(fd)
+                raise self._refuse(holder, "; wait for it to finish (or stop it) and run again") from None
+            try:                    # a run that was releasing may have unlinked the file we locked
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            holder = self._read(fd)
+            if holder:
+                if holder.get("host") != me:
+                    os.close(fd)
+                    raise self._refuse(holder, f"; it runs on another host, so this one ({me}) cannot tell "
+                                               "whether it is alive: if it is not, delete the lock file")
+                if pid_alive(holder.get("pid", -1), holder.get("proc_start")) and holder.get("pid") != os.getpid():
+                    os.close(fd)
+                    raise self._refuse(holder, " (its process is alive but holds no lock: if it is not a "
+                                               "dataset run, delete the lock file)")
+                self.took_over = holder
+            data = json.dumps(self._record()).encode()
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, data, 0)
+            os.fsync(fd)
+            self._fd = fd
+            return self
+        raise StoreLockedError(f"could not take the lock {self.path}: it kept changing under this run")
+
+    def release(self) -> None:
+        """Drop the lock and delete the lock file (only if it is still ours), and the store's folder
+        if this lock made it and nothing else was put there (a run that stopped before creating)."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            if os.fstat(fd).st_ino == os.stat(self.path).st_ino:
+                os.unlink(self.path)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+        if self._made_dir:
+            try:
+                os.rmdir(self.store)            # only succeeds when empty
+            except OSError:
+                pass
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> "StoreLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def read_lock(store) -> dict | None:
+    """The lock record in ``store`` (None if there is none or it is unreadable)."""
+    try:
+        with open(os.path.join(os.fspath(store), LOCK_NAME)) as f:
+            d = json.load(f)
+        return d if isinstance(d, dict) else None
+    except (OSError, ValueError):
+        return None
