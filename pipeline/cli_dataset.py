@@ -21,6 +21,7 @@ validator found problems, 2 bad config / unreachable cluster, 130 interrupted.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -43,6 +44,9 @@ def add_arguments(p) -> None:
     p.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core) or batch jobs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
     p.add_argument("--summary-json", help="also write the run summary to this JSON file")
+    p.add_argument("--overwrite", action="store_true",
+                   help="delete whatever is at the store path first (another store, a store of another config, "
+                        "a folder that is not a store) and build from scratch; without it such a path is refused")
 
 
 def run(args) -> int:
@@ -50,7 +54,7 @@ def run(args) -> int:
         raise ConfigError(f"--workers must be an integer >= 1, got {args.workers}")
     cfg = load_config(args.config)
     summary = run_dataset(cfg, out=args.out, scheduler=args.scheduler, workers=args.workers,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, overwrite=args.overwrite)
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2, default=str))
     return 0 if summary["ok"] else 1
@@ -60,25 +64,53 @@ def _print(*a) -> None:
     print(*a, flush=True)
 
 
-def check_existing_store(cfg: DatasetConfig, store: str) -> int:
-    """If a store exists at ``store``, check it was made from the same dataset content; returns its
-    number of complete frames (0 when there is none). Raises StoreMismatchError."""
+def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = False) -> tuple[int, DatasetConfig]:
+    """Check what is at ``store`` before anything starts; returns the number of complete frames of an
+    existing store of the same dataset content (0 when there is none, when it is to be overwritten or
+    when its creation was cut short) and the config to run: ``cfg``, or for a store made before
+    ``clip_ids`` existed, ``cfg`` with ``clip_ids: scene_seed`` (its frames keep their split). Raises ForeignStoreError for a non-empty folder (or a file) that is
+    not a store, StoreMismatchError for a store made from another config (both unless ``overwrite``;
+    a file is refused even then)."""
     from stores import schema
+    from stores.errors import ForeignStoreError, IncompleteStoreError
+    if "://" not in store and os.path.lexists(store) and not os.path.isdir(store):
+        raise ForeignStoreError(f"--out {store} is a file, not a folder; choose another --out")
+    found = schema.foreign_entries(store)
+    if found:
+        if overwrite:
+            return 0, cfg
+        shown = ", ".join(found[:5]) + (f", ... ({len(found)} entries)" if len(found) > 5 else "")
+        raise ForeignStoreError(f"{store} is a non-empty folder that is not a store made by this pipeline "
+                                f"(it holds {shown}); nothing was touched: choose another --out, or pass "
+                                "--overwrite to delete its contents and build the dataset there")
     if not schema._exists(store):
-        return 0
-    root, layout = schema.open_group(store, mode="r")
+        return 0, cfg
+    try:
+        root, layout = schema.open_group(store, mode="r")
+    except IncompleteStoreError:
+        return 0, cfg                           # made again by open_or_create
+    except ForeignStoreError:
+        if overwrite:
+            return 0, cfg
+        raise
+    if overwrite:
+        return 0, cfg
     have = dict(root.attrs).get("config") or {}
     want = json.loads(json.dumps(cfg.content_dict()))
+    if have != want and "clip_ids" not in have and cfg.clip_ids != "scene_seed":
+        legacy = cfg.with_overrides(clip_ids="scene_seed")      # a store made before clip_ids existed
+        if have == json.loads(json.dumps(legacy.content_dict())):
+            cfg, want = legacy, have
     if have != want:
         keys = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
         raise StoreMismatchError(
             f"the store at {store} was made from a different dataset config (differs in: {', '.join(keys)}); "
-            "use another --out, or delete the store to start again")
+            "use another --out, or --overwrite to delete it and start again")
     want_layout = cfg.store_layout()
     if not layout.frame_shape_compatible(want_layout) or layout.num_frames != want_layout.num_frames:
         raise StoreMismatchError(f"the store at {store} has layout {layout.to_dict()}, the config needs "
                                  f"{want_layout.to_dict()}")
-    return int(root["status/complete"][:].sum())
+    return int(root["status/complete"][:].sum()), cfg
 
 
 def _validate(store: str) -> dict:
@@ -90,11 +122,31 @@ def _validate(store: str) -> dict:
 
 
 def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | None = None,
-                workers: int | None = None, progress: bool = True, functions=None) -> dict:
+                workers: int | None = None, progress: bool = True, functions=None,
+                overwrite: bool = False) -> dict:
     """Build (or resume) the dataset of ``cfg``; returns the summary dict (also printed).
 
-    ``functions`` replaces the graph's task functions (tests inject failures with it).
+    The run holds the store's writer lock (``stores.lock.StoreLock``) from the first check to the
+    summary: a second run on the same store is refused (StoreLockedError naming host, pid and start).
+    ``overwrite`` deletes what is at the store path first. ``functions`` replaces the graph's task
+    functions (tests inject failures with it).
     """
+    from stores.lock import StoreLock
+    store = cfg.store_path(out)
+    _, cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
+    if "://" not in store and not Path(store).parent.exists():
+        Path(store).parent.mkdir(parents=True, exist_ok=True)
+    with StoreLock(store, command=" ".join(sys.argv) or None) as lock:
+        if lock.took_over:
+            from stores.lock import describe
+            _print(f"lock: took over the lock of a dead run ({describe(lock.took_over)})")
+        elif not lock.supported:
+            _print("lock: none for URL stores; run one dataset command per store at a time")
+        return _run_locked(cfg, store, scheduler=scheduler, workers=workers, progress=progress,
+                           functions=functions, overwrite=overwrite)
+
+
+def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress, functions, overwrite) -> dict:
     from distributed import as_completed
 
     from pipeline import cluster as cl
@@ -102,8 +154,7 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     from stores.writer import open_or_create
 
     t0 = time.perf_counter()
-    store = cfg.store_path(out)
-    check_existing_store(cfg, store)          # before the cluster: a mismatch costs nothing
+    _, cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
     try:
         dashboard = conn.dashboard
@@ -111,9 +162,8 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
                f"{cfg.resolution[0]}x{cfg.resolution[1]} -> {store}")
         _print(f"cluster: {conn.kind} at {conn.address}, {conn.n_workers()} worker(s)")
         _print(f"dashboard: {dashboard or 'none'}")
-        if not Path(store).parent.exists() and "://" not in store:
-            Path(store).parent.mkdir(parents=True, exist_ok=True)
-        writer = open_or_create(store, cfg.store_layout(), cfg.content_dict())
+        _check_worker_memory(cfg, conn)
+        writer = open_or_create(store, cfg.store_layout(), cfg.content_dict(), overwrite=overwrite)
         todo = set(writer.incomplete_frames())
         frames = [f for f in cfg.frames() if f.index in todo]
         skipped = cfg.num_frames - len(frames)
@@ -149,6 +199,19 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     _print(f"validation: {'ok' if v.get('ok') else ('not run' if v.get('ok') is None else 'PROBLEMS')}"
            + ("".join(f"\n  {p}" for p in v.get("problems", [])[:20]) if not v.get("ok") else ""))
     return summary
+
+
+def _check_worker_memory(cfg: DatasetConfig, conn) -> None:
+    """A frame must fit in the largest worker's memory limit (workers that report one)."""
+    try:
+        limits = [int(w.get("memory_limit") or 0)
+                  for w in conn.client.scheduler_info(n_workers=-1).get("workers", {}).values()]
+    except Exception:  # noqa: BLE001 - an old scheduler without the field: nothing to check
+        return
+    limits = [m for m in limits if m > 0]
+    if limits:
+        cfg.check_memory(per_worker=max(limits), where=f"the largest memory_limit of the cluster's {len(limits)} "
+                                                        "worker(s)")
 
 
 def _execute(client, graph, writer, progress: bool, as_completed) -> tuple[list[dict], dict[int, str]]:

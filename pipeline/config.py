@@ -18,11 +18,25 @@ YAML layout (every key optional except ``scenes``; see ``configs/default.yaml``)
     render: {spp: 8, layer_levels: 6, ref_spp: 4096}   # RenderConfig fields (not res)
     scene_gen: {}                # SceneGenConfig fields
     store: {}                    # passed to the store writer (compression, chunks)
+    split: null                  # scene split fractions (default train 0.8 / val 0.1 / test 0.1)
+    clip_ids: balanced           # how scenes get their clip ids, hence their split (see below)
     tasks: {retries: 2, split_streams: true, reference_resources: null}
     cluster: {kind: local, workers: null, threads_per_worker: 1, ...}
 
 Frames are numbered in that order: scene 0's frames, then scene 1's, ... A frame's bytes depend only
 on (seed, scene index, frame index, render config), never on workers or task order.
+
+Splits are by scene: the store's readers put a scene in the split that ``stores.reader.split_of_clip``
+gives its clip id (a hash of the id against the split fractions). ``clip_ids: balanced`` (the default)
+chooses each scene's clip id so that split is the one of a balanced assignment: round(fraction x
+scenes) scenes each, at least one in every split with a positive fraction once there are as many
+scenes as such splits, the scenes shuffled by ``SeedSequence([seed, 0x5b17])``. ``clip_ids:
+scene_seed`` uses the scene seed as clip id (stores made before ``clip_ids`` existed; their split is
+the bare hash, which leaves small stores without val or test scenes). Resuming such a store keeps it.
+
+Before anything runs, a frame must fit in a worker's memory: :func:`frame_bytes` (its arrays as
+rendered, twice: the parts and their store copy in the write task) against the memory of one
+worker (``cluster.memory_limit``, else this machine's memory over the workers).
 """
 from __future__ import annotations
 
@@ -37,6 +51,10 @@ import numpy as np
 from pipeline.errors import ConfigError
 
 SCENE_KINDS = ("indoor", "outdoor")
+CLIP_ID_SCHEMES = ("balanced", "scene_seed")
+SPLIT_SHUFFLE = 0x5B17           # SeedSequence([seed, SPLIT_SHUFFLE]) shuffles the balanced split
+CLIP_ID_STRIDE = 2 ** 31         # clip id candidates: scene_seed + j * stride (scene seeds are < 2**31)
+MAX_CLIP_ID_TRIES = 1_000_000
 CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
 MAX_RES = 16384
 STORE_KEYS = frozenset({"tile", "radiance_encoding", "feature_dtype"})   # stores.schema.StoreLayout fields
@@ -167,15 +185,50 @@ class ClusterConfig:
                       self.jobqueue.get(k))
 
 
+def balanced_splits(n: int, fractions: dict, seed: int) -> list[str]:
+    """The split of each of ``n`` scenes: ``round(fraction x n)`` each (largest remainders), at least one
+    for every split with a positive fraction while ``n`` allows (taken from the largest split), in an
+    order shuffled by ``SeedSequence([seed, SPLIT_SHUFFLE])``."""
+    names = list(fractions)
+    total = float(sum(fractions.values()))
+    exact = [n * fractions[k] / total for k in names]
+    counts = [int(math.floor(x)) for x in exact]
+    for i in sorted(range(len(names)), key=lambda i: (-(exact[i] - counts[i]), i))[: n - sum(counts)]:
+        counts[i] += 1
+    for i, k in enumerate(names):
+        if fractions[k] > 0 and counts[i] == 0:
+            j = max(range(len(names)), key=lambda j: (counts[j], -j))
+            if counts[j] > 1:
+                counts[j] -= 1
+                counts[i] += 1
+    labels = [k for k, c in zip(names, counts) for _ in range(c)]
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), SPLIT_SHUFFLE]))
+    return [labels[i] for i in rng.permutation(n)]
+
+
+def clip_id_for(seed: int, split: str, fractions: dict) -> int:
+    """The first of ``seed + j * 2**31`` (j = 0, 1, ...) that ``stores.reader.split_of_clip`` puts in
+    ``split`` (distinct scene seeds give distinct clip ids)."""
+    from stores.reader import split_of_clip
+    for j in range(MAX_CLIP_ID_TRIES):
+        c = int(seed) + j * CLIP_ID_STRIDE
+        if split_of_clip(c, fractions) == split:
+            return c
+    raise ConfigError(f"dataset.split: no clip id in {MAX_CLIP_ID_TRIES} tries falls in split {split!r} "
+                      f"(fraction {fractions.get(split)}); use a larger fraction")
+
+
 @dataclass(frozen=True)
 class FrameRef:
-    """One frame of the dataset: its store index, its scene and its index within the scene's clip."""
+    """One frame of the dataset: its store index, its scene and its index within the scene's clip,
+    and the scene's clip id (``frames/clip_id``: it decides the scene's split)."""
     index: int
     scene: int
     kind: str
     seed: int
     frame: int
     num_frames: int
+    clip_id: int | None = None
 
     @property
     def key(self) -> str:
@@ -199,6 +252,7 @@ class DatasetConfig:
     scene_gen: dict = field(default_factory=dict)
     store: dict = field(default_factory=dict)
     split: dict | None = None     # scene split fractions, e.g. {train: 0.8, val: 0.1, test: 0.1} (the default)
+    clip_ids: str = "balanced"    # CLIP_ID_SCHEMES: how clip ids (hence splits) are chosen (module docstring)
     tasks: TaskConfig = TaskConfig()
     cluster: ClusterConfig = ClusterConfig()
 
@@ -229,13 +283,29 @@ class DatasetConfig:
                   and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in sp.values())
                   and sum(sp.values()) > 0, "dataset.split",
                   "null or a mapping of train/val/test to fractions >= 0 with a positive sum", sp)
+        _need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids)
         self.tasks.validate()
         self.cluster.validate()
         rc = self.render_config()   # the owners validate their sections (raise ConfigError naming the field)
         if rc.oracle_spp:
             raise ConfigError(f"dataset.render.oracle_spp must be 0 (the store has no oracle image), got {rc.oracle_spp}")
+        _need(rc.layer_levels >= 1, "dataset.render.layer_levels",
+              "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", rc.layer_levels)
         self.scene_gen_config()
         self.store_layout()
+        self.check_memory()
+
+    def check_memory(self, per_worker: int | None = None, where: str | None = None) -> None:
+        """Raise ConfigError when one frame cannot fit in a worker's memory (``per_worker`` bytes, else
+        :func:`worker_memory`), naming the estimate."""
+        need = 2 * frame_bytes(self)
+        have, src = (per_worker, where or "per worker") if per_worker else worker_memory(self.cluster)
+        if have and need > have:
+            W, H = self.resolution
+            raise ConfigError(
+                f"dataset.resolution {W}x{H} cannot be rendered: one frame needs about {_gib(need)} "
+                f"({need:,} bytes: its arrays of {_gib(frame_bytes(self))}, held twice while it is written), "
+                f"and a worker has {_gib(have)} ({src}); lower the resolution or spp, or give workers more memory")
 
     # -- derived -----------------------------------------------------------------------------------
     def render_config(self):
@@ -275,15 +345,41 @@ class DatasetConfig:
     def num_frames(self) -> int:
         return sum(g.count * g.frames for g in self.scenes)
 
+    @property
+    def split_fractions(self) -> dict:
+        from stores.reader import DEFAULT_SPLIT
+        return dict(self.split) if self.split else dict(DEFAULT_SPLIT)
+
+    def scene_clip_ids(self) -> list[int]:
+        """Clip id of every scene (``clip_ids`` scheme; see the module docstring)."""
+        cached = self.__dict__.get("_clip_ids")
+        if cached is not None:
+            return list(cached)
+        seeds = [scene_seed(self.seed, i) for i in range(self.num_scenes)]
+        if self.clip_ids == "scene_seed":
+            ids = seeds
+        else:
+            fr = self.split_fractions
+            ids = [clip_id_for(s, k, fr) for s, k in zip(seeds, balanced_splits(len(seeds), fr, self.seed))]
+        object.__setattr__(self, "_clip_ids", tuple(ids))
+        return ids
+
+    def scene_splits(self) -> list[str]:
+        """The split each scene will be read in (``stores.reader.split_of_clip`` of its clip id)."""
+        from stores.reader import split_of_clip
+        fr = self.split_fractions
+        return [split_of_clip(c, fr) for c in self.scene_clip_ids()]
+
     def frames(self) -> list[FrameRef]:
         """Every frame in store order (scene by scene, frame by frame)."""
         out: list[FrameRef] = []
+        ids = self.scene_clip_ids()
         s = 0
         for g in self.scenes:
             for _ in range(g.count):
                 seed = scene_seed(self.seed, s)
                 for f in range(g.frames):
-                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames))
+                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s]))
                 s += 1
         return out
 
@@ -298,7 +394,8 @@ class DatasetConfig:
         if "://" in target:
             return target
         p = Path(target)
-        if target.endswith("/") or (p.is_dir() and not (p / "zarr.json").exists() and p.suffix != ".zarr"):
+        ours = (p / "zarr.json").exists() or (p / "dataset.lock").exists()     # a store, or one being made
+        if target.endswith("/") or (p.is_dir() and not ours and p.suffix != ".zarr"):
             return str(p / f"{self.name}.zarr")
         return str(p)
 
@@ -326,6 +423,8 @@ class DatasetConfig:
             "cluster": _plain({f.name: getattr(self.cluster, f.name) for f in fields(ClusterConfig)}),
             # only when set, so stores made before `split` existed still resume
             **({"split": _plain(self.split)} if self.split is not None else {}),
+            # "scene_seed" (the scheme of stores made before `clip_ids` existed) is written as no key
+            **({"clip_ids": self.clip_ids} if self.clip_ids != "scene_seed" else {}),
         }
 
     def content_dict(self) -> dict:
@@ -369,6 +468,52 @@ class DatasetConfig:
         return cls(**d)
 
 
+def frame_bytes(cfg: DatasetConfig) -> int:
+    """Bytes of one frame's arrays as the renderer hands them to the write task (float32): per-sample
+    radiance + features (W·H·spp·20), sample layers, reference + stderr, guides (W·H·9)."""
+    from stores.contract import NUM_FEATURES
+    W, H = cfg.resolution
+    rc = cfg.render_config()
+    per_pixel = rc.spp * (3 + NUM_FEATURES) + 3 * rc.layer_levels + 6 + 9
+    return 4 * W * H * per_pixel
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2 ** 30:.1f} GiB" if n >= 2 ** 28 else f"{n / 2 ** 20:.1f} MiB"
+
+
+def worker_memory(cluster: ClusterConfig) -> tuple[int | None, str]:
+    """Memory one worker may use, in bytes, and where the figure comes from: ``memory_limit`` when
+    given, the batch jobs' ``memory`` over their ``processes``, else (local) this machine's memory over
+    the workers. ``(None, ...)`` when it cannot be known here (an existing scheduler's workers: the
+    CLI checks them once connected)."""
+    from dask.utils import parse_bytes
+    m = cluster.memory_limit
+    if m not in (None, "auto", 0):
+        try:
+            v = int(m) if _is_int(m) else int(parse_bytes(m))
+            return v, f"cluster.memory_limit {m}"
+        except (ValueError, TypeError):
+            pass
+    if cluster.kind in ("slurm", "pbs"):
+        try:
+            mem = int(parse_bytes(str(cluster.jobqueue.get("memory"))))
+            procs = int(cluster.jobqueue.get("processes") or 1)
+            return mem // max(1, procs), f"cluster.jobqueue memory {cluster.jobqueue.get('memory')} over {procs} processes"
+        except (ValueError, TypeError):
+            return None, "unknown"
+    if cluster.kind == "scheduler" or cluster.address:
+        return None, "unknown until connected"
+    try:
+        import psutil
+        total = int(psutil.virtual_memory().total)
+    except ImportError:  # pragma: no cover - psutil comes with distributed
+        return None, "unknown"
+    cores = max(1, len(os.sched_getaffinity(0))) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n = cluster.workers or max(1, cores // cluster.threads_per_worker)
+    return total // n, f"this machine's {total / 2 ** 30:.1f} GiB over {n} worker(s)"
+
+
 def _plain(v):
     if isinstance(v, dict):
         return {str(k): _plain(x) for k, x in v.items()}
@@ -381,16 +526,53 @@ def _plain(v):
     return v
 
 
+def _unique_key_loader():
+    """A yaml SafeLoader that refuses a mapping with the same key twice (PyYAML keeps the last)."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        pass
+
+    def construct_mapping(loader, node, deep=False):
+        loader.flatten_mapping(node)
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue                                # yaml itself reports unhashable keys
+            if key in seen:
+                raise DuplicateKeyError(
+                    f"duplicate key {key!r} (line {key_node.start_mark.line + 1}, first on line {seen[key] + 1})")
+            seen[key] = key_node.start_mark.line
+        return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+    UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
+    return UniqueKeyLoader
+
+
+class DuplicateKeyError(ConfigError):
+    """A YAML mapping gives the same key twice."""
+
+
 def load_config(path: str | os.PathLike) -> DatasetConfig:
-    """Read and validate a YAML dataset config; raises ConfigError naming the file and the field."""
+    """Read and validate a YAML dataset config; raises ConfigError naming the file and the field
+    (a duplicate key, a directory or a missing file included)."""
     import yaml
     p = Path(path)
-    if not p.is_file():
+    if p.is_dir():
+        raise ConfigError(f"config path {str(p)!r} is a directory, not a YAML file")
+    if not p.exists():
         raise ConfigError(f"config file {str(p)!r} does not exist")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.load(p.read_text(), Loader=_unique_key_loader())
+    except DuplicateKeyError as e:
+        raise ConfigError(f"{p}: {e}") from e
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"config file {str(p)!r} cannot be read: {e}") from e
     try:
         return DatasetConfig.from_dict(data)
     except ConfigError as e:

@@ -15,6 +15,7 @@ Keys (stage first, because the dashboard's progress pane groups tasks by the key
     reference-scene-000042/frame-3@T        reference (+ resources, e.g. GPU) (split_streams)
     render-scene-000042/frame-3@T           the whole frame                  (not split_streams)
     write-scene-000042/frame-3@T            gathers the parts, writes the frame's store region
+                                            (with the scene's clip id, ``FrameRef.clip_id``)
 
 ``T`` is a short token of (dataset content, store path), so two datasets on one shared scheduler never
 share a key. Store writes: one task per frame gathers its parts and writes the frame's chunk-aligned
@@ -25,6 +26,7 @@ keep failing are recorded in the store first.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -59,6 +61,11 @@ class Node:
     resources: dict | None = None
     priority: int = 0
     frame_index: int | None = None
+    kwargs: dict | None = None          # literal keyword arguments (the write's clip id)
+
+    def call(self) -> Callable:
+        """``func`` with ``kwargs`` bound (what the scheduler runs)."""
+        return functools.partial(self.func, **self.kwargs) if self.kwargs else self.func
 
     @property
     def dependencies(self) -> tuple[str, ...]:
@@ -90,7 +97,7 @@ class DatasetGraph:
 
     def to_dask(self) -> dict:
         """A plain Dask graph ``{key: (func, *args)}`` (``dask.get(dsk, keys)`` runs it)."""
-        return {k: (n.func, *(a.key if isinstance(a, Ref) else _quote(a) for a in n.args))
+        return {k: (n.call(), *(a.key if isinstance(a, Ref) else _quote(a) for a in n.args))
                 for k, n in self.nodes.items()}
 
     def submit(self, client) -> dict[str, Any]:
@@ -98,7 +105,7 @@ class DatasetGraph:
         futures: dict[str, Any] = {}
         for k, n in self.nodes.items():
             args = [futures[a.key] if isinstance(a, Ref) else a for a in n.args]
-            futures[k] = client.submit(n.func, *args, key=k, pure=False, retries=self.retries,
+            futures[k] = client.submit(n.func, *args, **(n.kwargs or {}), key=k, pure=False, retries=self.retries,
                                        resources=n.resources, priority=n.priority)
         return futures
 
@@ -157,6 +164,7 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
                                 "render")),)
         wk = g.add(Node(frame_key("write", ref, token), fn.write_frame,
                         (store, ref.index, spec, ref.frame, *map(Ref, parts)), "write",
-                        priority=WRITE_PRIORITY, frame_index=ref.index))
+                        priority=WRITE_PRIORITY, frame_index=ref.index,
+                        kwargs={"clip_id": ref.clip_id} if ref.clip_id is not None else None))
         g.writes[ref.index] = wk
     return g

@@ -147,11 +147,12 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
     return out
 
 
-def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict) -> dict:
+def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict, clip_id: int | None = None) -> dict:
     """Write frame ``index`` of the store from one whole-frame dict or the three parts (inputs,
-    layers, reference); ``status/complete[index]`` is set last. Returns a summary: index, frame,
-    scene seed, render and write seconds, reference spp and relative standard error, non-finite
-    counts."""
+    layers, reference); ``status/complete[index]`` is set last. ``clip_id`` (the scene's, from
+    ``pipeline.config``; default: the scene seed) goes to ``frames/clip_id`` and decides the split.
+    Returns a summary: index, frame, scene seed, render and write seconds, reference spp and
+    relative standard error, non-finite counts."""
     from stores.writer import StoreWriter
     if len(parts) == 1:
         arrays = parts[0]
@@ -159,6 +160,8 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
         arrays = assemble(spec_json, frame, *parts)
     else:
         raise TypeError(f"write_frame takes one whole frame or three parts, got {len(parts)}")
+    if clip_id is not None:
+        arrays = {**arrays, "meta": {**arrays["meta"], "clip_id": int(clip_id)}}
     t0 = time.perf_counter()
     StoreWriter(store).write_frame(int(index), arrays)
     meta = arrays["meta"]

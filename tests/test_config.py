@@ -37,8 +37,8 @@ def test_every_shipped_config_is_valid(path):
 
 def test_shipped_configs_keep_the_papers_numbers():
     smoke = load_config(ROOT / "configs/smoke.yaml")
-    assert (smoke.num_scenes, smoke.resolution, smoke.render_config().ref_spp) == (2, (16, 16), 64)
-    assert sorted(g.frames for g in smoke.scenes) == [1, 3]
+    assert (smoke.num_scenes, smoke.resolution, smoke.render_config().ref_spp) == (3, (16, 16), 64)
+    assert sorted(g.frames for g in smoke.scenes) == [1, 1, 2]
     d = load_config(ROOT / "configs/default.yaml")
     rc = d.render_config()
     assert (rc.spp, rc.layer_levels, rc.ref_spp) == (8, 6, 4096)          # 8 spp, layers up to 32 spp

@@ -1,4 +1,4 @@
-"""The real chain on real processes: ``python -m pipeline dataset`` with configs/smoke.yaml (2 scenes,
+"""The real chain on real processes: ``python -m pipeline dataset`` with configs/smoke.yaml (3 scenes,
 4 frames of 16x16, 64-spp references) on a LocalCluster, killed and resumed, and on a real
 ``dask scheduler`` with two ``dask worker`` processes on 127.0.0.1, one of them SIGKILLed mid-run.
 Both stores must validate and be identical array for array (only the timing metadata differs).
@@ -120,11 +120,12 @@ def test_store_contents_are_real_frames(local_store):
     rep = validate_store(str(local_store["out"]))
     assert rep.ok, rep.format()
     g = zarr.open_group(str(local_store["out"]), mode="r")
-    assert list(g["frames/frame"][:]) == [0, 0, 1, 2] and list(g["frames/num_frames"][:]) == [1, 3, 3, 3]
+    assert list(g["frames/frame"][:]) == [0, 0, 0, 1] and list(g["frames/num_frames"][:]) == [1, 1, 2, 2]
     seeds = g["frames/scene_seed"][:]
-    assert seeds[1] == seeds[2] == seeds[3] != seeds[0]
+    assert seeds[2] == seeds[3] and len({seeds[0], seeds[1], seeds[2]}) == 3
     from pipeline.config import load_config
     cfg = load_config(SMOKE)
+    assert [int(c) for c in g["frames/clip_id"][:]] == [f.clip_id for f in cfg.frames()]   # balanced splits
     assert [int(s) for s in seeds] == [f.seed for f in cfg.frames()]
     assert g.attrs["config"] == json.loads(json.dumps(cfg.content_dict()))
     assert list(g["frames/reference_spp"][:]) == [64] * 4
@@ -134,24 +135,24 @@ def test_store_contents_are_real_frames(local_store):
 
 def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
     """Independent oracle: ``pipeline.render.render_frame`` (one call, no Dask, no split streams) on the
-    scene stored with frame 2 (scene 1, frame 1 of its clip) gives the stored bytes, array by array."""
+    scene stored with frame 3 (scene 2, frame 1 of its clip) gives the stored bytes, array by array."""
     from pipeline.config import load_config
     from pipeline.render import render_frame
     from scene_gen.spec import SceneSpec
     from stores.schema import ARRAY_BY_SOURCE, layout_of
     g = zarr.open_group(str(local_store["out"]), mode="r")
-    spec = SceneSpec.from_json(str(g["frames/scene_json"][2]))
+    spec = SceneSpec.from_json(str(g["frames/scene_json"][3]))
     cfg = load_config(SMOKE)
     assert spec.to_json() == __import__("pipeline.tasks", fromlist=["x"]).make_spec(
-        cfg.frames()[2].seed, "outdoor", 3, cfg.resolution, cfg.scene_gen)      # the spec is reproducible
+        cfg.frames()[3].seed, "outdoor", 2, cfg.resolution, cfg.scene_gen)      # the spec is reproducible
     want = render_frame(spec, 1, cfg.render_config())
     layout = layout_of(g)
     for source, aspec in ARRAY_BY_SOURCE.items():
-        got = g[aspec.path][2]
+        got = g[aspec.path][3]
         np.testing.assert_array_equal(got, aspec.to_store(want[source], layout), err_msg=aspec.path)
     for k in ("reference_spp", "nonfinite_inputs", "has_motion", "has_defocus"):
-        assert g[f"frames/{k}"][2] == want["meta"][k], k
-    assert g["frames/reference_rel_stderr"][2] == want["meta"]["reference_rel_stderr"]
+        assert g[f"frames/{k}"][3] == want["meta"][k], k
+    assert g["frames/reference_rel_stderr"][3] == want["meta"]["reference_rel_stderr"]
 
 
 @pytest.fixture

@@ -120,16 +120,17 @@ def threaded_cluster():
 def test_keys_are_readable_and_grouped_by_stage():
     cfg = load_config(SMOKE)
     g = build_graph(cfg, "/tmp/s.zarr", token="")
-    assert g.stages() == {"spec": 2, "inputs": 4, "layers": 4, "reference": 4, "write": 4}
-    assert "reference-scene-000001/frame-2" in g.nodes and "spec-scene-000000" in g.nodes
+    assert g.stages() == {"spec": 3, "inputs": 4, "layers": 4, "reference": 4, "write": 4}
+    assert "reference-scene-000002/frame-1" in g.nodes and "spec-scene-000000" in g.nodes
     for k, n in g.nodes.items():
         assert key_split(k) == n.stage + "-scene"       # the dashboard groups tasks by stage
-    w = g.nodes["write-scene-000001/frame-1"]
-    assert w.dependencies == ("spec-scene-000001", "inputs-scene-000001/frame-1",
-                              "layers-scene-000001/frame-1", "reference-scene-000001/frame-1")
-    assert w.args[:4] == ("/tmp/s.zarr", 2, Ref("spec-scene-000001"), 1)   # store frame 2 = scene 1, frame 1
+    w = g.nodes["write-scene-000002/frame-1"]
+    assert w.dependencies == ("spec-scene-000002", "inputs-scene-000002/frame-1",
+                              "layers-scene-000002/frame-1", "reference-scene-000002/frame-1")
+    assert w.args[:4] == ("/tmp/s.zarr", 3, Ref("spec-scene-000002"), 1)   # store frame 3 = scene 2, frame 1
+    assert w.kwargs == {"clip_id": cfg.frames()[3].clip_id}                 # the scene's balanced clip id
     assert g.writes == {0: "write-scene-000000/frame-0", 1: "write-scene-000001/frame-0",
-                        2: "write-scene-000001/frame-1", 3: "write-scene-000001/frame-2"}
+                        2: "write-scene-000002/frame-0", 3: "write-scene-000002/frame-1"}
     keys = list(g.nodes)
     for k, n in g.nodes.items():                     # topological order
         assert all(keys.index(d) < keys.index(k) for d in n.dependencies)
