@@ -7,7 +7,7 @@ SCHEDULER ?=
 WORKERS ?=
 export DENOISE_DATA ?= $(CURDIR)/data
 
-.PHONY: setup dataset test test-fast bench train report compare preview contact-sheet clean-data help
+.PHONY: setup dataset test test-fast bench train report compare compare-realtime preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -32,13 +32,27 @@ report: setup    ## evaluate RUNS on STORE and write a report
 
 COMPARE_MODELS ?= layer pixelgather layer-optimized samplesplat
 COMPARE_STEPS ?= 800
+REALTIME_MODELS ?= nbg wskpn
+REALTIME_STEPS ?= 4000
 compare: setup   ## the CPU comparison of docs/training.md: train-cpu + eval-cpu stores, each model, report (hours)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
 	for m in $(COMPARE_MODELS); do \
 	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(COMPARE_STEPS) --crop 64 --out data/runs/$$m || exit 1; \
 	done
-	$(PY) -m training report --runs $(addprefix data/runs/,$(COMPARE_MODELS)) --store data/eval-cpu.zarr --out data/report-eval-cpu
+	$(MAKE) --no-print-directory compare-realtime REALTIME_REPORT=0
+	$(PY) -m training report --runs $(addprefix data/runs/,$(COMPARE_MODELS) $(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-eval-cpu
+
+REALTIME_REPORT ?= 1
+compare-realtime: setup ## the 1-spp part of the comparison: nbg and wskpn on train-cpu, report on eval-cpu (minutes)
+	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
+	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
+	for m in $(REALTIME_MODELS); do \
+	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(REALTIME_STEPS) --crop 64 --out data/runs/$$m || exit 1; \
+	done
+	if [ "$(REALTIME_REPORT)" = 1 ]; then \
+	  $(PY) -m training report --runs $(addprefix data/runs/,$(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-realtime; \
+	fi
 
 preview: setup   ## render a preview of one scene: SEED, KIND
 	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr

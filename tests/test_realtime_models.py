@@ -151,7 +151,7 @@ def test_an_empty_cell_has_zero_weight_not_zero_value():
     value, wsum = splat(black, index, weight, D * Hg * Wg)
     black_cells = index[:, 0, 9, 3]                                    # corners of a black pixel
     assert (wsum[black_cells][weight[:, 0, 9, 3] > 0] > 0).all()       # filled ...
-    assert torch.equal(value[black_cells], torch.zeros_like(value[black_cells]))   # ... and black
+    assert torch.equal(value[:, black_cells], torch.zeros_like(value[:, black_cells]))   # ... and black
 
 
 def test_nbg_blend_weights_sum_to_one_and_guides_in_range():

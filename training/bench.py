@@ -80,10 +80,6 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
             f = res["layer"]["fmas_per_pixel"] / res["layer-optimized"]["fmas_per_pixel"]
             print(f"layer / layer-optimized: wall {r['ms_per_mp']:.1f}x, cpu {r['cpu_ms_per_mp']:.1f}x "
                   f"(FMAs {f:.1f}x: the bound where convolutions are compute-bound, as on a CPU)")
-        if ref:
-            for k in ("nbg", "wskpn"):
-                if k in res:
-                    print(f"{k}: {res[k]['ms_per_mp'] / ref:.3f} of OIDN's ms/MP (target <= 0.1)")
     return res
 
 

@@ -50,7 +50,9 @@ def network_inputs(radiance: torch.Tensor, albedo: torch.Tensor, normal: torch.T
     n = torch.nan_to_num(normal, nan=0.0).clamp(-1.0, 1.0)
     d = torch.nan_to_num(depth, nan=0.0, posinf=0.0).clamp(min=0.0)
     d = d / (d.amax(dim=(1, 2, 3), keepdim=True) + 1e-6)
-    return torch.cat((tonemap(clean_radiance(radiance)), clean_albedo(albedo), (n + 1.0) * 0.5, d), dim=1)
+    x = torch.cat((tonemap(clean_radiance(radiance)), clean_albedo(albedo), (n + 1.0) * 0.5, d), dim=1)
+    # channels-last: oneDNN's native layout; the narrow 5x5 convolutions run 2-3x faster on this CPU
+    return x.contiguous(memory_format=torch.channels_last)
 
 
 def warp(image: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -123,3 +125,6 @@ class PixelDenoiser(Denoiser):
 
     def filter(self, irradiance: torch.Tensor, net_in: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
+
+    def for_inference(self) -> "PixelDenoiser":
+        return self.eval().to(memory_format=torch.channels_last)

@@ -13,8 +13,8 @@ clamped), and the albedo is multiplied back.
 A cell is **empty** when its weight sum is zero (no pixel splatted into it), not when its value is zero:
 a black cell that received weight is a valid, black cell.
 
-Pure PyTorch: splatting is one ``index_add`` of the 8 trilinear corners of every pixel, slicing one
-gather at the same indices; no loop over pixels, differentiable end to end (the guide's gradient flows
+Pure PyTorch: splatting is a ``scatter_add`` of the 8 trilinear corners of every pixel per channel,
+slicing a gather at the same indices; no loop over pixels, differentiable end to end (the guide's gradient flows
 through the tent weights, whose ``|a|`` is smoothed to ``sqrt(a^2 + 1e-7)`` along the guide axis as in
 sec. 4.2; the spatial weights are constants, so they keep the exact tent).
 
@@ -75,33 +75,34 @@ def corners(guide: torch.Tensor, rate: int, guide_range: float):
 
 def splat(values: torch.Tensor, index: torch.Tensor, weight: torch.Tensor, cells: int):
     """Eq. 10: ``values (B C H W)`` splatted with the corner ``index``/``weight`` of :func:`corners` into
-    ``cells`` grid cells. Returns ``(value (cells, C), weight_sum (cells,))``; the value of a cell is its
-    normalised weighted mean, 0 where the weight sum is 0 (an empty cell)."""
-    c = values.shape[1]
-    v = values.permute(0, 2, 3, 1).reshape(1, -1, c)                       # 1 (BHW) C
-    w = weight.reshape(8, -1, 1)
-    src = torch.cat((w * v, w), dim=2).reshape(-1)                        # (8 BHW (C+1))
-    flat = (index.reshape(-1, 1) * (c + 1) + torch.arange(c + 1, device=index.device)).reshape(-1)
-    # a flat scatter_add: 2.7x faster on this CPU than index_add of (C+1)-wide rows
-    acc = torch.zeros(cells * (c + 1), dtype=values.dtype, device=values.device).scatter_add_(0, flat, src)
-    acc = acc.view(cells, c + 1)
-    wsum = acc[:, c]
+    ``cells`` grid cells. Returns ``(value (C, cells), weight_sum (cells,))``; the value of a cell is
+    its normalised weighted mean, 0 where the weight sum is 0 (an empty cell)."""
+    b, c, h, w = values.shape
+    wt = weight.reshape(8, 1, b, h * w)
+    src = torch.cat((wt * values.reshape(1, b, c, h * w).transpose(1, 2), wt), dim=1)   # 8 (C+1) B HW
+    src = src.transpose(0, 1).reshape(c + 1, -1)
+    i = index.reshape(-1)
+    # one 1-D scatter_add per channel (channel-major grid): 3x faster on this CPU than a flat
+    # scatter of (C+1)-wide rows, and 1.6x faster than index_add
+    acc = torch.zeros(c + 1, cells, dtype=values.dtype, device=values.device)
+    acc = torch.stack([acc[k].scatter_add(0, i, src[k]) for k in range(c + 1)])
+    wsum = acc[c]
     filled = wsum > 0
-    value = acc[:, :c] / torch.where(filled, wsum, torch.ones_like(wsum)).unsqueeze(1)
-    return value, wsum
+    return acc[:c] / torch.where(filled, wsum, torch.ones_like(wsum)), wsum
 
 
 def slice_grid(value: torch.Tensor, wsum: torch.Tensor, index: torch.Tensor, weight: torch.Tensor,
                shape: tuple[int, int, int, int]) -> torch.Tensor:
     """Eq. 13: trilinear read of the grid at each pixel's corners, renormalised over the non-empty
-    corners. ``shape`` is (B, C, H, W) of the output."""
+    corners. ``value (C, cells)``; ``shape`` is (B, C, H, W) of the output. Empty cells hold the value 0,
+    so the numerator needs no mask; the denominator sums the weights of the filled corners."""
     b, c, h, w = shape
-    idx = index.reshape(-1)
-    wt = weight.reshape(-1, 1) * (wsum[idx] > 0).to(weight.dtype).unsqueeze(1)
-    num = (value[idx] * wt).view(8, b * h * w, c).sum(dim=0)
-    den = wt.view(8, b * h * w, 1).sum(dim=0)
-    out = num / torch.where(den > 0, den, torch.ones_like(den))
-    return out.view(b, h, w, c).permute(0, 3, 1, 2)
+    i = index.reshape(-1)
+    wt = weight.reshape(8, -1)
+    den = (wt * (wsum > 0).to(wt.dtype).index_select(0, i).view(8, -1)).sum(dim=0)
+    den = torch.where(den > 0, den, torch.ones_like(den))
+    out = torch.stack([(value[k].index_select(0, i).view(8, -1) * wt).sum(dim=0) for k in range(c)]) / den
+    return out.view(c, b, h, w).transpose(0, 1)
 
 
 def bilateral_filter(values: torch.Tensor, guide: torch.Tensor, rate: int, guide_range: float) -> torch.Tensor:

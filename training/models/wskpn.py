@@ -124,11 +124,11 @@ class WSKPN(PixelDenoiser):
     def for_inference(self) -> "WSKPN":
         """A copy whose RepVGG blocks are fused into single 5x5 convolutions (same outputs)."""
         if self.config["fused"]:
-            return self.eval()
+            return super().for_inference()
         fused = copy.deepcopy(self)
         fused.net = nn.Sequential(*(b.fuse() for b in self.net))
         fused.config = {**self.config, "fused": True}
-        return fused.eval()
+        return super(WSKPN, fused).for_inference()
 
     def filter(self, irradiance, net_in):
         out = self.net(net_in)
