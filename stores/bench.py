@@ -9,6 +9,9 @@
   ``fraction_of_ceiling`` = mb_per_s / ceiling_mb_per_s (target >= 0.5).
 * ``stored_over_raw``: bytes of the image arrays' files / their float32 bytes.
 * ``codecs``: the candidate encodings on the same frames (ratio, decode ms a frame).
+* ``checksums``: the cost of schema v2's crc32c on every chunk: the same frames written to a v1
+  (no checksums) and a v2 store, interleaved: write ms a frame, crop and whole-frame read ms (fast
+  path, which verifies every inner chunk's crc32c in v2), zarr-python crop reads, stored bytes.
 
 Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
 (``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first.
@@ -25,9 +28,10 @@ import time
 
 import numpy as np
 
+from stores import schema
 from stores.reader import open_store
 from stores.schema import ARRAYS, StoreLayout
-from stores.writer import open_or_create
+from stores.writer import StoreWriter, open_or_create
 
 
 def _synthetic():
@@ -98,8 +102,63 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
     return rows
 
 
+def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, crops: int, crop: int,
+                      repeats: int = 3) -> dict:
+    """Write ``frame_list`` to a schema v1 and a v2 store (interleaved, ``repeats`` times, medians),
+    then time the same random crops and whole frames from both (interleaved, medians)."""
+    paths = {v: os.path.join(tmp, f"ck-v{v}.zarr") for v in (1, 2)}
+    for v, p in paths.items():
+        schema.create_store(p, layout, {"bench": True}, schema_version=v)
+    writers = {v: StoreWriter(p) for v, p in paths.items()}
+    write = {1: [], 2: []}
+    for _ in range(repeats):
+        for i, fr in enumerate(frame_list):
+            for v, w in writers.items():
+                t = time.perf_counter()
+                w.write_frame(i, fr)
+                write[v].append(time.perf_counter() - t)
+    stores = {v: open_store(p) for v, p in paths.items()}
+    zstores = {v: open_store(p, fast=False) for v, p in paths.items()}
+    crop = min(crop, layout.height, layout.width)
+    rng = np.random.default_rng(1)
+    picks = [(int(rng.integers(len(frame_list))), int(rng.integers(0, layout.height - crop + 1)),
+              int(rng.integers(0, layout.width - crop + 1))) for _ in range(crops)]
+    images = [s.path for s in ARRAYS if s.image]
+
+    def crop_read(st, i, y, x):
+        st.read_array("inputs/radiance", i, (y, x, crop, crop))
+        st.read_array("inputs/features", i, (y, x, crop, crop))
+
+    def frame_read(st, i):
+        for a in images:
+            st.read_array(a, i)
+
+    ways = {f"crop_v{v}": (lambda v: lambda i, y, x: crop_read(stores[v], i, y, x))(v) for v in (1, 2)}
+    ways.update({f"zarr_crop_v{v}": (lambda v: lambda i, y, x: crop_read(zstores[v], i, y, x))(v) for v in (1, 2)})
+    ways.update({f"frame_v{v}": (lambda v: lambda i, y, x: frame_read(stores[v], i))(v) for v in (1, 2)})
+    times = {k: [] for k in ways}
+    for fn in ways.values():
+        fn(*picks[0])
+    for pick in picks:
+        for k, fn in ways.items():
+            t = time.perf_counter()
+            fn(*pick)
+            times[k].append(time.perf_counter() - t)
+    med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+    out = {f"write_ms_v{v}": 1e3 * float(np.median(write[v])) for v in (1, 2)}
+    out.update({f"{k}_ms": v for k, v in med.items()})
+    for v, p in paths.items():
+        out[f"bytes_v{v}"] = sum(_dir_bytes(os.path.join(p, *a.split("/"))) for a in images)
+    for k in ("write", "crop", "zarr_crop", "frame"):
+        a, b = out[f"{k}_ms_v1" if k == "write" else f"{k}_v1_ms"], out[f"{k}_ms_v2" if k == "write" else f"{k}_v2_ms"]
+        out[f"{k}_overhead"] = b / a - 1.0
+    out["bytes_overhead"] = out["bytes_v2"] / out["bytes_v1"] - 1.0
+    out.update({"frames": len(frame_list), "crop": crop, "crops": crops})
+    return out
+
+
 def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: int = 4, size: int = 256,
-        compare: bool = True, verbose: bool = True) -> dict:
+        compare: bool = True, checksums: bool = True, verbose: bool = True) -> dict:
     """Run the benchmark (module docstring) and return its figures."""
     tmp = tempfile.mkdtemp(prefix="stores-bench-")
     out: dict = {}
@@ -176,6 +235,8 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         out["stored_over_raw"] = stored / max(raw, 1)
         if compare and frame_list:
             out["codecs"] = compare_codecs(frame_list)
+        if checksums and frame_list:
+            out["checksums"] = compare_checksums(frame_list, lay, tmp, crops, crop)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if verbose:
@@ -199,6 +260,18 @@ def format_report(r: dict) -> str:
              f"  stored / raw float32 bytes {r['stored_over_raw']:.3f}"]
     if "write_s_per_frame" in r:
         lines.append(f"  write {r['write_s_per_frame'] * 1e3:.0f} ms per frame")
+    ck = r.get("checksums")
+    if ck:
+        lines.append(f"  checksums (schema v2 crc32c on every chunk vs v1 none), {ck['frames']} frames, medians:")
+        lines.append(f"    write        v1 {ck['write_ms_v1']:8.1f} ms/frame  v2 {ck['write_ms_v2']:8.1f}  "
+                     f"({100 * ck['write_overhead']:+.1f}%)")
+        lines.append(f"    crop read    v1 {ck['crop_v1_ms']:8.2f} ms  v2 {ck['crop_v2_ms']:8.2f}  "
+                     f"({100 * ck['crop_overhead']:+.1f}%)  ({ck['crop']}x{ck['crop']}, radiance + features, fast path)")
+        lines.append(f"    crop read    v1 {ck['zarr_crop_v1_ms']:8.2f} ms  v2 {ck['zarr_crop_v2_ms']:8.2f}  "
+                     f"({100 * ck['zarr_crop_overhead']:+.1f}%)  (zarr-python)")
+        lines.append(f"    frame read   v1 {ck['frame_v1_ms']:8.2f} ms  v2 {ck['frame_v2_ms']:8.2f}  "
+                     f"({100 * ck['frame_overhead']:+.1f}%)  (every image array, fast path)")
+        lines.append(f"    stored bytes v1 {ck['bytes_v1']:9d}  v2 {ck['bytes_v2']:9d}  ({100 * ck['bytes_overhead']:+.2f}%)")
     for row in r.get("codecs", []):
         lines.append(f"    {row['encoding']:52s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"
                      + (f"  Inf: {row['inf_after_encoding']}" if row["inf_after_encoding"] else ""))

@@ -20,8 +20,9 @@ import numpy as np
 
 from stores import schema
 from stores.contract import FRAME_ARRAYS, FRAME_META
-from stores.errors import (CropSizeError, FrameIndexError, IncompleteFrameError, SampleCountError,
-                           SplitError, StoreLayoutError)
+from stores.codecs import crc32c
+from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
+                           MissingShardError, SampleCountError, SplitError, StoreError, StoreLayoutError)
 from stores.schema import ARRAY_BY_PATH, ARRAY_BY_SOURCE, StoreLayout
 
 DEFAULT_SPLIT = {"train": 0.8, "val": 0.1, "test": 0.1}
@@ -46,11 +47,19 @@ def split_of_clip(clip_id: int, fractions: dict | None = None) -> str:
 
 
 class _ShardReader:
-    """Direct reader of one sharded image array on a local store (see module docstring)."""
+    """Direct reader of one sharded image array on a local store (see module docstring).
 
-    def __init__(self, array_dir: str, meta: dict, dims: tuple[str, ...]):
+    Every byte it takes from a file is checked first: the shard index must fit the file and pass its
+    crc32c, each inner chunk's offset and length must lie inside the data before the index, schema v2
+    inner chunks must pass their crc32c, and Blosc must decode to exactly one chunk. Any failure is a
+    :class:`CorruptChunkError` naming the array, frame and file. A missing shard file of a frame
+    marked complete is a :class:`MissingShardError` when ``strict`` (schema v2, where every shard is
+    written); otherwise it reads as the fill value (an unwritten frame, or a v1 all-zero shard)."""
+
+    def __init__(self, array_dir: str, meta: dict, dims: tuple[str, ...], name: str = ""):
         shard = meta["codecs"][0]["configuration"]
         self.dir = array_dir
+        self.name = name or array_dir
         self.inner = tuple(shard["chunk_shape"])
         self.shards = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
         self.shape = tuple(meta["shape"])
@@ -62,6 +71,8 @@ class _ShardReader:
         self.nx = self.shards[self.ix] // self.inner[self.ix]
         names = [c["name"] for c in shard["codecs"]]
         self.blosc = "blosc" in names
+        self.crc = names[-1] == "crc32c"
+        self.chunk_nbytes = int(np.prod(self.inner[1:])) * self.dtype.itemsize
         self.sep = meta["chunk_key_encoding"].get("configuration", {}).get("separator", "/")
 
     @staticmethod
@@ -72,7 +83,7 @@ class _ShardReader:
                 return False
             conf = codecs[0]["configuration"]
             names = [c["name"] for c in conf["codecs"]]
-            inner_ok = names in (["bytes"], ["bytes", "blosc"])
+            inner_ok = names in (["bytes"], ["bytes", "blosc"], ["bytes", "crc32c"], ["bytes", "blosc", "crc32c"])
             endian = conf["codecs"][0].get("configuration", {}).get("endian", "little") == "little"
             index_ok = [c["name"] for c in conf["index_codecs"]] == ["bytes", "crc32c"]
             key_ok = meta["chunk_key_encoding"]["name"] == "default"
@@ -80,13 +91,42 @@ class _ShardReader:
         except (KeyError, IndexError, TypeError):
             return False
 
+    def shard_path(self, frame: int) -> str:
+        key = self.sep.join(["c", str(frame)] + ["0"] * (len(self.shape) - 1))
+        return os.path.join(self.dir, *key.split("/")) if self.sep == "/" else os.path.join(self.dir, key)
+
+    def _corrupt(self, frame: int, path: str, what: str) -> CorruptChunkError:
+        return CorruptChunkError(f"{self.name}: frame {frame}: shard file {path} is damaged: {what}",
+                                 array=self.name, frame=frame, path=path)
+
+    def _index(self, fd: int, frame: int, path: str) -> tuple[np.ndarray, int]:
+        """The checked shard index ``(ny, nx, 2)`` (offset, length) and the size of the data before it."""
+        size = os.fstat(fd).st_size
+        n = self.ny * self.nx
+        isz = n * 16 + 4
+        if size < isz:
+            raise self._corrupt(frame, path, f"{size} bytes, shorter than its {isz}-byte shard index (truncated)")
+        raw = os.pread(fd, isz, size - isz)
+        if len(raw) != isz:
+            raise self._corrupt(frame, path, f"short read of the shard index ({len(raw)} of {isz} bytes)")
+        if crc32c(memoryview(raw)[:-4]) != int.from_bytes(raw[-4:], "little"):
+            raise self._corrupt(frame, path, "shard index fails its crc32c checksum (truncated, overwritten or garbage)")
+        idx = np.frombuffer(raw, "<u8", count=2 * n).reshape(self.ny, self.nx, 2)
+        data = np.uint64(size - isz)
+        off, ln = idx[..., 0], idx[..., 1]
+        empty = (off == _EMPTY) & (ln == _EMPTY)
+        bad = ~empty & ((off > data) | (ln > data - np.minimum(off, data)))
+        if bad.any():
+            cy, cx = (int(v) for v in np.argwhere(bad)[0])
+            raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) at offset {int(off[cy, cx])} + "
+                                             f"{int(ln[cy, cx])} bytes lies outside the {int(data)} bytes of chunk data")
+        return idx, int(data)
+
     def read(self, frame: int, y0: int, y1: int, x0: int, x1: int, samples: int | None = None,
-             pool=None) -> np.ndarray:
+             pool=None, *, strict: bool = False) -> np.ndarray:
         """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis (and only the first
         ``samples`` samples, for arrays with a sample axis), storage dtype."""
         from numcodecs import blosc
-        ndim = len(self.shape)
-        key = self.sep.join(["c", str(frame)] + ["0"] * (ndim - 1))
         inner = list(self.inner[1:])
         out_shape = list(self.shape[1:])
         iy, ix = self.iy - 1, self.ix - 1
@@ -97,16 +137,19 @@ class _ShardReader:
             keep[self.isample - 1] = slice(0, samples)
         out = np.empty(out_shape, self.dtype)
         ty, tx = inner[iy], inner[ix]
-        path = os.path.join(self.dir, *key.split("/")) if self.sep == "/" else os.path.join(self.dir, key)
+        path = self.shard_path(frame)
         try:
             fd = os.open(path, os.O_RDONLY)
         except FileNotFoundError:
+            if strict:
+                raise MissingShardError(f"{self.name}: frame {frame} is marked complete but its shard file "
+                                        f"{path} is missing (re-render the frame: `python -m pipeline dataset` "
+                                        f"resumes it)", array=self.name, frame=frame, path=path) from None
             out[...] = self.fill
             return out
         try:
-            size = os.fstat(fd).st_size
-            n = self.ny * self.nx
-            idx = np.frombuffer(os.pread(fd, n * 16, size - n * 16 - 4), "<u8").reshape(self.ny, self.nx, 2)
+            idx, _ = self._index(fd, frame, path)
+
             def one(cy: int, cx: int) -> None:
                 ys, ye = max(y0, cy * ty), min(y1, (cy + 1) * ty)
                 xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
@@ -117,8 +160,20 @@ class _ShardReader:
                     out[tuple(dst)] = self.fill
                     return
                 buf = os.pread(fd, nbytes, off)
+                if len(buf) != nbytes:
+                    raise self._corrupt(frame, path, f"short read of inner chunk ({cy}, {cx})")
+                if self.crc:
+                    if nbytes < 4 or crc32c(memoryview(buf)[:-4]) != int.from_bytes(buf[-4:], "little"):
+                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) fails its crc32c checksum")
+                    buf = memoryview(buf)[:-4]
                 if self.blosc:
-                    buf = blosc.decompress(buf)     # releases the GIL outside the main thread
+                    try:
+                        buf = blosc.decompress(buf)     # releases the GIL outside the main thread
+                    except (RuntimeError, ValueError, TypeError, OverflowError) as e:
+                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) does not decode: {e}") from e
+                if len(buf) != self.chunk_nbytes:
+                    raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
+                                                     f"not {self.chunk_nbytes}")
                 chunk = np.frombuffer(buf, self.dtype).reshape(inner)
                 src = list(keep)
                 src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
@@ -146,6 +201,8 @@ class Store:
         self._pool = None
         self._local = None
         self.root, self.layout = schema.open_group(path, mode="r")
+        self.version = schema.version_of(self.root)
+        self._specs = {s.path: s for s in schema.arrays(self.version)}
         self._init_local()
 
     def _init_local(self):
@@ -196,20 +253,44 @@ class Store:
     def refresh(self) -> None:
         """Forget cached per-frame metadata (after frames were written by another process)."""
         self.root, self.layout = schema.open_group(self.path, mode="r")
+        self._fast_readers = {}
         self._meta_cache = None
+
+    def _zarr_read(self, path: str, sel, frame: int | None = None) -> np.ndarray:
+        """``root[path][sel]`` through zarr-python, with damage (a failed crc32c, a truncated or garbage
+        chunk) raised as CorruptChunkError naming the array (and the frame, when one is read)."""
+        try:
+            return np.asarray(self.root[path][sel])
+        except StoreError:
+            raise
+        except Exception as e:    # noqa: BLE001 - zarr/numcodecs raise ValueError, RuntimeError, ... on bad bytes
+            if frame is None:     # a whole column: find the frame whose chunk is bad
+                for i in range(self.root[path].shape[0]):
+                    try:
+                        np.asarray(self.root[path][i])
+                    except Exception:   # noqa: BLE001
+                        frame = i
+                        break
+            spec = self._specs.get(path)
+            f = schema.chunk_file(self.root, spec, frame)[1] if spec is not None and frame is not None else path
+            raise CorruptChunkError(f"{path}: frame {frame}: chunk file {f} is damaged: {type(e).__name__}: {e}",
+                                    array=path, frame=frame, path=f) from e
 
     def _meta_table(self) -> dict:
         if self._meta_cache is None:
             table = {}
             for key in list(FRAME_META) + ["clip_id"]:
-                table[key] = self.root[f"frames/{key}"][:]
-            table["complete"] = np.asarray(self.root["status/complete"][:], bool)
-            table["error"] = self.root["status/error"][:]
+                table[key] = self._zarr_read(schema.meta_path(key, self.version), slice(None))
+            table["frame_in_clip"] = table["frame"]
+            table["complete"] = np.asarray(self._zarr_read("status/complete", slice(None)), bool)
+            table["error"] = self._zarr_read("status/error", slice(None))
             self._meta_cache = table
         return self._meta_cache
 
     def meta_column(self, key: str) -> np.ndarray:
-        """One ``frames/*`` column (or ``complete``/``error``) for all frames, from the cache."""
+        """One ``frames/*`` column by its ``FRAME_META`` key (or ``clip_id``, ``complete``, ``error``) for
+        all frames, from the cache. ``frame`` (= ``frame_in_clip``) is the index in the clip, stored as
+        ``frames/frame`` in v1 and ``frames/frame_in_clip`` in v2."""
         return self._meta_table()[key].copy()
 
     def complete_mask(self) -> np.ndarray:
@@ -250,8 +331,8 @@ class Store:
         out["clip_id"] = int(t["clip_id"][i])
         out["complete"] = bool(t["complete"][i])
         out["error"] = str(t["error"][i])
-        out["camera_to_world"] = np.asarray(self.root["frames/camera_to_world"][i])
-        out["world_to_clip"] = np.asarray(self.root["frames/world_to_clip"][i])
+        out["camera_to_world"] = self._zarr_read("frames/camera_to_world", i, i)
+        out["world_to_clip"] = self._zarr_read("frames/world_to_clip", i, i)
         return out
 
     # ---------------------------------------------------------------- images
@@ -266,7 +347,7 @@ class Store:
                 if not _ShardReader.applicable(meta):
                     self._fast_readers[path] = False
                     return None
-                r = _ShardReader(os.path.join(self._local, *path.split("/")), meta, ARRAY_BY_PATH[path].dims)
+                r = _ShardReader(os.path.join(self._local, *path.split("/")), meta, ARRAY_BY_PATH[path].dims, path)
                 self._fast_readers[path] = r
         return r or None
 
@@ -296,17 +377,28 @@ class Store:
             samples = self._check_spp(samples)
         else:
             samples = None
+        # v2 writes every shard, so a complete frame without one lost it; v1 skipped all-zero shards
+        strict = self.version >= 2 and bool(self._meta_table()["complete"][i])
         r = self._reader(path) if spec.image else None
         if r is not None:
-            a = r.read(i, y, y + h, x, x + w, samples, self._get_pool())
+            a = r.read(i, y, y + h, x, x + w, samples, self._get_pool(), strict=strict)
         else:
+            if strict:
+                there, f = schema.chunk_file(self.root, spec, i)
+                if not there:
+                    raise MissingShardError(f"{path}: frame {i} is marked complete but its shard file {f} is "
+                                            f"missing (re-render the frame: `python -m pipeline dataset` resumes it)",
+                                            array=path, frame=i, path=f)
+                if os.path.isfile(f) and os.path.getsize(f) == 0:      # zarr reads an empty shard as fill
+                    raise CorruptChunkError(f"{path}: frame {i}: shard file {f} is damaged: it is empty",
+                                            array=path, frame=i, path=f)
             sel = [i] + [slice(None)] * (len(spec.dims) - 1)
             if spec.image:
                 sel[spec.dims.index("y")] = slice(y, y + h)
                 sel[spec.dims.index("x")] = slice(x, x + w)
             if samples is not None:
                 sel[spec.dims.index("sample")] = slice(0, samples)
-            a = np.asarray(self.root[path][tuple(sel)])
+            a = self._zarr_read(path, tuple(sel), i)
         if path == "inputs/radiance" and self.layout.radiance_encoding == "log16":
             from stores.codecs import decode_log16
             a = decode_log16(a)
@@ -333,7 +425,7 @@ class Store:
             if spec.image:
                 a = self.read_array(spec.path, i, crop, samples=spp, check_complete=False)
             else:
-                a = np.asarray(self.root[spec.path][i])
+                a = self._zarr_read(spec.path, i, i)
             out[key] = spec.from_store(a, self.layout)
         return out
 
@@ -364,12 +456,54 @@ class Store:
         return out
 
     def clips(self, split: str | None = None, *, complete_only: bool = True) -> dict[int, list[int]]:
-        """clip id -> frame indices ordered by ``frames/frame`` (index in clip)."""
+        """clip id -> frame indices ordered by their index in the clip (``frame_in_clip``)."""
         t = self._meta_table()
         groups: dict[int, list[int]] = {}
         for i in self.frames_in_split(split, complete_only=complete_only):
             groups.setdefault(int(t["clip_id"][i]), []).append(i)
         return {c: sorted(v, key=lambda j: int(t["frame"][j])) for c, v in sorted(groups.items())}
+
+
+    def missing_data(self, frames=None) -> dict[int, list[tuple[str, str]]]:
+        """Complete frames (of ``frames``, default all) whose chunk files are not all there, frame ->
+        ``[(array, file)]``; always ``{}`` for schema v1 stores (see ``schema.missing_chunks``)."""
+        done = self._meta_table()["complete"]
+        frames = range(self.num_frames) if frames is None else frames
+        return schema.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]], self.version)
+
+    def frame_problems(self, i: int) -> list[str]:
+        """See :func:`frame_problems`."""
+        return frame_problems(self, i)
+
+
+def frame_problems(store, i: int) -> list[str]:
+    """Why frame ``i`` should not be trained or evaluated on (``[]`` if nothing): incomplete; NaN/Inf
+    values the renderer replaced (``frames/nonfinite_*``); a non-finite or negative reference; an
+    all-zero reference while the input radiance is not zero. Cheap: reads the metadata cache and the
+    reference (the inputs only when the reference is all zero). Damaged data raises (StoreCorruptionError)."""
+    st = store if isinstance(store, Store) else open_store(store)
+    i = st._check_index(i)
+    t = st._meta_table()
+    if not t["complete"][i]:
+        return ["incomplete"]
+    out = []
+    for key, what in (("nonfinite_inputs", "input samples"), ("nonfinite_layers", "sample layers"),
+                      ("nonfinite_reference", "reference")):
+        n = int(t[key][i])
+        if n:
+            out.append(f"{n} NaN/Inf values in its {what} (replaced by the renderer, frames/{key})")
+    ref = st.read_array("reference/radiance", i)
+    bad = int(ref.size - np.isfinite(ref).sum())
+    if bad:
+        out.append(f"reference has {bad} NaN/Inf values")
+    neg = int((ref < 0).sum())
+    if neg:
+        out.append(f"reference has {neg} negative values (min {float(np.nanmin(ref)):.4g})")
+    if not np.any(ref):
+        rad = st.read_array("inputs/radiance", i)
+        if np.any(rad):
+            out.append(f"reference is all zero while the input radiance is not (max {float(np.nanmax(rad)):.4g})")
+    return out
 
 
 def open_store(path, *, fast: bool = True, threads: int = 0) -> Store:
@@ -379,4 +513,4 @@ def open_store(path, *, fast: bool = True, threads: int = 0) -> Store:
     return Store(path, fast=fast, threads=threads)
 
 
-__all__ = ["Store", "open_store", "split_of_clip", "DEFAULT_SPLIT", "StoreLayout"]
+__all__ = ["Store", "open_store", "frame_problems", "split_of_clip", "DEFAULT_SPLIT", "StoreLayout"]

@@ -1,4 +1,11 @@
-"""The store schema, version 1: a versioned table of arrays, the layout, and store creation/opening.
+"""The store schema: versioned tables of arrays (v1, v2), the layout, and store creation/opening.
+
+``create_store`` writes schema v2 (``TABLES[2]``); ``open_group`` reads v1 and v2 and checks every
+array's ``zarr.json`` against its version's table (``array_problems``). v2 over v1: a ``crc32c``
+checksum on every chunk (the inner chunks of shards too), ``frames/frame`` renamed
+``frames/frame_in_clip``, coordinates for xarray (``G/frame`` 0..F-1 in every group, ``rgb``/``xyz``/
+``uv`` labels, ``layers/level`` with ``layers/spp`` as its non-index coordinate), consolidated
+metadata, and every chunk of a complete frame written (so a missing file is damage, not zeros).
 
 One Zarr v3 group per dataset (see ``stores/SCHEMA.md`` for the table with dtypes, chunks and the
 measurements behind them). Images are stored sample-major, the ``(S, C, h, w)`` layout training
@@ -16,17 +23,19 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
-from stores.errors import (ForeignStoreError, IncompleteStoreError, SchemaVersionError, StoreError,
+from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError, StoreError,
                            StoreExistsError, StoreLayoutError, StoreNotFoundError)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2                 # what create_store writes
+READABLE_VERSIONS = (1, 2)         # what open_group reads (and appends to, in its own layout)
+COORD_CHUNK = 1024                 # chunk length of the v2 ``frame`` coordinates (they grow with the store)
 STORE_KIND = "denoise-datagen.sample-store"
 RADIANCE_ENCODINGS = ("float32", "log16")
 FEATURE_DTYPES = ("float16", "float32")
@@ -114,6 +123,14 @@ class ArraySpec:
     squeeze: bool = False
     image: bool = True
     fill: Any = 0
+    coord: str = ""             # "" per-frame data; else a v2 coordinate written at creation (see coord_values)
+    labels: tuple[str, ...] = ()    # the values of a ``labels`` coordinate
+    xr_coords: str = ""         # v2: names of non-index coordinates (xarray's ``coordinates`` attribute)
+
+    @property
+    def per_frame(self) -> bool:
+        """Written by each frame's task (one chunk or shard per frame), as opposed to a coordinate."""
+        return not self.coord
 
     def to_store(self, a: np.ndarray, layout: StoreLayout) -> np.ndarray:
         """Contract layout (channel-last) -> storage layout and dtype, for one frame."""
@@ -153,7 +170,12 @@ class ArraySpec:
         return tuple(sizes[d] for d in self.dims)
 
     def chunks(self, layout: StoreLayout) -> tuple[int, ...]:
-        """Inner chunk shape: one frame x one spatial tile x everything else."""
+        """Inner chunk shape: one frame x one spatial tile x everything else (coordinates: one chunk,
+        ``COORD_CHUNK`` frames for a ``frame`` coordinate)."""
+        if self.coord == "frame":
+            return (COORD_CHUNK,)
+        if self.coord:
+            return self.shape(layout)
         tiles = {"y": layout.tile_y, "x": layout.tile_x}
         return tuple(1 if d == "frame" else tiles.get(d, s) for d, s in zip(self.dims, self.shape(layout)))
 
@@ -206,10 +228,218 @@ _STATUS_SPECS = (
     ArraySpec("status/complete", ("frame",), "bool", "complete",
               "True once every array of the frame is written; written last", image=False, fill=False),
 )
-ARRAYS: tuple[ArraySpec, ...] = _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS + _STATUS_SPECS
-ARRAY_BY_PATH = {s.path: s for s in ARRAYS}
-ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}
 GROUPS = ("inputs", "layers", "reference", "guides", "frames", "status")
+ARRAYS_V1: tuple[ArraySpec, ...] = _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS + _STATUS_SPECS
+
+
+def _v2_coords() -> tuple[ArraySpec, ...]:
+    out = [ArraySpec(f"{g}/frame", ("frame",), "int64", "", "frame index 0..F-1 (the frame coordinate)",
+                     image=False, coord="frame") for g in GROUPS]
+    for g, dim, labels in (("inputs", "rgb", "rgb"), ("layers", "rgb", "rgb"), ("reference", "rgb", "rgb"),
+                           ("guides", "rgb", "rgb"), ("guides", "xyz", "xyz"), ("guides", "uv", "uv")):
+        out.append(ArraySpec(f"{g}/{dim}", (dim,), "str", "", f"channel labels of {dim}", image=False,
+                             fill="", coord="labels", labels=tuple(labels)))
+    out += [ArraySpec("inputs/feature", ("feature",), "str", "", "feature names (stores.contract.FEATURE_NAMES)",
+                      image=False, fill="", coord="labels", labels=FEATURE_NAMES),
+            ArraySpec("layers/level", ("level",), "int32", "", "level index 0..L-1", image=False, coord="level"),
+            ArraySpec("layers/spp", ("level",), "int32", "", "samples averaged in each level (coordinate of level)",
+                      image=False, coord="spp")]
+    return tuple(out)
+
+
+def _v2(spec: ArraySpec) -> ArraySpec:
+    if spec.path == "frames/frame":         # v1's name collides with the frame dimension in xarray
+        return replace(spec, path="frames/frame_in_clip", doc="index of the frame in its clip")
+    if spec.path == "layers/radiance":
+        return replace(spec, xr_coords="spp")
+    return spec
+
+
+# v2: every chunk carries a crc32c checksum; frames/frame -> frames/frame_in_clip; coordinates
+ARRAYS_V2: tuple[ArraySpec, ...] = tuple(_v2(s) for s in ARRAYS_V1) + _v2_coords()
+TABLES = {1: ARRAYS_V1, 2: ARRAYS_V2}
+ARRAYS = TABLES[SCHEMA_VERSION]
+ARRAY_BY_PATH = {s.path: s for s in ARRAYS}
+ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}     # the same in v1 and v2
+
+
+def arrays(version: int = SCHEMA_VERSION) -> tuple[ArraySpec, ...]:
+    """The array table of schema ``version`` (SchemaVersionError for others)."""
+    try:
+        return TABLES[int(version)]
+    except (KeyError, TypeError, ValueError):
+        raise SchemaVersionError(f"schema version {version!r} is not one of {READABLE_VERSIONS}") from None
+
+
+def meta_path(key: str, version: int = SCHEMA_VERSION) -> str:
+    """Path of the ``frames/*`` array holding ``FRAME_META`` key (or ``clip_id``) in schema ``version``
+    (``frame`` -> ``frames/frame`` in v1, ``frames/frame_in_clip`` in v2)."""
+    for spec in arrays(version):
+        if spec.path.startswith("frames/") and spec.source == key and spec.per_frame:
+            return spec.path
+    raise KeyError(key)
+
+
+def version_of(root) -> int:
+    return int(dict(root.attrs)["schema_version"])
+
+
+def coord_values(spec: ArraySpec, layout: StoreLayout) -> np.ndarray:
+    """The values of a v2 coordinate array."""
+    if spec.coord == "frame":
+        return np.arange(layout.num_frames, dtype=np.int64)
+    if spec.coord == "level":
+        return np.arange(layout.num_layers, dtype=np.int32)
+    if spec.coord == "spp":
+        return np.asarray(layout.layer_spp, np.int32)
+    if spec.coord == "labels":
+        return np.array(spec.labels)
+    raise ValueError(f"{spec.path} is not a coordinate")
+
+
+def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VERSION) -> dict:
+    """``zarr.Group.create_array`` keyword arguments of ``spec`` in schema ``version``: image arrays
+    sharded with Blosc inner chunks, scalars uncompressed; v2 appends the ``crc32c`` codec to every
+    (inner) chunk."""
+    dtype = spec.storage_dtype(layout)
+    crc = [codecs.checksum()] if version >= 2 else []
+    attrs = {"doc": spec.doc, "source": spec.source}
+    if version >= 2 and spec.xr_coords:
+        attrs["coordinates"] = spec.xr_coords
+    kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype, chunks=spec.chunks(layout),
+              dimension_names=spec.dims, fill_value=spec.fill, attributes=attrs)
+    if spec.image:
+        kw.update(shards=spec.shards(layout), compressors=[codecs.compressor()] + crc)
+    else:
+        kw.update(compressors=crc or None)
+    return kw
+
+
+def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple:
+    """The codec chain the schema gives ``spec``, in :func:`codec_signature`'s form."""
+    crc = (("crc32c",),) if version >= 2 else ()
+    ser = ("vlen-utf8",) if spec.storage_dtype(layout) == "str" else ("bytes", "little")
+    if spec.image:
+        b = codecs.BLOSC
+        inner = (("bytes", "little"), ("blosc", b["cname"], b["clevel"], b["shuffle"])) + crc
+        return (("sharding_indexed", spec.chunks(layout), inner, (("bytes", "little"), ("crc32c",)), "end"),)
+    return (ser,) + crc
+
+
+def codec_signature(chain) -> tuple:
+    """A ``zarr.json`` codec list reduced to what decoding depends on (names, byte order, Blosc
+    compressor/level/shuffle, sharding's inner chunks and index), for comparison with the schema."""
+    out = []
+    for c in chain or ():
+        name, conf = c.get("name"), c.get("configuration") or {}
+        if name == "bytes":
+            out.append(("bytes", conf.get("endian", "little")))
+        elif name == "blosc":
+            out.append(("blosc", conf.get("cname"), conf.get("clevel"), conf.get("shuffle")))
+        elif name == "sharding_indexed":
+            out.append((name, tuple(conf.get("chunk_shape", ())), codec_signature(conf.get("codecs")),
+                        codec_signature(conf.get("index_codecs")), conf.get("index_location", "end")))
+        else:
+            out.append((name,) + tuple(sorted((k, json.dumps(v)) for k, v in conf.items())))
+    return tuple(out)
+
+
+_DATA_TYPES = {"str": "string"}
+
+
+def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: bool = True) -> list[str]:
+    """Every way the arrays' metadata (``zarr.json``) differs from schema ``version``'s table: a
+    missing array, data type, shape, chunk/shard shape, chunk key encoding, codecs, fill value,
+    dimension names. ``frames_exact=False`` accepts a frame axis longer than ``layout.num_frames``
+    (a writer re-opening a store whose growth was cut short; ``grow`` finishes it)."""
+    out = []
+    for spec in arrays(version):
+        try:
+            arr = root[spec.path]
+            meta = arr.metadata.to_dict()
+        except KeyError:
+            out.append(f"{spec.path}: missing")
+            continue
+        except Exception as e:    # noqa: BLE001 - zarr raises many types for an unparsable zarr.json
+            out.append(f"{spec.path}: unreadable zarr.json ({type(e).__name__}: {e})")
+            continue
+        if meta.get("node_type") != "array":
+            out.append(f"{spec.path}: not an array")
+            continue
+        name = spec.path
+        dt = spec.storage_dtype(layout)
+        want_dt = _DATA_TYPES.get(dt, dt)
+        if meta.get("data_type") != want_dt:
+            out.append(f"{name}: data_type {meta.get('data_type')!r}, the schema says {want_dt!r}")
+        shape, want = tuple(meta.get("shape", ())), spec.shape(layout)
+        frame_ok = (len(shape) == len(want) and spec.dims[0] == "frame" and not frames_exact
+                    and shape[0] >= want[0] and shape[1:] == want[1:])
+        if shape != want and not frame_ok:
+            out.append(f"{name}: shape {shape}, the layout says {want}")
+        grid = meta.get("chunk_grid", {})
+        got_chunks = tuple((grid.get("configuration") or {}).get("chunk_shape", ()))
+        want_chunks = spec.shards(layout) if spec.image else spec.chunks(layout)
+        if grid.get("name") != "regular" or got_chunks != tuple(want_chunks):
+            out.append(f"{name}: chunk grid {grid.get('name')} {got_chunks}, the schema says regular {tuple(want_chunks)}")
+        key = meta.get("chunk_key_encoding", {})
+        if key.get("name") != "default" or (key.get("configuration") or {}).get("separator", "/") != "/":
+            out.append(f"{name}: chunk key encoding {key}, the schema says default with '/'")
+        got_c, want_c = codec_signature(meta.get("codecs")), expected_codecs(spec, layout, version)
+        if got_c != want_c:
+            out.append(f"{name}: codecs {got_c}, the schema says {want_c}")
+        fill = meta.get("fill_value")
+        if fill != spec.fill or type(fill) is bool and type(spec.fill) is not bool:
+            out.append(f"{name}: fill_value {fill!r}, the schema says {spec.fill!r}")
+        if tuple(meta.get("dimension_names") or ()) != spec.dims:
+            out.append(f"{name}: dimension names {meta.get('dimension_names')}, the schema says {list(spec.dims)}")
+    return out
+
+
+def chunk_key(spec: ArraySpec, frame: int) -> str:
+    """The key (path below the array) of frame ``frame``'s chunk or shard of a per-frame array."""
+    return "/".join(["c", str(int(frame))] + ["0"] * (len(spec.dims) - 1))
+
+
+def chunk_file(root, spec: ArraySpec, frame: int) -> tuple[bool, str]:
+    """``(exists, file)`` of frame ``frame``'s chunk or shard of per-frame array ``spec`` (``file`` is a
+    local path, or the store key for other stores)."""
+    from zarr.storage import LocalStore
+    store = root.store
+    key = "/".join(p for p in (root.path.strip("/"), spec.path, chunk_key(spec, frame)) if p)
+    if isinstance(store, LocalStore):
+        f = os.path.join(str(store.root), *key.split("/"))
+        return os.path.isfile(f), f
+    from zarr.core.sync import sync
+    return bool(sync(store.exists(key))), key
+
+
+def missing_chunks(root, frames, version: int | None = None) -> dict[int, list[tuple[str, str]]]:
+    """frame -> ``[(array, file), ...]`` of the per-frame arrays whose chunk or shard file for that frame
+    does not exist. Only meaningful for frames marked complete of schema v2 stores (every chunk is
+    written, even all-zero ones); v1 writers skipped all-zero chunks, so v1 returns ``{}``."""
+    version = version_of(root) if version is None else version
+    if version < 2:
+        return {}
+    specs = [s for s in arrays(version) if s.per_frame]
+    out: dict[int, list[tuple[str, str]]] = {}
+    for i in frames:
+        lost = [(spec.path, f) for spec in specs for there, f in [chunk_file(root, spec, i)] if not there]
+        if lost:
+            out[int(i)] = lost
+    return out
+
+
+def consolidate(path_or_url) -> None:
+    """Write consolidated metadata (zarr-python's extension of the root ``zarr.json``), so
+    ``xarray.open_zarr(path, group=G)`` opens without a warning. Call after every metadata change
+    (creation, growth, root attributes): a write of the root attributes through a handle opened
+    without it drops it again. The package's own readers never use it (``use_consolidated=False``)."""
+    import warnings
+
+    import zarr
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+        zarr.consolidate_metadata(_zarr_store(path_or_url))
 
 
 def package_versions() -> dict:
@@ -314,7 +544,8 @@ def _creation_hook() -> None:
         time.sleep(120)
 
 
-def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False):
+def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False,
+                 schema_version: int = SCHEMA_VERSION):
     """Create the group, every array (empty, ``status/complete`` all False) and the root attributes
     (schema version, layout, the full generation ``config``, package versions, git hash).
     Returns the ``zarr.Group``.
@@ -355,30 +586,25 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     # overwrite=False is the same "never replace a node" guarantee on the root.
     try:
         root = zarr.create_group(target, overwrite=False, attributes={
-            "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, CREATION_ATTR: _creation_record()})
+            "kind": STORE_KIND, "schema_version": schema_version, CREATION_ATTR: _creation_record()})
     except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError) as e:
         raise StoreExistsError(f"a store appeared at {p!s} while it was being created: {e}") from e
     for g in GROUPS:
         root.require_group(g)
-    comp = codecs.compressor()
-    for n, spec in enumerate(ARRAYS):
-        dtype = spec.storage_dtype(layout)
-        kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype,
-                  chunks=spec.chunks(layout), dimension_names=spec.dims)
-        if spec.image:
-            kw.update(shards=spec.shards(layout), compressors=comp, fill_value=0)
-        else:
-            kw.update(compressors=None, fill_value=spec.fill)
-        arr = root.create_array(spec.path, **kw)
-        arr.attrs.update({"doc": spec.doc, "source": spec.source})
-        if n == len(ARRAYS) // 2:
+    table = arrays(schema_version)            # the version's array table (v1 only for tests and benches)
+    for n, spec in enumerate(table):
+        arr = root.create_array(spec.path, **create_kwargs(spec, layout, schema_version))
+        if spec.coord:
+            arr.with_config({"write_empty_chunks": True})[:] = coord_values(spec, layout)
+        if n == len(table) // 2:
             _creation_hook()
-    feat = root.create_array("inputs/feature", shape=(NUM_FEATURES,), dtype=str, chunks=(NUM_FEATURES,),
-                             dimension_names=("feature",))
-    feat[:] = np.array(FEATURE_NAMES)
-    spp = root.create_array("layers/spp", shape=(layout.num_layers,), dtype="int32",
-                            chunks=(layout.num_layers,), dimension_names=("level",))
-    spp[:] = np.array(layout.layer_spp, np.int32)
+    if schema_version < 2:                   # v1 made its two coordinates outside its table
+        feat = root.create_array("inputs/feature", shape=(NUM_FEATURES,), dtype=str, chunks=(NUM_FEATURES,),
+                                 dimension_names=("feature",))
+        feat[:] = np.array(FEATURE_NAMES)
+        spp = root.create_array("layers/spp", shape=(layout.num_layers,), dtype="int32",
+                                chunks=(layout.num_layers,), dimension_names=("level",))
+        spp[:] = np.array(layout.layer_spp, np.int32)
     root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
     if layout.radiance_encoding == "log16":
         root["inputs/radiance"].attrs["log16"] = {
@@ -386,24 +612,29 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
             "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
     # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
     root.attrs.put({
-        "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, "layout": layout.to_dict(),
+        "kind": STORE_KIND, "schema_version": schema_version, "layout": layout.to_dict(),
         "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
         "package_versions": package_versions(), "git_hash": git_hash(),
     })
+    if schema_version >= 2:
+        consolidate(p)
     return root
 
 
-def open_group(path_or_url, mode: str = "r"):
-    """Open an existing store's root group after checking it is ours and of this schema version.
-    Returns ``(group, layout)``. Raises StoreNotFoundError, ForeignStoreError, IncompleteStoreError
-    (creation was cut short), SchemaVersionError."""
+def open_group(path_or_url, mode: str = "r", *, check: bool = True):
+    """Open an existing store's root group after checking it is ours and of a readable schema version
+    (``READABLE_VERSIONS``), and (``check``) that every array's metadata matches that version's table
+    (:func:`array_problems`). Returns ``(group, layout)``; :func:`version_of` gives the version.
+    Raises StoreNotFoundError, ForeignStoreError, IncompleteStoreError (creation was cut short),
+    SchemaVersionError, ArrayMetadataError (an edited or damaged ``zarr.json``). Consolidated
+    metadata is never used here (it may be stale)."""
     import zarr
     if not _exists(path_or_url):
         if isinstance(path_or_url, (str, os.PathLike)) and os.path.exists(os.fspath(path_or_url)):
             raise ForeignStoreError(f"{path_or_url!s} exists but is not a Zarr v3 group (no zarr.json)")
         raise StoreNotFoundError(f"no store at {path_or_url!s}")
     try:
-        root = zarr.open_group(_zarr_store(path_or_url), mode=mode)
+        root = zarr.open_group(_zarr_store(path_or_url), mode=mode, use_consolidated=False)
     except Exception as e:  # noqa: BLE001
         raise ForeignStoreError(f"{path_or_url!s} is not a readable Zarr group: {e}") from e
     attrs = dict(root.attrs)
@@ -417,13 +648,20 @@ def open_group(path_or_url, mode: str = "r"):
             f"(started {c.get('started')}) was cut short; run `python -m pipeline dataset` again to make it",
             creator=c)
     version = attrs.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads and writes "
-                                 f"version {SCHEMA_VERSION} only (re-create the store or use a matching release)")
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
+        raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads versions "
+                                 f"{', '.join(map(str, READABLE_VERSIONS))} and writes {SCHEMA_VERSION} "
+                                 f"(re-create the store or use a matching release)")
     layout = StoreLayout.from_dict(attrs["layout"])
-    missing = [s.path for s in ARRAYS if s.path not in root]
+    missing = [s.path for s in arrays(version) if s.path not in root]
     if missing:
         raise ForeignStoreError(f"{path_or_url!s} lacks schema arrays: {', '.join(missing)}")
+    if check:
+        bad = array_problems(root, layout, version, frames_exact=(mode == "r"))
+        if bad:
+            raise ArrayMetadataError(f"{path_or_url!s}: array metadata disagrees with schema v{version} "
+                                     f"({len(bad)} problem(s)): " + "; ".join(bad),
+                                     array=bad[0].split(":")[0])
     return root, layout
 
 
@@ -432,11 +670,18 @@ def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
     process (the graph's driver) before tasks write the new frames."""
     if num_frames <= layout.num_frames:
         return layout
-    for spec in ARRAYS:
+    version = version_of(root)
+    new = layout.with_frames(num_frames)
+    for spec in arrays(version):
+        if spec.dims[0] != "frame":
+            continue
         arr = root[spec.path]
         arr.resize((num_frames,) + tuple(arr.shape[1:]))
-    new = layout.with_frames(num_frames)
+        if spec.coord == "frame":
+            arr.with_config({"write_empty_chunks": True})[:] = coord_values(spec, new)
     root.attrs["layout"] = new.to_dict()
+    if version >= 2:
+        consolidate(root.store)
     return new
 
 
@@ -444,6 +689,7 @@ def layout_of(root) -> StoreLayout:
     return StoreLayout.from_dict(dict(root.attrs)["layout"])
 
 
-__all__ = ["SCHEMA_VERSION", "STORE_KIND", "StoreLayout", "ArraySpec", "ARRAYS", "ARRAY_BY_PATH",
+__all__ = ["SCHEMA_VERSION", "READABLE_VERSIONS", "STORE_KIND", "arrays", "meta_path", "version_of",
+           "array_problems", "missing_chunks", "chunk_key", "chunk_file", "create_kwargs", "consolidate", "TABLES", "StoreLayout", "ArraySpec", "ARRAYS", "ARRAY_BY_PATH",
            "ARRAY_BY_SOURCE", "GROUPS", "create_store", "open_group", "grow", "package_versions",
            "git_hash", "FLOAT16_MAX"]

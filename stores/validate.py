@@ -1,14 +1,23 @@
 """Store validator: schema, completeness, NaN/Inf counts, value ranges, reference standard error.
 
-``validate_store(path) -> StoreReport``; ``main(argv)`` is ``python -m pipeline validate STORE``
-(exit 0: no problem, 1: problems found, 2: not a readable store of this schema).
+``validate_store(path) -> StoreReport``; ``main(argv)`` is ``python -m pipeline validate STORE``.
+Exit codes (``EXIT_*``): 0 no problem; 1 problems found in readable data (incomplete frames, NaN/Inf,
+values out of range, an all-zero reference); 2 not a readable store (no store, not ours, unknown schema
+version, creation cut short, bad arguments); 3 the store is damaged (a complete frame's chunk file
+missing, a truncated/garbage chunk or one failing its crc32c, array metadata that disagrees with the
+schema). Damage is listed in full (every missing shard with its array and frame) before exiting 3.
+
+Array metadata (``zarr.json``: dtype, shape, chunks, codecs, fill value, dims) is compared with the
+schema table first; if it disagrees no frame is read (its bytes would be misread).
 
 Per complete frame it checks: no NaN/Inf in any array; radiance, layers and reference >= 0;
 reference standard error >= 0; features in range (albedo and roughness in [0, 1], time in [0, 1],
 lens position inside the unit disk, depth >= 0, normals of unit length or 0 on a miss); guides the
 same. It reports each frame's value ranges and the reference's mean relative standard error
 (``stderr / max(reference, 1e-3)``) with the renderer's own figure (``frames/reference_rel_stderr``).
-Incomplete frames are problems (with their recorded error text).
+Incomplete frames are problems (with their recorded error text). A complete frame whose reference
+is all zero while its input radiance is not is a problem. Schema v1 stores skipped all-zero shards,
+so a missing v1 shard is only a note ("read as zeros"), not damage.
 """
 from __future__ import annotations
 
@@ -19,10 +28,17 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from stores import schema
 from stores.contract import FEATURE_GROUPS
-from stores.errors import StoreError
+from stores.errors import StoreCorruptionError, StoreError
 from stores.reader import open_store
-from stores.schema import ARRAYS
+
+EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE, EXIT_DAMAGED = 0, 1, 2, 3
+EXIT_CODES_HELP = ("exit status: 0 no problem; 1 problems found (incomplete frames, NaN/Inf, values out of "
+                   "range, an all-zero reference); 2 not a readable store (missing, not ours, unknown schema "
+                   "version, creation cut short) or bad arguments; 3 the store is damaged (missing chunk files "
+                   "of complete frames, truncated/garbage chunks, crc32c mismatches, array metadata that "
+                   "disagrees with the schema)")
 
 _TOL = 2e-3          # float16 features: rel. precision ~5e-4
 
@@ -37,7 +53,8 @@ class FrameReport:
     ref_rel_stderr: float | None = None                  # measured mean relative standard error
     ref_rel_stderr_meta: float | None = None             # the renderer's figure
     renderer_nonfinite: int = 0                          # NaN/Inf the renderer replaced (frames/nonfinite_*)
-    problems: list = field(default_factory=list)
+    problems: list = field(default_factory=list)         # everything wrong (damage included)
+    damage: list = field(default_factory=list)           # missing / corrupt files of this frame
 
 
 @dataclass
@@ -47,11 +64,21 @@ class StoreReport:
     layout: dict = field(default_factory=dict)
     num_frames: int = 0
     frames: list = field(default_factory=list)
-    problems: list = field(default_factory=list)
+    problems: list = field(default_factory=list)         # store-level (damage included)
+    damage: list = field(default_factory=list)           # store-level damage (array metadata, metadata chunks)
+    notes: list = field(default_factory=list)            # not problems (e.g. v1 all-zero shards)
 
     @property
     def ok(self) -> bool:
         return not self.problems and all(not f.problems for f in self.frames)
+
+    @property
+    def damaged(self) -> bool:
+        return bool(self.damage) or any(f.damage for f in self.frames)
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_DAMAGED if self.damaged else EXIT_OK if self.ok else EXIT_PROBLEMS
 
     @property
     def incomplete(self) -> list[int]:
@@ -60,6 +87,7 @@ class StoreReport:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["ok"] = self.ok
+        d["damaged"] = self.damaged
         d["incomplete"] = self.incomplete
         return d
 
@@ -76,8 +104,10 @@ class StoreReport:
         if replaced:
             lines.append(f"  NaN/Inf replaced by the renderer: {replaced} values in "
                          f"{sum(1 for f in done if f.renderer_nonfinite)} frame(s)")
+        for n in self.notes:
+            lines.append(f"  note: {n}")
         for p in self.problems:
-            lines.append(f"  PROBLEM: {p}")
+            lines.append(f"  {'DAMAGE' if p in self.damage else 'PROBLEM'}: {p}")
         for f in self.frames:
             if f.problems or verbose:
                 status = "ok" if not f.problems else "; ".join(f.problems)
@@ -87,7 +117,7 @@ class StoreReport:
                 if verbose and f.ranges:
                     for k, (lo, hi) in f.ranges.items():
                         lines.append(f"      {k:18s} [{lo:.4g}, {hi:.4g}] nonfinite={f.nonfinite.get(k, 0)}")
-        lines.append("OK" if self.ok else "PROBLEMS FOUND")
+        lines.append("STORE DAMAGED" if self.damaged else "OK" if self.ok else "PROBLEMS FOUND")
         return "\n".join(lines)
 
 
@@ -132,6 +162,8 @@ def check_frame_values(fr: dict, report: FrameReport) -> None:
     _range_check("guides_albedo", fr["guides_albedo"], 0.0, 1.0, p)
     _range_check("guides_depth", fr["guides_depth"], 0.0, None, p)
     _range_check("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=1e-2)
+    if not np.any(fr["reference"]) and np.any(fr["radiance"]):
+        p.append(f"reference is all zero while the input radiance is not (max {float(np.nanmax(fr['radiance'])):.4g})")
     ref, se = fr["reference"].astype(np.float64), fr["reference_stderr"].astype(np.float64)
     if np.isfinite(ref).all() and np.isfinite(se).all():
         report.ref_rel_stderr = float(np.mean(se / np.maximum(np.abs(ref), 1e-3)))
@@ -146,6 +178,8 @@ def parse_frames(spec: str | None, num_frames: int) -> list[int]:
         part = part.strip()
         if "-" in part:
             a, b = (int(v) for v in part.split("-", 1))
+            if b < a:
+                raise ValueError(f"frame range {part!r} is empty (write it low-high, e.g. {b}-{a})")
             out.update(range(a, b + 1))
         else:
             out.add(int(part))
@@ -157,29 +191,62 @@ def parse_frames(spec: str | None, num_frames: int) -> list[int]:
 
 def validate_store(path, frames=None) -> StoreReport:
     """Validate the store at ``path`` (all frames, or the indices in ``frames``). Raises StoreError
-    subclasses when the path is not a readable store of this schema."""
+    subclasses when the path is not a readable store of a known schema; damage is reported, not raised
+    (``report.damage``, ``FrameReport.damage``; ``report.exit_code`` 3)."""
+    root, lay = schema.open_group(path, mode="r", check=False)
+    version = schema.version_of(root)
+    rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(),
+                      num_frames=int(root["status/complete"].shape[0]))
+
+    def damage(where, msg):
+        where.problems.append(msg)
+        where.damage.append(msg)
+
+    bad = schema.array_problems(root, lay, version)
+    for p in bad:
+        damage(rep, f"array metadata: {p}")
+    if bad:
+        rep.problems.append("frames not checked: their arrays' metadata disagrees with the schema")
+        return rep
     store = open_store(path)
-    rep = StoreReport(path=str(path), schema_version=store.schema_version,
-                      layout=store.layout.to_dict(), num_frames=store.num_frames)
-    lay = store.layout
-    for spec in ARRAYS:
-        arr = store.root[spec.path]
-        want = spec.shape(lay)
-        if tuple(arr.shape) != want:
-            rep.problems.append(f"{spec.path}: shape {tuple(arr.shape)}, layout says {want}")
-        if tuple(arr.metadata.dimension_names or ()) != spec.dims:
-            rep.problems.append(f"{spec.path}: dimension names {arr.metadata.dimension_names}, expected {spec.dims}")
+    try:
+        store.num_frames
+    except StoreCorruptionError as e:
+        damage(rep, str(e))
+        return rep
     indices = range(store.num_frames) if frames is None else frames
+    lost = store.missing_data(indices)
+    if version < 2:
+        specs = [s for s in schema.arrays(version) if s.image]
+        skipped = {}
+        for i in indices:
+            if store.complete_mask()[i]:
+                for spec in specs:
+                    if not schema.chunk_file(root, spec, i)[0]:
+                        skipped.setdefault(spec.path, []).append(int(i))
+        for a, fs in skipped.items():
+            rep.notes.append(f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}"
+                             f"{' ...' if len(fs) > 10 else ''} (schema v1 skipped all-zero shards: read as zeros)")
     for i in indices:
         meta = store.frames_meta(i)
         fr_rep = FrameReport(index=i, complete=meta["complete"], error=meta["error"])
         if not meta["complete"]:
             fr_rep.problems.append("incomplete" + (f" (error: {meta['error']})" if meta["error"] else ""))
+        elif i in lost:
+            for array, f in lost[i]:
+                damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
         else:
             fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
             fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
                                             + meta["nonfinite_reference"])
-            check_frame_values(store.read_frame(i, [k for k in _IMAGE_KEYS]), fr_rep)
+            data = {}
+            for key in _IMAGE_KEYS:
+                try:
+                    data[key] = store.read_frame(i, [key])[key]
+                except StoreCorruptionError as e:
+                    damage(fr_rep, str(e))
+            if not fr_rep.damage:
+                check_frame_values(data, fr_rep)
         rep.frames.append(fr_rep)
     return rep
 
@@ -194,34 +261,44 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--frames", default=None, help="frames to check: all (default), 3, 0,2,5-7")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
     ap.add_argument("-v", "--verbose", action="store_true", help="one line per frame with value ranges")
+    ap.epilog = EXIT_CODES_HELP
 
 
 def run(args) -> int:
-    """Validate and print; 0 if no problem, 1 if problems. Raises StoreError if the store cannot be read."""
-    store = open_store(args.store)
+    """Validate and print; returns the exit code (``EXIT_*``: 0 ok, 1 problems, 3 damaged). Raises
+    StoreError (exit 2) if the path is not a readable store or the arguments are bad."""
+    root, lay = schema.open_group(args.store, mode="r", check=False)
     try:
-        frames = parse_frames(args.frames, store.num_frames)
+        frames = parse_frames(args.frames, int(root["status/complete"].shape[0]))
     except ValueError as e:
         raise StoreError(str(e)) from e
-    rep = validate_store(args.store, frames)
+    try:
+        rep = validate_store(args.store, frames)
+    except StoreCorruptionError as e:       # damage the report could not take in (should not happen)
+        print(f"error: the store is damaged: {e}", file=sys.stderr)
+        return EXIT_DAMAGED
     print(json.dumps(rep.to_dict(), indent=1) if args.json else rep.format(args.verbose))
-    return 0 if rep.ok else 1
+    return rep.exit_code
 
 
 def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
-    """A stand-alone command (``python -m stores PROG``): parse, run, StoreError -> message and exit 2."""
+    """A stand-alone command (``python -m stores PROG``): parse, run, StoreCorruptionError -> message and
+    exit 3, other StoreError -> message and exit 2."""
     ap = argparse.ArgumentParser(prog=prog, description=description)
     add_args(ap)
     args = ap.parse_args(argv)
     try:
         return run_fn(args)
+    except StoreCorruptionError as e:
+        print(f"error: the store is damaged: {e}", file=sys.stderr)
+        return EXIT_DAMAGED
     except StoreError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_UNREADABLE
 
 
 def main(argv=None) -> int:
-    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store of this schema)."""
+    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store), 3 (store damaged)."""
     return cli_main("validate", "Check a store: schema, completeness, NaN/Inf counts, value ranges and "
                     "reference standard error, per frame.", add_arguments, run, argv)
 

@@ -9,6 +9,8 @@ Protocol for one frame ``i`` (one task writes it; tasks never share a chunk, so 
 
 A crash anywhere before step 4 leaves the frame marked incomplete, never half-valid; readers refuse
 incomplete frames (``IncompleteFrameError``) and ``incomplete_frames()`` lists them for a re-run.
+Every chunk is written, all-zero ones included, so in a schema v2 store a complete frame has one file
+per array; one whose files went missing counts as incomplete too (``frames_with_missing_data``).
 """
 from __future__ import annotations
 
@@ -67,6 +69,12 @@ class StoreWriter:
     def __init__(self, path):
         self.path = path
         self.root, self.layout = schema.open_group(path, mode="r+")
+        self.version = schema.version_of(self.root)
+
+    def _array(self, path: str):
+        """``path`` for writing: every chunk is written, all-zero ones too (zarr skips chunks equal to
+        the fill value by default, and a missing file must mean damage, not zeros; SCHEMA.md v2)."""
+        return self.root[path].with_config({"write_empty_chunks": True})
 
     @property
     def num_frames(self) -> int:
@@ -82,21 +90,21 @@ class StoreWriter:
         last. ``on_progress(path)`` is called after each array is written (logging, tests)."""
         index = self._check_index(index)
         check_frame(arrays, self.layout)
-        root = self.root
-        root["status/complete"][index] = False
-        root["status/error"][index] = ""
+        arr = self._array
+        arr("status/complete")[index] = False
+        arr("status/error")[index] = ""
         for source, spec in ARRAY_BY_SOURCE.items():
-            root[spec.path][index] = spec.to_store(arrays[source], self.layout)
+            arr(spec.path)[index] = spec.to_store(arrays[source], self.layout)
             if on_progress:
                 on_progress(spec.path)
         meta = dict(arrays["meta"])
         meta.setdefault("clip_id", meta["scene_seed"])
         for key in list(FRAME_META) + ["clip_id"]:
             value = meta[key]
-            root[f"frames/{key}"][index] = str(value) if FRAME_META.get(key) is str else value
+            arr(schema.meta_path(key, self.version))[index] = str(value) if FRAME_META.get(key) is str else value
         if on_progress:
             on_progress("frames")
-        root["status/complete"][index] = True
+        arr("status/complete")[index] = True
         if on_progress:
             on_progress("status/complete")
 
@@ -105,19 +113,39 @@ class StoreWriter:
         (an exception becomes ``'TypeName: message'``)."""
         index = self._check_index(index)
         text = f"{type(error).__name__}: {error}" if isinstance(error, BaseException) else str(error)
-        self.root["status/complete"][index] = False
-        self.root["status/error"][index] = text or "failed"
+        self._array("status/complete")[index] = False
+        self._array("status/error")[index] = text or "failed"
 
     def frame_complete(self, index: int) -> bool:
-        return bool(self.root["status/complete"][self._check_index(index)])
+        """Marked complete and (schema v2) every chunk file of the frame is there."""
+        index = self._check_index(index)
+        return bool(self.root["status/complete"][index]) and not schema.missing_chunks(self.root, [index])
 
     def incomplete_frames(self) -> list[int]:
-        return [int(i) for i in np.nonzero(~self.root["status/complete"][:])[0]]
+        """Frames to (re-)render: not marked complete, or marked complete but missing chunk files
+        (schema v2; :func:`frames_with_missing_data`)."""
+        done = np.asarray(self.root["status/complete"][:], bool)
+        lost = schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
+        return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
+
+    def frames_with_missing_data(self) -> dict[int, list[tuple[str, str]]]:
+        """Frames marked complete whose chunk files are not all there: frame -> ``[(array, file)]``."""
+        done = np.asarray(self.root["status/complete"][:], bool)
+        return schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
 
     def errors(self) -> dict[int, str]:
         """Frame index -> recorded error text, for frames with one."""
         err = self.root["status/error"][:]
         return {int(i): str(err[i]) for i in range(len(err)) if str(err[i])}
+
+
+def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
+    """Frames of the store at ``path`` marked complete but missing chunk or shard files, frame ->
+    ``[(array, file), ...]`` (schema v2; ``{}`` for v1, whose writers skipped all-zero chunks).
+    ``StoreWriter.incomplete_frames`` includes them, so a resume re-renders them."""
+    root, _ = schema.open_group(path, mode="r", check=False)
+    done = np.asarray(root["status/complete"][:], bool)
+    return schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
 
 
 def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False) -> StoreWriter:

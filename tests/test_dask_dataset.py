@@ -120,7 +120,8 @@ def test_store_contents_are_real_frames(local_store):
     rep = validate_store(str(local_store["out"]))
     assert rep.ok, rep.format()
     g = zarr.open_group(str(local_store["out"]), mode="r")
-    assert list(g["frames/frame"][:]) == [0, 0, 0, 1] and list(g["frames/num_frames"][:]) == [1, 1, 2, 2]
+    assert list(g["frames/frame_in_clip"][:]) == [0, 0, 0, 1] and list(g["frames/num_frames"][:]) == [1, 1, 2, 2]
+    assert list(g["frames/frame"][:]) == [0, 1, 2, 3]                   # schema v2: the frame coordinate
     seeds = g["frames/scene_seed"][:]
     assert seeds[2] == seeds[3] and len({seeds[0], seeds[1], seeds[2]}) == 3
     from pipeline.config import load_config
