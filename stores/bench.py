@@ -266,12 +266,14 @@ def format_report(r: dict) -> str:
         lines.append(f"    write        v1 {ck['write_ms_v1']:8.1f} ms/frame  v2 {ck['write_ms_v2']:8.1f}  "
                      f"({100 * ck['write_overhead']:+.1f}%)")
         lines.append(f"    crop read    v1 {ck['crop_v1_ms']:8.2f} ms  v2 {ck['crop_v2_ms']:8.2f}  "
-                     f"({100 * ck['crop_overhead']:+.1f}%)  ({ck['crop']}x{ck['crop']}, radiance + features, fast path)")
+                     f"({100 * ck['crop_overhead']:+.1f}%)  ({ck['crop']}x{ck['crop']}, radiance + features, "
+                     f"fast path)")
         lines.append(f"    crop read    v1 {ck['zarr_crop_v1_ms']:8.2f} ms  v2 {ck['zarr_crop_v2_ms']:8.2f}  "
                      f"({100 * ck['zarr_crop_overhead']:+.1f}%)  (zarr-python)")
         lines.append(f"    frame read   v1 {ck['frame_v1_ms']:8.2f} ms  v2 {ck['frame_v2_ms']:8.2f}  "
                      f"({100 * ck['frame_overhead']:+.1f}%)  (every image array, fast path)")
-        lines.append(f"    stored bytes v1 {ck['bytes_v1']:9d}  v2 {ck['bytes_v2']:9d}  ({100 * ck['bytes_overhead']:+.2f}%)")
+        lines.append(f"    stored bytes v1 {ck['bytes_v1']:9d}  v2 {ck['bytes_v2']:9d}  "
+                     f"({100 * ck['bytes_overhead']:+.2f}%)")
     for row in r.get("codecs", []):
         lines.append(f"    {row['encoding']:52s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"
                      + (f"  Inf: {row['inf_after_encoding']}" if row["inf_after_encoding"] else ""))

@@ -110,7 +110,8 @@ class _ShardReader:
         if len(raw) != isz:
             raise self._corrupt(frame, path, f"short read of the shard index ({len(raw)} of {isz} bytes)")
         if crc32c(memoryview(raw)[:-4]) != int.from_bytes(raw[-4:], "little"):
-            raise self._corrupt(frame, path, "shard index fails its crc32c checksum (truncated, overwritten or garbage)")
+            raise self._corrupt(frame, path, "shard index fails its crc32c checksum "
+                                             "(truncated, overwritten or garbage)")
         idx = np.frombuffer(raw, "<u8", count=2 * n).reshape(self.ny, self.nx, 2)
         data = np.uint64(size - isz)
         off, ln = idx[..., 0], idx[..., 1]
@@ -119,7 +120,8 @@ class _ShardReader:
         if bad.any():
             cy, cx = (int(v) for v in np.argwhere(bad)[0])
             raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) at offset {int(off[cy, cx])} + "
-                                             f"{int(ln[cy, cx])} bytes lies outside the {int(data)} bytes of chunk data")
+                                             f"{int(ln[cy, cx])} bytes lies outside the {int(data)} bytes "
+                                             f"of chunk data")
         return idx, int(data)
 
     def read(self, frame: int, y0: int, y1: int, x0: int, x1: int, samples: int | None = None,

@@ -30,8 +30,8 @@ import numpy as np
 
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
-from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError, StoreError,
-                           StoreExistsError, StoreLayoutError, StoreNotFoundError)
+from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
+                           StoreError, StoreExistsError, StoreLayoutError, StoreNotFoundError)
 
 SCHEMA_VERSION = 2                 # what create_store writes
 READABLE_VERSIONS = (1, 2)         # what open_group reads (and appends to, in its own layout)
@@ -380,7 +380,8 @@ def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: boo
         got_chunks = tuple((grid.get("configuration") or {}).get("chunk_shape", ()))
         want_chunks = spec.shards(layout) if spec.image else spec.chunks(layout)
         if grid.get("name") != "regular" or got_chunks != tuple(want_chunks):
-            out.append(f"{name}: chunk grid {grid.get('name')} {got_chunks}, the schema says regular {tuple(want_chunks)}")
+            out.append(f"{name}: chunk grid {grid.get('name')} {got_chunks}, "
+                       f"the schema says regular {tuple(want_chunks)}")
         key = meta.get("chunk_key_encoding", {})
         if key.get("name") != "default" or (key.get("configuration") or {}).get("separator", "/") != "/":
             out.append(f"{name}: chunk key encoding {key}, the schema says default with '/'")
@@ -653,9 +654,6 @@ def open_group(path_or_url, mode: str = "r", *, check: bool = True):
                                  f"{', '.join(map(str, READABLE_VERSIONS))} and writes {SCHEMA_VERSION} "
                                  f"(re-create the store or use a matching release)")
     layout = StoreLayout.from_dict(attrs["layout"])
-    missing = [s.path for s in arrays(version) if s.path not in root]
-    if missing:
-        raise ForeignStoreError(f"{path_or_url!s} lacks schema arrays: {', '.join(missing)}")
     if check:
         bad = array_problems(root, layout, version, frames_exact=(mode == "r"))
         if bad:
@@ -690,6 +688,7 @@ def layout_of(root) -> StoreLayout:
 
 
 __all__ = ["SCHEMA_VERSION", "READABLE_VERSIONS", "STORE_KIND", "arrays", "meta_path", "version_of",
-           "array_problems", "missing_chunks", "chunk_key", "chunk_file", "create_kwargs", "consolidate", "TABLES", "StoreLayout", "ArraySpec", "ARRAYS", "ARRAY_BY_PATH",
+           "array_problems", "missing_chunks", "chunk_key", "chunk_file", "create_kwargs", "consolidate",
+           "TABLES", "StoreLayout", "ArraySpec", "ARRAYS", "ARRAY_BY_PATH",
            "ARRAY_BY_SOURCE", "GROUPS", "create_store", "open_group", "grow", "package_versions",
            "git_hash", "FLOAT16_MAX"]

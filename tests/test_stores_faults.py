@@ -193,6 +193,15 @@ def test_edited_zarr_json_is_refused(store, capsys, edit, expect):
         SampleDataset(store, split=None, spp=S, crop=8)
 
 
+def test_deleted_array_is_damage(store, capsys):
+    import shutil
+    shutil.rmtree(os.path.join(store, "guides", "motion"))
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and "guides/motion: missing" in text, text
+    with pytest.raises(ArrayMetadataError, match="guides/motion: missing"):
+        open_store(store)
+
+
 def test_validate_cli_exit_codes_in_a_subprocess(store, tmp_path):
     """The real command line: 0 ok, 2 not a store, 3 damaged (one line on stderr, no traceback)."""
     env = dict(os.environ, PYTHONPATH=os.getcwd())
