@@ -226,3 +226,34 @@ def test_resume_on_another_store_is_refused(store, tmp_path):
     other = make_store(tmp_path / "other.zarr", per_split=(3, 1, 1))
     with pytest.raises(CheckpointError, match="another store"):
         train(cfg(steps=2), other, tmp_path / "r", progress=False)
+
+
+def test_flagged_frames_are_refused_or_skipped_with_a_count(tmp_path):
+    """A frame validate would flag (here: a negative reference) stops training and evaluation with a
+    message naming it; --skip-bad-frames leaves it out with a warning."""
+    from stores.writer import StoreWriter
+    from test_stores_synthetic import synthetic_frame
+    from training.errors import DataError
+    from training.evaluate import evaluate
+    from stores.reader import open_store
+    path = make_store(tmp_path / "bad.zarr")
+    st = open_store(path)
+    def spoil(i):                        # the same scene (so the same split), one negative reference value
+        fr = synthetic_frame(int(st.meta_column("scene_seed")[i]), 32, 32, 2, sun=False)
+        fr["reference"][0, 0, 0] = -1.0
+        StoreWriter(path).write_frame(i, fr)
+
+    bad = st.frames_in_split("train")[0]
+    spoil(bad)
+    with pytest.raises(DataError, match=f"frame {bad}: reference has 1 negative"):
+        train(cfg(steps=1), path, tmp_path / "r", progress=False)
+    with pytest.warns(UserWarning, match="skipping 1 flagged frames"):
+        res = train(cfg(steps=1, skip_bad_frames=True), path, tmp_path / "r2", progress=False)
+    assert res["step"] == 1
+    test_bad = st.frames_in_split("test")[0]
+    spoil(test_bad)
+    with pytest.raises(DataError, match="skip-bad-frames"):
+        evaluate("input", path, split="test", with_flip=False)
+    with pytest.warns(UserWarning, match="skipping"):
+        r = evaluate("input", path, split="test", with_flip=False, skip_bad_frames=True)
+    assert test_bad not in [f["index"] for f in r["frames"]]

@@ -23,7 +23,7 @@ def _train(a) -> int:
     cfg = TrainConfig(model=a.model, model_cfg=_model_cfg(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
                       batch=a.batch, crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, val_split=a.val_split, checkpoint_every=a.checkpoint_every,
-                      device=a.device, workers=a.workers)
+                      device=a.device, workers=a.workers, skip_bad_frames=a.skip_bad_frames)
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress)
     if res["checkpoint"] is None:
@@ -34,7 +34,8 @@ def _train(a) -> int:
 
 def _evaluate(a) -> int:
     from .evaluate import evaluate, write_json
-    res = evaluate(a.checkpoint, a.store, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip)
+    res = evaluate(a.checkpoint, a.store, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
+                   skip_bad_frames=a.skip_bad_frames)
     write_json(res, a.out)
     print(json.dumps({"method": res["method"], **res["mean"]}, default=float))
     return 0
@@ -42,7 +43,8 @@ def _evaluate(a) -> int:
 
 def _report(a) -> int:
     from .report import report
-    report(a.runs, a.store, a.out, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip)
+    report(a.runs, a.store, a.out, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
+           skip_bad_frames=a.skip_bad_frames)
     print(f"wrote {a.out}/report.md")
     return 0
 
@@ -103,6 +105,9 @@ def main(argv=None) -> int:
     t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
     t.add_argument("--no-progress", action="store_true")
+    t.add_argument("--skip-bad-frames", action="store_true",
+                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
+                        "references), with a warning naming them; default: refuse them")
     t.set_defaults(fn=_train)
 
     e = sub.add_parser("evaluate", help="per-frame and mean metrics with ms per megapixel, as JSON")
@@ -115,6 +120,9 @@ def main(argv=None) -> int:
     e.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     e.add_argument("--out", required=True, help="JSON file for per-frame and mean metrics")
     e.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
+    e.add_argument("--skip-bad-frames", action="store_true",
+                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
+                        "references), with a warning naming them; default: refuse them")
     e.set_defaults(fn=_evaluate)
 
     r = sub.add_parser("report", help="evaluate runs and baselines; Markdown table, plot and crops")
@@ -127,6 +135,9 @@ def main(argv=None) -> int:
                         "baselines at each of those spp)")
     r.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     r.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
+    r.add_argument("--skip-bad-frames", action="store_true",
+                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
+                        "references), with a warning naming them; default: refuse them")
     r.set_defaults(fn=_report)
 
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")

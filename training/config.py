@@ -51,6 +51,7 @@ class TrainConfig:
     checkpoint_every: int = 100
     device: str = "cpu"
     workers: int = 1            # DataLoader worker processes (0: in-process)
+    skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
 
     def __post_init__(self):
         self._resolve_defaults()

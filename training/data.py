@@ -10,6 +10,8 @@ whatever the number of workers.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
@@ -31,19 +33,54 @@ def open_store(store):
         raise DataError(f"cannot open store {store!s}: {e}") from e
 
 
-def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True):
+def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True,
+                  skip_bad_frames: bool = False):
     """The dataset of input declaration ``spec`` (:class:`training.inputs.InputSpec`) on ``store``'s
-    ``split``: checks that the store holds every array the kind needs and the sample count, and turns
-    store errors into :class:`DataError`."""
+    ``split``: checks that the store holds every array the kind needs and the sample count, refuses
+    frames that ``validate`` would flag (see :func:`screen_frames`), and turns store errors into
+    :class:`DataError`."""
     from stores.errors import StoreError
     st = open_store(store)
     kind = spec.input_kind
     kind.check_store(st)
     kind.check_spp(st, spp)
     try:
-        return kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
+        ds = kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
+        screen_frames(ds, st, split, skip_bad_frames)
     except StoreError as e:
         raise DataError(f"{split!r} data from {st.path!s}: {e}") from e
+    return ds
+
+
+def screen_frames(ds, store, split: str, skip: bool) -> int:
+    """Refuse (or, with ``skip``, drop with a warning) the items of ``ds`` that use a frame
+    ``stores.reader.frame_problems`` flags: NaN/Inf the renderer replaced, a negative or non-finite
+    reference, an all-zero reference under a non-zero input. Returns the number of frames dropped.
+    The store datasets list their frames in ``frames`` (one per item) or ``windows`` (tuples)."""
+    from stores.reader import frame_problems
+    attr = "frames" if hasattr(ds, "frames") else "windows"
+    items = list(getattr(ds, attr))
+    used = sorted({int(i) for it in items for i in (it if isinstance(it, tuple) else (it,))})
+    bad = {}
+    for i in used:
+        problems = frame_problems(store, i)
+        if problems:
+            bad[i] = problems
+    if not bad:
+        return 0
+    listed = "; ".join(f"frame {i}: {', '.join(p)}" for i, p in list(bad.items())[:5])
+    more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
+    if not skip:
+        raise DataError(f"{len(bad)} of the {len(used)} frames of split {split!r} of {store.path!s} would be "
+                        f"flagged by validate: {listed}{more}; re-render them (python -m pipeline dataset resumes), "
+                        "or pass --skip-bad-frames to leave them out")
+    keep = [it for it in items if not any(int(i) in bad for i in (it if isinstance(it, tuple) else (it,)))]
+    if not keep:
+        raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}{more}")
+    setattr(ds, attr, keep)
+    warnings.warn(f"skipping {len(bad)} flagged frames of split {split!r} ({len(items) - len(keep)} items): "
+                  f"{listed}{more}", stacklevel=3)
+    return len(bad)
 
 
 def sample_dataset(store, split: str, spp: int, crop: int | None, augment: bool, seed: int):

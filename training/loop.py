@@ -175,11 +175,13 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
         ckpt.set_rng_state(ck["rng"])
         step = int(ck["step"])
 
-    train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed)
+    train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed,
+                             skip_bad_frames=cfg.skip_bad_frames)
     lay = store.layout
     val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None   # small stores: whole frames
     try:
-        val_ds = model_dataset(spec, store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed)
+        val_ds = model_dataset(spec, store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed,
+                               skip_bad_frames=cfg.skip_bad_frames)
     except DataError as e:
         if not isinstance(e.__cause__, SplitError):
             raise

@@ -121,7 +121,7 @@ def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64, scal
 
 
 def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
-           with_flip: bool = True, progress: bool = True) -> dict:
+           with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False) -> dict:
     """Evaluate every run and the baselines; write the report files. Returns the results.
 
     Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
@@ -136,7 +136,8 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     def one(label, m, at):
         if progress:
             print(f"evaluating {label} on {split} ...", flush=True)
-        r = evaluate(m, store, split=split, spp=at, max_frames=max_frames, with_flip=with_flip, keep=(0,))
+        r = evaluate(m, store, split=split, spp=at, max_frames=max_frames, with_flip=with_flip, keep=(0,),
+                     skip_bad_frames=skip_bad_frames)
         r["label"] = label
         write_json(r, out / f"eval-{label.replace(' ', '')}.json")
         return r
