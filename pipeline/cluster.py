@@ -8,16 +8,26 @@ cannot be reached or dask-jobqueue is missing, before anything is rendered.
   rendering task sizes drjit's thread pool to its worker's threads (``pipeline.tasks``), so
   2 workers on 2 cores do not oversubscribe (NOTES.md: 1.85x over one worker).
 - ``scheduler`` (or ``--scheduler ADDR``): ``Client(ADDR)``; start workers yourself with
-  ``dask worker ADDR --nthreads 1`` on machines that see the store.
+  ``dask worker ADDR --nthreads 1`` on machines that see the store (no ``--preload`` needed).
 - ``slurm`` / ``pbs``: ``dask_jobqueue.SLURMCluster`` / ``PBSCluster`` with ``cluster.jobqueue`` as
   keyword arguments, scaled to ``cluster.jobs`` jobs.
+
+Whatever the kind, :func:`connect` registers :class:`WorkerInit` (a distributed ``WorkerPlugin``) with
+``client.register_plugin``: every current worker and every worker that joins later runs its ``setup``
+before it gets a task, and that imports pymeshlab in the worker's main thread (see
+``pipeline.worker_init``). ``setup`` is a coroutine, so the worker runs it on its event loop, which in
+a ``dask worker`` process (nanny or not) and in a LocalCluster worker process is the main thread.
 """
 from __future__ import annotations
 
 import logging
 import os
+import sys
+import threading
 from dataclasses import dataclass
 from typing import Any
+
+from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.config import ClusterConfig
 from pipeline.errors import PipelineError
@@ -66,6 +76,41 @@ class Connection:
 
 
 PRELOAD = "pipeline.worker_init"   # every worker imports it first (see that module); `dask worker --preload`
+PLUGIN_NAME = "denoise-worker-init"
+log = logging.getLogger(__name__)
+
+
+class WorkerInit(WorkerPlugin):
+    """What every worker needs before its first task (``pipeline.worker_init``): pymeshlab imported in
+    its main thread, drjit's libLLVM found, BLAS/OpenMP pools of one thread. Registered by
+    :func:`connect` on every kind of cluster, so workers started with a plain ``dask worker`` need no
+    ``--preload``. ``worker.denoise_init`` records what ``setup`` found (thread, main or not)."""
+
+    idempotent = True
+    name = PLUGIN_NAME
+
+    async def setup(self, worker):            # a coroutine: the worker awaits it on its event loop
+        main = threading.current_thread() is threading.main_thread()
+        had = "pymeshlab" in sys.modules
+        if main:
+            from pipeline import worker_init      # imports pymeshlab here, in the main thread
+            worker_init.prepare_environment()
+        elif not had:
+            # A worker whose event loop is not its process's main thread (an in-process, threaded
+            # LocalCluster): importing here would corrupt the heap, so leave it; a mesh task then
+            # refuses with scene_gen.meshes' clear error instead of crashing.
+            log.warning("worker %s: event loop not in the main thread; pymeshlab not imported", worker.address)
+        worker.denoise_init = {"thread": threading.current_thread().name, "main_thread": main,
+                               "pymeshlab": "pymeshlab" in sys.modules, "had_pymeshlab": had}
+
+
+def install_worker_init(client) -> None:
+    """Register :class:`WorkerInit` on ``client``'s cluster (current and future workers)."""
+    try:
+        client.register_plugin(WorkerInit(), name=PLUGIN_NAME)
+    except Exception as e:  # noqa: BLE001 - a worker's setup failed: say which, before anything runs
+        raise ClusterError(f"cannot prepare the Dask workers (pipeline.cluster.WorkerInit): "
+                           f"{type(e).__name__}: {e}") from e
 
 
 def local_cluster(cfg: ClusterConfig, workers: int | None = None):
@@ -114,15 +159,24 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
                                f"({type(e).__name__}: {e}); is `dask scheduler` running there?") from e
         if workers:
             pass    # the workers of an existing scheduler are not ours to size
-        return Connection(client, None, "scheduler")
+        return _prepared(Connection(client, None, "scheduler"))
     if cfg.kind in ("slurm", "pbs"):
         cluster = jobqueue_cluster(cfg)
         cluster.scale(jobs=workers or cfg.jobs)
         client = Client(cluster, set_as_default=False)
-        return Connection(client, cluster, cfg.kind)
+        return _prepared(Connection(client, cluster, cfg.kind))
     try:
         cluster = local_cluster(cfg, workers)
     except (OSError, TimeoutError) as e:
         raise ClusterError(f"cannot start a LocalCluster: {e}") from e
     client = Client(cluster, set_as_default=False)
-    return Connection(client, cluster, "local")
+    return _prepared(Connection(client, cluster, "local"))
+
+
+def _prepared(conn: Connection) -> Connection:
+    try:
+        install_worker_init(conn.client)
+    except ClusterError:
+        conn.close()
+        raise
+    return conn

@@ -1,6 +1,9 @@
-"""Dask worker preload: ``dask worker --preload pipeline.worker_init`` (LocalClusters use it already).
+"""What every Dask worker process needs before its first task. ``pipeline.cluster.connect`` installs it
+on every worker through the ``pipeline.cluster.WorkerInit`` plugin (importing this module from the
+plugin's setup, in the worker's main thread), so workers need no flag; ``dask worker --preload
+pipeline.worker_init`` does the same and still works (LocalClusters use both).
 
-Runs in each worker process's main thread before any task:
+Importing it, in the worker process's main thread:
 - imports pymeshlab there: pymeshlab (Qt plugins) imported first from a non-main thread corrupts the
   heap (glibc's ``malloc_consolidate(): unaligned fastbin chunk detected``), and Dask runs tasks in
   executor threads;

@@ -158,7 +158,8 @@ def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
 
 @pytest.fixture
 def dask_cluster(tmp_path):
-    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes (no nanny) on 127.0.0.1."""
+    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes (no nanny) on 127.0.0.1,
+    started as a user would, without ``--preload``: the client prepares them (``pipeline.cluster.WorkerInit``)."""
     sf = tmp_path / "scheduler.json"
     procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                                "--scheduler-file", str(sf)], env=_env(), cwd=ROOT, start_new_session=True,
@@ -168,8 +169,8 @@ def dask_cluster(tmp_path):
         while not sf.exists() and time.monotonic() - t0 < 60:
             time.sleep(0.2)
         workers = [subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--no-nanny",
-                                     "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}",
-                                     "--preload", "pipeline.worker_init"], env=_env(), cwd=ROOT,
+                                     "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}"],   # no --preload
+                                    env=_env(), cwd=ROOT,
                                     start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
                    for i in range(2)]
         procs += workers

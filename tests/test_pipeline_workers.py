@@ -1,0 +1,97 @@
+"""Workers started with a plain ``dask scheduler`` / ``dask worker`` (no ``--preload``) get what they
+need from the client: ``pipeline.cluster.connect`` registers the ``WorkerInit`` plugin, whose setup
+imports pymeshlab in each worker's main thread, on the workers already there and on those that join.
+Real processes on 127.0.0.1: one worker with a nanny, one without, one started after the client.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+DASK = str(Path(sys.executable).parent / "dask")
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    # tests/ too: the scheduler and workers unpickle this module's task function by reference
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests"), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _start_worker(sf: Path, name: str, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--host", "127.0.0.1",
+                             "--no-dashboard", "--name", name, *extra], env=_env(), cwd=ROOT,
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _stop(p: subprocess.Popen) -> None:
+    try:
+        os.killpg(p.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    p.wait(timeout=30)
+
+
+def _mesh_task():
+    """What a scene-building task does first: a pymeshlab-smoothed blob, in a task thread."""
+    import threading
+    from distributed import get_worker
+    from scene_gen.meshes import build
+    from scene_gen.spec import MeshSpec
+    mesh = build(MeshSpec("blob", {"subdivisions": 2, "smooth_steps": 2}, seed=1))
+    return {"vertices": len(mesh.vertices), "task_in_main_thread": threading.current_thread() is threading.main_thread(),
+            "init": getattr(get_worker(), "denoise_init", None)}
+
+
+@pytest.fixture
+def plain_cluster(tmp_path):
+    sf = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(sf)], env=_env(), cwd=ROOT, start_new_session=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        t0 = time.monotonic()
+        while not sf.exists() and time.monotonic() - t0 < 60:
+            time.sleep(0.2)
+        procs.append(_start_worker(sf, "nanny"))
+        procs.append(_start_worker(sf, "bare", "--no-nanny"))
+        yield sf, procs
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+
+
+def test_plain_dask_workers_need_no_preload(plain_cluster):
+    from distributed import Client
+
+    from pipeline import cluster as cl
+    from pipeline.config import ClusterConfig
+    sf, procs = plain_cluster
+    with Client(scheduler_file=str(sf), timeout=60, set_as_default=False) as c:
+        c.wait_for_workers(2, timeout=120)
+        address = c.scheduler.address
+        workers = list(c.scheduler_info(n_workers=-1)["workers"])
+        # without the plugin: what the issue saw (the guard refuses instead of corrupting the heap)
+        with pytest.raises(Exception, match="pymeshlab must first be imported in the main thread"):
+            c.submit(_mesh_task, workers=workers[:1], pure=False).result(timeout=120)
+    conn = cl.connect(ClusterConfig(kind="scheduler", address=address, connect_timeout=30))
+    try:
+        got = {w: conn.client.submit(_mesh_task, workers=[w], pure=False, allow_other_workers=False).result(timeout=120)
+               for w in workers}
+        procs.append(_start_worker(sf, "late", "--no-nanny"))          # joins after the plugin was registered
+        conn.client.wait_for_workers(3, timeout=120)
+        late = [w for w in conn.client.scheduler_info(n_workers=-1)["workers"] if w not in workers]
+        got.update({w: conn.client.submit(_mesh_task, workers=[w], pure=False).result(timeout=120) for w in late})
+    finally:
+        conn.close()
+    assert len(got) == 3
+    for w, r in got.items():
+        assert r["vertices"] > 100 and not r["task_in_main_thread"], (w, r)
+        assert r["init"]["main_thread"] and r["init"]["pymeshlab"], (w, r)     # setup ran in the main thread
