@@ -18,9 +18,21 @@ SUITES = {
 }
 
 
+# `--tiny`: every suite at a size that runs in seconds (tests/test_pipeline_bench.py runs each one this way,
+# so a benchmark cannot rot unseen); the figures are then meaningless.
+TINY = {
+    "render": {"res": 16, "ref_passes": 2, "ref_pass_spp": 8, "repeats": 1, "memory_res": 16},
+    "store": {"crops": 4, "crop": 16, "frames": 2, "size": 32},
+    "dask": {"frames": 2, "res": 8, "ref_spp": 16, "objects": 3, "noop_tasks": 20},
+    "models": {"size": 32, "repeats": 1, "print_table": True},
+}
+
+
 def add_arguments(p) -> None:
     p.add_argument("--only", nargs="*", choices=sorted(SUITES), help="run only these benchmark suites")
     p.add_argument("--json", help="also write all figures to this JSON file")
+    p.add_argument("--tiny", action="store_true",
+                   help="every suite at a tiny size (seconds; checks that the benchmarks run, figures meaningless)")
 
 
 def run(args) -> int:
@@ -31,7 +43,8 @@ def run(args) -> int:
         print(f"\n=== bench: {name} ({module}) ===", flush=True)
         t0 = time.perf_counter()
         try:
-            results[name] = importlib.import_module(module).run()
+            kwargs = TINY.get(name, {}) if args.tiny else {}
+            results[name] = importlib.import_module(module).run(**kwargs)
         except Exception:  # a broken suite is reported, the others still run
             traceback.print_exc()
             failed.append(name)

@@ -13,7 +13,6 @@ Figures printed:
 """
 from __future__ import annotations
 
-import logging
 import shutil
 import tempfile
 import time
@@ -24,14 +23,16 @@ def _noop(i):
     return i
 
 
-def bench_config(frames: int, res: int, ref_spp: int):
+def bench_config(frames: int, res: int, ref_spp: int, objects: int = 20):
+    """``frames`` stills (half indoor) of ``res`` x ``res``; ``objects`` indoor meshes (1.5x outdoor)."""
     from pipeline.config import DatasetConfig
     half = max(1, frames // 2)
+    scenes = [{"kind": "indoor", "count": half}] + ([{"kind": "outdoor", "count": frames - half}]
+                                                     if frames > half else [])
     return DatasetConfig.from_dict({
-        "name": "bench-dask", "seed": 99, "resolution": [res, res],
-        "scenes": [{"kind": "indoor", "count": half}, {"kind": "outdoor", "count": frames - half}],
+        "name": "bench-dask", "seed": 99, "resolution": [res, res], "scenes": scenes,
         "render": {"spp": 8, "layer_levels": 6, "ref_spp": ref_spp, "ref_passes": 16, "ref_min_passes": 16},
-        "scene_gen": {"indoor_objects": 20, "outdoor_objects": 30},
+        "scene_gen": {"indoor_objects": objects, "outdoor_objects": (3 * objects) // 2},
         "tasks": {"retries": 0}, "cluster": {"dashboard_address": None}})
 
 
@@ -47,16 +48,18 @@ def _warm_up(cfg) -> None:
     return None
 
 
-def _run_once(cfg, workers: int, root: Path) -> dict:
-    from distributed import Client, LocalCluster, get_task_stream
+def _run_once(cfg, workers: int, root: Path, noop_tasks: int = 400) -> dict:
+    """One timed run on a LocalCluster made as ``python -m pipeline dataset`` makes it
+    (``pipeline.cluster.connect``: worker environment, main-thread imports, one thread a worker)."""
+    from distributed import get_task_stream
 
-    from pipeline.cluster import _env_for_workers
+    from pipeline.cluster import connect
     from pipeline.graph import build_graph
     from stores.writer import open_or_create
-    _env_for_workers()
     store = str(root / f"w{workers}.zarr")
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                      host="127.0.0.1", silence_logs=logging.ERROR) as cl, Client(cl, set_as_default=False) as c:
+    conn = connect(cfg.cluster, workers=workers)
+    try:
+        c = conn.client
         c.run(_warm_up, cfg)
         open_or_create(store, cfg.store_layout(), cfg.content_dict())
         g = build_graph(cfg, store)
@@ -78,20 +81,23 @@ def _run_once(cfg, workers: int, root: Path) -> dict:
                "task_s": {k: sum(v) / len(v) for k, v in compute.items()},
                "efficiency": sum(map(sum, compute.values())) / (wall * workers)}
         if workers > 1:
-            n = 400
+            n = noop_tasks
             t0 = time.perf_counter()
             c.gather(c.map(_noop, range(n), pure=False))
             out["overhead_per_task_s"] = (time.perf_counter() - t0) * workers / n
+    finally:
+        conn.close()
     return out
 
 
-def run(frames: int = 6, res: int = 32, ref_spp: int = 256) -> dict:
-    """Frames/minute with 1 and 2 workers and the scheduler's overhead per task; prints and returns them."""
-    cfg = bench_config(frames, res, ref_spp)
+def run(frames: int = 6, res: int = 32, ref_spp: int = 256, objects: int = 20, noop_tasks: int = 400) -> dict:
+    """Frames/minute with 1 and 2 workers and the scheduler's overhead per task; prints and returns them.
+    (``make bench`` runs the defaults; the tests run ``frames=2, res=8, ref_spp=16, objects=3``.)"""
+    cfg = bench_config(frames, res, ref_spp, objects)
     root = Path(tempfile.mkdtemp(prefix="bench-dask-"))
     try:
-        one = _run_once(cfg, 1, root)
-        two = _run_once(cfg, 2, root)
+        one = _run_once(cfg, 1, root, noop_tasks)
+        two = _run_once(cfg, 2, root, noop_tasks)
     finally:
         shutil.rmtree(root, ignore_errors=True)
     render_tasks = [v for k, v in two["task_s"].items() if k in ("inputs", "layers", "reference", "render")]

@@ -1,0 +1,34 @@
+"""Every ``make bench`` suite runs (``python -m pipeline bench --only SUITE --tiny``), so a benchmark
+cannot rot unseen (``make bench`` once failed on an import that ``pipeline.cluster`` no longer had).
+Tiny sizes (``pipeline.bench.TINY``): the figures are meaningless, the code paths are the real ones.
+About 60 s for the four suites on 2 cores."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline.bench import SUITES, TINY
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_every_suite_has_a_tiny_size():
+    assert set(TINY) == set(SUITES)
+
+
+@pytest.mark.parametrize("suite", sorted(SUITES))
+def test_bench_suite_runs_at_a_tiny_size(suite, tmp_path):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    out = tmp_path / "bench.json"
+    r = subprocess.run([sys.executable, "-m", "pipeline", "bench", "--only", suite, "--tiny", "--json", str(out)],
+                       env=env, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    figures = json.loads(out.read_text())
+    assert list(figures) == [suite] and figures[suite], figures
+    assert f"--- {suite} done in" in r.stdout
