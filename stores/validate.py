@@ -67,6 +67,7 @@ class StoreReport:
     problems: list = field(default_factory=list)         # store-level (damage included)
     damage: list = field(default_factory=list)           # store-level damage (array metadata, metadata chunks)
     notes: list = field(default_factory=list)            # not problems (e.g. v1 all-zero shards)
+    damaged_meta_frames: list = field(default_factory=list)   # frames whose frames/* or status chunk is damaged
 
     @property
     def ok(self) -> bool:
@@ -75,6 +76,11 @@ class StoreReport:
     @property
     def damaged(self) -> bool:
         return bool(self.damage) or any(f.damage for f in self.frames)
+
+    @property
+    def damaged_frames(self) -> list[int]:
+        """Frames with damaged or missing files (re-render them: ``validate --mark-damaged``)."""
+        return sorted({f.index for f in self.frames if f.damage} | set(self.damaged_meta_frames))
 
     @property
     def exit_code(self) -> int:
@@ -208,11 +214,16 @@ def validate_store(path, frames=None) -> StoreReport:
     if bad:
         rep.problems.append("frames not checked: their arrays' metadata disagrees with the schema")
         return rep
+    stale = _consolidation_note(path, root, version)
+    if stale:
+        rep.notes.append(stale)
     store = open_store(path)
     try:
         store.num_frames
     except StoreCorruptionError as e:
         damage(rep, str(e))
+        if e.frame is not None:
+            rep.damaged_meta_frames.append(int(e.frame))
         return rep
     indices = range(store.num_frames) if frames is None else frames
     lost = store.missing_data(indices)
@@ -251,6 +262,26 @@ def validate_store(path, frames=None) -> StoreReport:
     return rep
 
 
+def _consolidation_note(path, root, version: int) -> str | None:
+    """A note when a v2 store's consolidated metadata (for xarray) is missing or out of date."""
+    import os
+    if version < 2 or not isinstance(path, (str, os.PathLike)) or "://" in os.fspath(path):
+        return None
+    try:
+        with open(os.path.join(os.fspath(path), "zarr.json")) as f:
+            cm = (json.load(f).get("consolidated_metadata") or {}).get("metadata") or {}
+    except (OSError, ValueError):
+        return None
+    fix = f"stores.schema.consolidate({os.fspath(path)!r}) rewrites it"
+    if not cm:
+        return f"no consolidated metadata (xarray.open_zarr warns and reads slower); {fix}"
+    have = tuple((cm.get("status/complete") or {}).get("shape", ()))
+    if have != tuple(root["status/complete"].shape):
+        return (f"consolidated metadata is out of date (status/complete {have} vs "
+                f"{root['status/complete'].shape}); {fix}")
+    return None
+
+
 _IMAGE_KEYS = ("radiance", "features", "layers", "reference", "reference_stderr", "guides_albedo",
                "guides_normal", "guides_depth", "guides_motion", "camera_to_world", "world_to_clip")
 
@@ -261,6 +292,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--frames", default=None, help="frames to check: all (default), 3, 0,2,5-7")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
     ap.add_argument("-v", "--verbose", action="store_true", help="one line per frame with value ranges")
+    ap.add_argument("--mark-damaged", action="store_true",
+                    help="mark every frame with damaged or missing files incomplete (status/error says why), "
+                         "so the next `python -m pipeline dataset` run with the same config re-renders it")
     ap.epilog = EXIT_CODES_HELP
 
 
@@ -278,7 +312,24 @@ def run(args) -> int:
         print(f"error: the store is damaged: {e}", file=sys.stderr)
         return EXIT_DAMAGED
     print(json.dumps(rep.to_dict(), indent=1) if args.json else rep.format(args.verbose))
+    if getattr(args, "mark_damaged", False) and rep.damaged_frames:
+        marked = mark_damaged(args.store, rep)
+        print(f"marked {len(marked)} damaged frame(s) incomplete: {marked}; run the same "
+              f"`python -m pipeline dataset` again to re-render them", file=sys.stderr)
     return rep.exit_code
+
+
+def mark_damaged(path, rep: StoreReport) -> list[int]:
+    """Mark ``rep``'s damaged frames incomplete (``StoreWriter.mark_failed``), so a resume re-renders
+    and rewrites them. Returns the frames marked."""
+    from stores.writer import StoreWriter
+    w = StoreWriter(path)
+    why = {f.index: f.damage[0] for f in rep.frames if f.damage}
+    out = []
+    for i in rep.damaged_frames:
+        w.mark_failed(i, f"damaged: {why.get(i, 'frames/status metadata chunk')}")
+        out.append(i)
+    return out
 
 
 def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:

@@ -119,18 +119,18 @@ class StoreWriter:
     def frame_complete(self, index: int) -> bool:
         """Marked complete and (schema v2) every chunk file of the frame is there."""
         index = self._check_index(index)
-        return bool(self.root["status/complete"][index]) and not schema.missing_chunks(self.root, [index])
+        return bool(_complete_flags(self.root, [index])[0]) and not schema.missing_chunks(self.root, [index])
 
     def incomplete_frames(self) -> list[int]:
-        """Frames to (re-)render: not marked complete, or marked complete but missing chunk files
-        (schema v2; :func:`frames_with_missing_data`)."""
-        done = np.asarray(self.root["status/complete"][:], bool)
+        """Frames to (re-)render: not marked complete (or with an unreadable completion flag), or
+        marked complete but missing chunk files (schema v2; :func:`frames_with_missing_data`)."""
+        done = _complete_flags(self.root)
         lost = schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
         return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
     def frames_with_missing_data(self) -> dict[int, list[tuple[str, str]]]:
         """Frames marked complete whose chunk files are not all there: frame -> ``[(array, file)]``."""
-        done = np.asarray(self.root["status/complete"][:], bool)
+        done = _complete_flags(self.root)
         return schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
 
     def errors(self) -> dict[int, str]:
@@ -139,12 +139,31 @@ class StoreWriter:
         return {int(i): str(err[i]) for i in range(len(err)) if str(err[i])}
 
 
+def _complete_flags(root, frames=None) -> np.ndarray:
+    """``status/complete`` (bool, F, or of ``frames``); a flag whose chunk is damaged (fails its
+    checksum, garbage) reads False, so a resume re-renders that frame and rewrites it."""
+    arr = root["status/complete"]
+    idx = range(arr.shape[0]) if frames is None else frames
+    try:
+        if frames is None:
+            return np.asarray(arr[:], bool)
+        return np.array([bool(arr[int(i)]) for i in idx], bool)
+    except Exception:      # noqa: BLE001 - zarr raises ValueError/RuntimeError/... on bad bytes
+        out = []
+        for i in idx:
+            try:
+                out.append(bool(arr[int(i)]))
+            except Exception:  # noqa: BLE001
+                out.append(False)
+        return np.array(out, bool)
+
+
 def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
     """Frames of the store at ``path`` marked complete but missing chunk or shard files, frame ->
     ``[(array, file), ...]`` (schema v2; ``{}`` for v1, whose writers skipped all-zero chunks).
     ``StoreWriter.incomplete_frames`` includes them, so a resume re-renders them."""
     root, _ = schema.open_group(path, mode="r", check=False)
-    done = np.asarray(root["status/complete"][:], bool)
+    done = _complete_flags(root)
     return schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
 
 

@@ -157,6 +157,28 @@ def test_one_flipped_byte_inside_a_chunk_is_detected(store, capsys, array):
             open_store(store, fast=fast).read_array(array, 2)
 
 
+def test_mark_damaged_lets_a_resume_rerender_corrupt_frames(store, capsys):
+    f = _shard(store, "layers/radiance", 2)
+    data = bytearray(open(f, "rb").read())
+    data[30] ^= 0x80
+    open(f, "wb").write(bytes(data))
+    assert StoreWriter(store).incomplete_frames() == []      # a flipped byte is not visible to the resume...
+    assert pipeline_main(["validate", str(store), "--mark-damaged"]) == EXIT_DAMAGED
+    assert "marked 1 damaged frame(s) incomplete: [2]" in capsys.readouterr().err
+    w = StoreWriter(store)
+    assert w.incomplete_frames() == [2] and w.errors()[2].startswith("damaged: layers/radiance: frame 2")
+    w.write_frame(2, synthetic_frame(2, H, W, S, motion=False))    # ...until validate marks it
+    assert _validate(store, capsys)[0] == EXIT_OK
+
+
+def test_damaged_completion_flag_means_rerender(store):
+    f = _shard(store, "status/complete", 1)
+    data = bytearray(open(f, "rb").read())
+    data[0] ^= 0x01
+    open(f, "wb").write(bytes(data))
+    assert StoreWriter(store).incomplete_frames() == [1]
+
+
 def test_flipped_byte_in_a_frame_scalar_is_detected(store, capsys):
     f = _shard(store, "frames/scene_seed", 1)
     data = bytearray(open(f, "rb").read())
