@@ -440,6 +440,8 @@ def consolidate(path_or_url) -> None:
     import zarr
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+        # a dataset run's lock file (stores.lock) sits in the root folder while the run lives
+        warnings.filterwarnings("ignore", message=f"Object at {LOCK_NAME} is not recognized", category=UserWarning)
         zarr.consolidate_metadata(_zarr_store(path_or_url))
 
 
