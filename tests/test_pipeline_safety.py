@@ -164,11 +164,14 @@ def test_lock_refuses_records_it_cannot_prove_dead(tmp_path):
 # ---- 7 + 8 + 2 + 10 end to end: concurrent run refused, kill inside creation, resume, lost shard ---
 @pytest.fixture(scope="module")
 def killed_in_creation(tmp_path_factory):
-    """Run A pauses inside store creation (holding the lock); run B is started meanwhile; A is SIGKILLed
-    there; run C is the plain command again. Returns their outputs and the store."""
+    """Run A (``--overwrite`` on a folder holding a stray file) pauses inside store creation (holding the
+    lock); run B is started meanwhile; A is SIGKILLed there; run C is the plain command again. Returns
+    their outputs and the store."""
     d = tmp_path_factory.mktemp("create")
     out, flag = d / "smoke.zarr", d / "paused"
-    a = subprocess.Popen(_cli(out), env=_env(DENOISE_TEST_CREATE_PAUSE=str(flag)), cwd=ROOT,
+    out.mkdir()
+    (out / "stray.txt").write_text("not a store")
+    a = subprocess.Popen(_cli(out, "--overwrite"), env=_env(DENOISE_TEST_CREATE_PAUSE=str(flag)), cwd=ROOT,
                          start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         t0 = time.monotonic()
@@ -176,7 +179,8 @@ def killed_in_creation(tmp_path_factory):
             time.sleep(0.2)
         assert flag.exists(), "run A never reached the creation pause"
         b = subprocess.run(_cli(out), env=_env(), cwd=ROOT, capture_output=True, text=True, timeout=120)
-        half = {"zarr.json": json.loads((out / "zarr.json").read_text()), "lock": read_lock(out)}
+        half = {"zarr.json": json.loads((out / "zarr.json").read_text()), "lock": read_lock(out),
+                "stray": (out / "stray.txt").exists()}
     finally:
         _kill_group(a)
     c = subprocess.run(_cli(out, summary=d / "c.json"), env=_env(), cwd=ROOT, capture_output=True, text=True,
@@ -197,6 +201,7 @@ def test_kill_inside_creation_leaves_a_store_the_next_run_finishes(killed_in_cre
     half, c, s = killed_in_creation["half"], killed_in_creation["c"], killed_in_creation["c_summary"]
     assert half["zarr.json"]["attributes"]["creating"]["pid"] == killed_in_creation["a"].pid   # really half-made
     assert half["lock"]["pid"] == killed_in_creation["a"].pid
+    assert not half["stray"]                                         # --overwrite cleared the folder first
     assert c.returncode == 0, c.stdout[-3000:] + c.stderr[-3000:]
     assert f"took over the lock of a dead run (pid {killed_in_creation['a'].pid}" in c.stdout
     assert s["complete"] == 4 and s["rendered"] == 4 and s["ok"] and s["validation"]["ok"]
