@@ -68,9 +68,10 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     """Check what is at ``store`` before anything starts; returns the number of complete frames of an
     existing store of the same dataset content (0 when there is none, when it is to be overwritten or
     when its creation was cut short) and the config to run: ``cfg``, or for a store made before
-    ``clip_ids`` existed, ``cfg`` with ``clip_ids: scene_seed`` (its frames keep their split). Raises ForeignStoreError for a non-empty folder (or a file) that is
-    not a store, StoreMismatchError for a store made from another config (both unless ``overwrite``;
-    a file is refused even then)."""
+    ``clip_ids`` existed, ``cfg`` with ``clip_ids: scene_seed`` (its frames keep their split).
+    Raises ForeignStoreError for a non-empty folder (or a file) that is not a store,
+    StoreMismatchError for a store made from another config (both unless ``overwrite``; a file is
+    refused even then)."""
     from stores import schema
     from stores.errors import ForeignStoreError, IncompleteStoreError
     if "://" not in store and os.path.lexists(store) and not os.path.isdir(store):

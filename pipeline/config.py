@@ -499,7 +499,8 @@ def worker_memory(cluster: ClusterConfig) -> tuple[int | None, str]:
         try:
             mem = int(parse_bytes(str(cluster.jobqueue.get("memory"))))
             procs = int(cluster.jobqueue.get("processes") or 1)
-            return mem // max(1, procs), f"cluster.jobqueue memory {cluster.jobqueue.get('memory')} over {procs} processes"
+            where = f"cluster.jobqueue memory {cluster.jobqueue.get('memory')} over {procs} processes"
+            return mem // max(1, procs), where
         except (ValueError, TypeError):
             return None, "unknown"
     if cluster.kind == "scheduler" or cluster.address:

@@ -19,7 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
@@ -243,7 +242,8 @@ def test_resume_renders_a_complete_frame_again_when_a_shard_file_is_lost(killed_
 def test_half_created_store_is_named_and_made_again(tmp_path):
     store = tmp_path / "h.zarr"
     code = ("import sys; from stores import schema; from stores.schema import StoreLayout; "
-            "schema.create_store(sys.argv[1], StoreLayout(num_frames=2, height=8, width=8, spp=2, layer_spp=(1, 2), tile=8))")
+            "schema.create_store(sys.argv[1], StoreLayout(num_frames=2, height=8, width=8, spp=2, "
+            "layer_spp=(1, 2), tile=8))")
     flag = tmp_path / "flag"
     p = subprocess.Popen([PY, "-c", code, str(store)], env=_env(DENOISE_TEST_CREATE_PAUSE=str(flag)), cwd=ROOT,
                          start_new_session=True)

@@ -46,7 +46,8 @@ def _mesh_task():
     from scene_gen.meshes import build
     from scene_gen.spec import MeshSpec
     mesh = build(MeshSpec("blob", {"subdivisions": 2, "smooth_steps": 2}, seed=1))
-    return {"vertices": len(mesh.vertices), "task_in_main_thread": threading.current_thread() is threading.main_thread(),
+    return {"vertices": len(mesh.vertices),
+            "task_in_main_thread": threading.current_thread() is threading.main_thread(),
             "init": getattr(get_worker(), "denoise_init", None)}
 
 
