@@ -316,3 +316,35 @@ def test_grow_extends_frame_coordinates_and_consolidated_metadata(store):
     schema.grow(root, lay, 5)
     assert list(xr.open_zarr(str(store), group="status")["frame"].values) == [0, 1, 2, 3, 4]
     assert open_store(store).num_frames == 5 and StoreWriter(store).incomplete_frames() == [3, 4]
+
+
+@pytest.mark.parametrize("damage", ["missing", "flipped", "truncated"])
+def test_train_and_evaluate_refuse_a_damaged_store(tmp_path, capsys, damage):
+    """The training CLI stops with exit 3 and a one-line message naming array, frame and file (no
+    traceback, also when the read happens in a DataLoader worker)."""
+    from test_training import make_store
+    from training.__main__ import EXIT_DAMAGED as TRAIN_DAMAGED, main as train_main
+    path = make_store(tmp_path / "t.zarr")
+    st = open_store(path)
+    frame = st.frames_in_split("train")[0]
+    f = _shard(path, "inputs/radiance", frame)
+    if damage == "missing":
+        os.remove(f)
+    else:
+        data = bytearray(open(f, "rb").read())
+        if damage == "flipped":
+            data[20] ^= 0x01
+        else:
+            data = data[: len(data) // 2]
+        open(f, "wb").write(bytes(data))
+    args = ["--store", path, "--steps", "2", "--crop", "16", "--batch", "4", "--spp", "2", "--no-progress",
+            "--val-every", "0", "--val-frames", "1", "--out", str(tmp_path / "run")]
+    for workers in ("0", "1"):
+        code = train_main(["train", "--model", "pixelgather", "--workers", workers, *args])
+        err = capsys.readouterr().err
+        assert code == TRAIN_DAMAGED, err
+        assert "inputs/radiance" in err and f"frame {frame}" in err and "Traceback" not in err, err
+    code = train_main(["evaluate", "--checkpoint", "input", "--store", path, "--split", "train", "--no-flip",
+                       "--out", str(tmp_path / "e.json")])
+    err = capsys.readouterr().err
+    assert code == TRAIN_DAMAGED and "inputs/radiance" in err and "Traceback" not in err, err

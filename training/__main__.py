@@ -74,7 +74,9 @@ def _model_names() -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m training", description=__doc__,
+                                epilog="exit codes: 0 done; 2 bad settings, or a store, split or checkpoint that "
+                                       "cannot be used as asked; 3 the store is damaged (see python -m pipeline validate)")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train", help="train a denoiser; writes OUT/checkpoint.pt and OUT/metrics.csv (resumes)")
@@ -154,14 +156,29 @@ def main(argv=None) -> int:
     f.set_defaults(fn=_fma)
 
     a = p.parse_args(argv)
-    from stores.errors import StoreError
+    from stores.errors import StoreCorruptionError, StoreError
 
     from .errors import TrainingError
     try:
         return a.fn(a)
     except (TrainingError, StoreError) as err:
-        print(f"error: {type(err).__name__}: {err}", file=sys.stderr)
-        return 2
+        damaged = isinstance(err, StoreCorruptionError) or isinstance(err.__cause__, StoreCorruptionError)
+        print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
+        return EXIT_DAMAGED if damaged else EXIT_ERROR
+
+
+EXIT_ERROR = 2      # bad settings, a store that cannot be used as asked, a bad checkpoint
+EXIT_DAMAGED = 3    # the store is damaged (missing, truncated or corrupt files): see `python -m pipeline validate`
+
+
+def _message(err: BaseException) -> str:
+    """The error's own message; for one re-raised from a DataLoader worker (whose message carries the
+    worker's traceback), the original message from the traceback's last line."""
+    text = str(err)
+    if "Original Traceback" not in text:
+        return text
+    last = [ln for ln in text.splitlines() if ln.strip()][-1]
+    return last.split(": ", 1)[1] if ": " in last else last
 
 
 if __name__ == "__main__":
