@@ -204,4 +204,5 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
         if attrs.get("config") != config:
             root.attrs["config_history"] = list(attrs.get("config_history", [])) + [attrs.get("config")]
             root.attrs["config"] = config
+            schema.consolidate(path)        # writing the root attributes dropped the consolidated metadata
     return StoreWriter(path)
