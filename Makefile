@@ -24,8 +24,8 @@ test: setup      ## the whole test suite
 bench: setup     ## benchmarks that print figures
 	$(PY) -m pipeline bench
 
-train: setup     ## train MODEL (default layer) on STORE
-	$(PY) -m training train --model $(or $(MODEL),layer) --store $(or $(STORE),data/default.zarr) --out $(or $(RUN),data/runs/$(or $(MODEL),layer))
+train: setup     ## train MODEL (default layer) on STORE (default data/default.zarr) for STEPS (default 1000)
+	$(PY) -m training train --model $(or $(MODEL),layer) --store $(or $(STORE),data/default.zarr) --out $(or $(RUN),data/runs/$(or $(MODEL),layer)) $(if $(STEPS),--steps $(STEPS))
 
 report: setup    ## evaluate RUNS on STORE and write a report
 	$(PY) -m training report --runs $(or $(RUNS),data/runs/*) --store $(or $(STORE),data/default.zarr) --out $(or $(REPORT),data/report)

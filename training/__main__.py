@@ -84,7 +84,9 @@ def main(argv=None) -> int:
     t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`")
     t.add_argument("--out", help="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
     t.add_argument("--steps", type=int, default=1000, help="optimiser steps (default 1000)")
-    t.add_argument("--crop", type=int, default=128, help="square training crop in pixels (default 128, the paper's)")
+    t.add_argument("--crop", type=int, default=None,
+                   help="square training crop in pixels (default 128, the paper's, or the whole frame of a "
+                        "store with smaller frames; a crop larger than the frames is refused)")
     t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
     t.add_argument("--spp", type=int, default=None,
                    help="samples per pixel fed to the model (default: the model's, 8 for the layer family, 1 for "

@@ -39,7 +39,7 @@ class TrainConfig:
     grad_clip_value: float | None = None
     warmup: int | None = None   # optimiser steps of linear learning-rate warm-up (0: off)
     batch: int = 4
-    crop: int = 128
+    crop: int | None = None     # None: the paper's 128, or the whole frame where frames are smaller
     spp: int | None = None      # None: the model's declared default (8 for the layer family)
     steps: int = 1000
     seed: int = 0
@@ -62,7 +62,9 @@ class TrainConfig:
         need("lr", self.lr > 0, "> 0")
         need("grad_clip_norm", self.grad_clip_norm >= 0, ">= 0 (0: off)")
         need("grad_clip_value", self.grad_clip_value >= 0, ">= 0 (0: off)")
-        for name in ("batch", "crop", "spp", "log_every", "checkpoint_every"):
+        if self.crop is not None:
+            need("crop", isinstance(self.crop, int) and self.crop >= 1, "an integer >= 1 (or None)")
+        for name in ("batch", "spp", "log_every", "checkpoint_every"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 1, "an integer >= 1")
         for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")

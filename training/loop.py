@@ -30,6 +30,7 @@ from .losses import build_loss
 from .models import build
 from .models.common import flush_denormals
 
+DEFAULT_CROP = 128
 CSV_FIELDS = ("step", "epoch", "kind", "loss", "relmse", "smape", "psnr", "seconds")
 
 
@@ -152,6 +153,8 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     device = pick_device(cfg.device)
     flush_denormals()
     store = open_store(store)
+    if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
+        cfg = cfg.replace(crop=min(DEFAULT_CROP, store.layout.height, store.layout.width))
     store_info = store_identity(store)
     loss_fn = build_loss(cfg.loss)
 
