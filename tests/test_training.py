@@ -257,3 +257,13 @@ def test_flagged_frames_are_refused_or_skipped_with_a_count(tmp_path):
     with pytest.warns(UserWarning, match="skipping"):
         r = evaluate("input", path, split="test", with_flip=False, skip_bad_frames=True)
     assert test_bad not in [f["index"] for f in r["frames"]]
+
+
+def test_default_crop_is_128_or_the_whole_smaller_frame(store, tmp_path):
+    c = TrainConfig(**{**cfg().to_dict(), "crop": None, "steps": 1})
+    train(c, store, tmp_path / "c", progress=False)
+    assert ckpt.load(tmp_path / "c" / "checkpoint.pt")["train_config"]["crop"] == 32
+    train(c.replace(steps=2), store, tmp_path / "c", progress=False)      # resumes: the same resolved crop
+    from training.errors import DataError
+    with pytest.raises(DataError, match="does not fit"):
+        train(cfg(crop=64), store, tmp_path / "big", progress=False)
