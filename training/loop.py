@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stores.errors import SplitError
+
 from . import checkpoint as ckpt
 from . import metrics
 from .config import TrainConfig
-from stores.errors import SplitError
-
 from .data import batch_loader, batches_per_epoch, model_dataset, open_store, to_device
 from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from .losses import build_loss
