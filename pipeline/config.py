@@ -535,9 +535,12 @@ def _unique_key_loader():
         pass
 
     def construct_mapping(loader, node, deep=False):
-        loader.flatten_mapping(node)
+        # the node's own keys first: flattening splices in the keys of ``<<`` merges, which the
+        # node's own keys override by design (``x: {<<: *base, a: 2}``)
         seen: dict = {}
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
             key = loader.construct_object(key_node, deep=True)
             try:
                 hash(key)
@@ -547,6 +550,7 @@ def _unique_key_loader():
                 raise DuplicateKeyError(
                     f"duplicate key {key!r} (line {key_node.start_mark.line + 1}, first on line {seen[key] + 1})")
             seen[key] = key_node.start_mark.line
+        loader.flatten_mapping(node)
         return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
 
     UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)

@@ -53,14 +53,17 @@ def _proc_state(pid: int) -> str | None:
 
 def pid_alive(pid: int, proc_start: int | None = None) -> bool:
     """Whether process ``pid`` runs on this host (not a zombie, and, given ``proc_start``, the same
-    process rather than a later one that reused the pid)."""
+    process rather than a later one that reused the pid). ``pid <= 0`` is never a process
+    (``os.kill(0 or -1, 0)`` would signal a process group or every process)."""
     try:
+        if int(pid) <= 0:
+            return False
         os.kill(int(pid), 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         pass                            # exists, owned by someone else
-    except (OverflowError, ValueError):
+    except (OverflowError, ValueError, TypeError):
         return False
     if _proc_state(pid) == "Z":
         return False

@@ -160,6 +160,13 @@ def test_lock_refuses_records_it_cannot_prove_dead(tmp_path):
     assert not StoreLock("s3://bucket/x.zarr").acquire().held           # URLs: no lock
 
 
+def test_pid_alive_is_false_for_pids_that_are_not_one_process():
+    from stores.lock import pid_alive
+    for pid in (0, -1, -12345, None):               # os.kill(0 / -1, 0) would signal a group / everything
+        assert pid_alive(pid) is False, pid
+    assert pid_alive(os.getpid()) and pid_alive(os.getpid(), proc_start=None)
+
+
 # ---- 7 + 8 + 2 + 10 end to end: concurrent run refused, kill inside creation, resume, lost shard ---
 @pytest.fixture(scope="module")
 def killed_in_creation(tmp_path_factory):
@@ -286,6 +293,19 @@ def test_config_path_errors_say_what_is_wrong(tmp_path):
         load_config(p)
     p.write_text("name: x\nscenes: [{kind: indoor, count: 1, count: 2}]\n")
     with pytest.raises(ConfigError, match="duplicate key 'count'"):
+        load_config(p)
+
+
+def test_yaml_merge_keys_may_be_overridden_but_not_repeated(tmp_path):
+    p = tmp_path / "merge.yaml"
+    p.write_text("name: merged\nscenes: [&b {kind: indoor, count: 1, frames: 2}, {<<: *b, count: 3}]\n")
+    assert [(g.count, g.frames) for g in load_config(p).scenes] == [(1, 2), (3, 2)]
+    from pipeline.config import _unique_key_loader
+    data = yaml.load("b: &b {kind: indoor, count: 1, frames: 2}\nx: [{<<: *b, count: 3}, {<<: *b}]\n",
+                     Loader=_unique_key_loader())
+    assert data["x"] == [{"kind": "indoor", "count": 3, "frames": 2}, {"kind": "indoor", "count": 1, "frames": 2}]
+    p.write_text("x: &b {a: 1}\ny: {<<: *b, a: 2, a: 3}\n")        # the node's own keys twice: refused
+    with pytest.raises(ConfigError, match="duplicate key 'a'"):
         load_config(p)
 
 
