@@ -1,7 +1,10 @@
 """``python -m pipeline COMMAND``: render-frame, dataset, validate, export, bench.
 
 Each sub-command lives in its own module with ``add_arguments(parser)`` and ``run(args) -> int``;
-this file only dispatches and turns library errors into one-line messages and exit codes.
+this file only dispatches and turns library errors into one-line messages and exit codes, the same
+for every command (``EXIT_CODES_HELP``): 0 ok; 1 problems found or frames failed; 2 bad input (a bad
+config or argument, a path that is not a readable store, an unreachable cluster, a locked store);
+3 the store is damaged (``stores.errors.StoreCorruptionError``); 130 interrupted.
 """
 from __future__ import annotations
 
@@ -16,11 +19,16 @@ COMMANDS = {
     "export": ("stores.export", "export frames of a store to EXR, OIDN or layerdenoise layouts"),
     "bench": ("pipeline.bench", "benchmarks that print figures (renderer, store, scheduler, models)"),
 }
+EXIT_CODES_HELP = ("exit status: 0 ok; 1 problems found (validate) or frames failed (dataset); 2 bad input "
+                   "(config, arguments, a path that is not a readable store, an unreachable cluster, a store "
+                   "in use); 3 the store is damaged (missing or corrupt chunk files, array metadata that "
+                   "disagrees with the schema); 130 interrupted")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.splitlines()[0],
+                                     epilog=EXIT_CODES_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     # Only the chosen sub-command's module is imported (mitsuba/torch imports are slow).
     chosen = next((a for a in argv if not a.startswith("-")), None)
@@ -29,16 +37,17 @@ def main(argv: list[str] | None = None) -> int:
         if name == chosen:
             mod = importlib.import_module(module)
             mod.add_arguments(p)
+            p.epilog = p.epilog or EXIT_CODES_HELP
             p.set_defaults(_run=mod.run)
     args = parser.parse_args(argv)
     from pipeline.errors import PipelineError
-    try:
-        from stores.errors import StoreError
-    except ImportError:  # pragma: no cover
-        StoreError = PipelineError
+    from stores.errors import StoreCorruptionError, StoreError
     from scene_gen.errors import SceneGenError
     try:
         return int(args._run(args) or 0)
+    except StoreCorruptionError as e:         # before StoreError: damage is 3 in every command
+        print(f"error: the store is damaged: {e}", file=sys.stderr)
+        return 3
     except (PipelineError, StoreError, SceneGenError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -236,6 +236,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--format", required=True, choices=FORMATS)
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
+    ap.epilog = ("exit status: 0 exported; 2 bad arguments or not a readable store; 3 the store is damaged "
+                 "(missing or corrupt chunk files, array metadata that disagrees with the schema)")
 
 
 def run(args) -> int:
@@ -251,7 +253,8 @@ def run(args) -> int:
 
 
 def main(argv=None) -> int:
-    """``export STORE --format F --out DIR``: exit 0 on success, 2 on any error (message on stderr)."""
+    """``export STORE --format F --out DIR``: exit 0 on success, 3 on a damaged store, 2 on any other
+    error (message on stderr), as ``python -m pipeline export``."""
     return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, or layerdenoise HDF5.",
                     add_arguments, run, argv)
 

@@ -348,3 +348,19 @@ def test_train_and_evaluate_refuse_a_damaged_store(tmp_path, capsys, damage):
                        "--out", str(tmp_path / "e.json")])
     err = capsys.readouterr().err
     assert code == TRAIN_DAMAGED and "inputs/radiance" in err and "Traceback" not in err, err
+
+
+def test_every_entry_point_exits_3_on_a_damaged_store(store, tmp_path, capsys):
+    """export (both command lines) agrees with validate: 3 for damage, 2 for other bad input."""
+    from stores.__main__ import main as stores_main
+    f = _shard(store, "reference/radiance", 1)
+    data = bytearray(open(f, "rb").read())
+    data[20] ^= 0x01
+    open(f, "wb").write(bytes(data))
+    for main, cmd in ((pipeline_main, []), (stores_main, [])):
+        code = main(["export", str(store), "--format", "exr", "--out", str(tmp_path / "x"), *cmd])
+        err = capsys.readouterr().err
+        assert code == EXIT_DAMAGED and "the store is damaged" in err and "reference/radiance: frame 1" in err, err
+    assert pipeline_main(["export", str(tmp_path / "none.zarr"), "--format", "exr", "--out", str(tmp_path / "y")]) == 2
+    assert pipeline_main(["validate", str(store)]) == EXIT_DAMAGED
+    capsys.readouterr()
