@@ -64,11 +64,11 @@ def _print(*a) -> None:
     print(*a, flush=True)
 
 
-def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = False) -> tuple[int, DatasetConfig]:
-    """Check what is at ``store`` before anything starts; returns the number of complete frames of an
-    existing store of the same dataset content (0 when there is none, when it is to be overwritten or
-    when its creation was cut short) and the config to run: ``cfg``, or for a store made before
-    ``clip_ids`` existed, ``cfg`` with ``clip_ids: scene_seed`` (its frames keep their split).
+def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = False) -> DatasetConfig:
+    """Check what is at ``store`` before anything starts (metadata only: no frame data or completion
+    flag is read, so a damaged chunk is left to the resume, which re-renders its frame); returns the
+    config to run: ``cfg``, or for a store made before ``clip_ids`` existed, ``cfg`` with
+    ``clip_ids: scene_seed`` (its frames keep their split).
     Raises ForeignStoreError for a non-empty folder (or a file) that is not a store,
     StoreMismatchError for a store made from another config (both unless ``overwrite``; a file is
     refused even then)."""
@@ -79,23 +79,23 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     found = schema.foreign_entries(store)
     if found:
         if overwrite:
-            return 0, cfg
+            return cfg
         shown = ", ".join(found[:5]) + (f", ... ({len(found)} entries)" if len(found) > 5 else "")
         raise ForeignStoreError(f"{store} is a non-empty folder that is not a store made by this pipeline "
                                 f"(it holds {shown}); nothing was touched: choose another --out, or pass "
                                 "--overwrite to delete its contents and build the dataset there")
     if not schema._exists(store):
-        return 0, cfg
+        return cfg
     try:
         root, layout = schema.open_group(store, mode="r")
     except IncompleteStoreError:
-        return 0, cfg                           # made again by open_or_create
+        return cfg                              # made again by open_or_create
     except ForeignStoreError:
         if overwrite:
-            return 0, cfg
+            return cfg
         raise
     if overwrite:
-        return 0, cfg
+        return cfg
     have = dict(root.attrs).get("config") or {}
     want = json.loads(json.dumps(cfg.content_dict()))
     if have != want and "clip_ids" not in have and cfg.clip_ids != "scene_seed":
@@ -111,7 +111,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     if not layout.frame_shape_compatible(want_layout) or layout.num_frames != want_layout.num_frames:
         raise StoreMismatchError(f"the store at {store} has layout {layout.to_dict()}, the config needs "
                                  f"{want_layout.to_dict()}")
-    return int(root["status/complete"][:].sum()), cfg
+    return cfg
 
 
 def _validate(store: str) -> dict:
@@ -134,9 +134,14 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     """
     from stores.lock import StoreLock
     store = cfg.store_path(out)
-    _, cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
-    if "://" not in store and not Path(store).parent.exists():
-        Path(store).parent.mkdir(parents=True, exist_ok=True)
+    cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
+    if "://" not in store and not Path(store).parent.is_dir():
+        try:
+            Path(store).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            from stores.errors import StorePathError
+            raise StorePathError(f"--out {store}: cannot make its folder {Path(store).parent}: "
+                                 f"{e.strerror or e}; choose another --out") from e
     with StoreLock(store, command=" ".join(sys.argv) or None) as lock:
         if lock.took_over:
             from stores.lock import describe
@@ -155,7 +160,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
     from stores.writer import open_or_create
 
     t0 = time.perf_counter()
-    _, cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
+    cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
     try:
         dashboard = conn.dashboard

@@ -76,6 +76,11 @@ class ArrayMetadataError(StoreCorruptionError, StoreLayoutError):
     """An array's ``zarr.json`` (dtype, shape, chunks, codecs, fill value, dims) disagrees with the schema."""
 
 
+class StorePathError(StoreError, OSError):
+    """The store's path cannot be made or written: a parent is a file, no permission, a read-only
+    file system. The message names the path and the system's reason."""
+
+
 class StoreExistsError(StoreError, FileExistsError):
     """A store already exists where a new one was to be created (``overwrite`` not given)."""
 

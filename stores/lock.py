@@ -24,7 +24,7 @@ import os
 import socket
 import time
 
-from stores.errors import StoreLockedError
+from stores.errors import StoreLockedError, StorePathError
 from stores.schema import LOCK_NAME
 
 
@@ -74,6 +74,11 @@ def pid_alive(pid: int, proc_start: int | None = None) -> bool:
     return True
 
 
+def _path_error(store: str, what: str, e: OSError) -> StorePathError:
+    return StorePathError(f"store path {store}: {what}: {e.strerror or e} (is a parent a file, or the folder "
+                          f"read-only?); choose another path")
+
+
 def describe(holder: dict) -> str:
     return (f"pid {holder.get('pid')} on host {holder.get('host')}, started {holder.get('started')}"
             + (f" ({holder.get('command')})" if holder.get("command") else ""))
@@ -105,12 +110,16 @@ class StoreLock:
         except (OSError, ValueError):
             return None
 
-    def _refuse(self, holder: dict | None, why: str) -> StoreLockedError:
+    def _drop_made_dir(self) -> None:
+        """Remove the store's folder if this lock made it and it is still empty."""
         if self._made_dir:
             try:
                 os.rmdir(self.store)
             except OSError:
                 pass
+
+    def _refuse(self, holder: dict | None, why: str) -> StoreLockedError:
+        self._drop_made_dir()
         h = holder or {}
         return StoreLockedError(
             f"the store {self.store} is in use by another dataset run: {describe(h)}{why}; lock file {self.path}",
@@ -121,11 +130,18 @@ class StoreLock:
         if not self.supported or self._fd is not None:
             return self
         if not os.path.isdir(self.store):
-            os.makedirs(self.store, exist_ok=True)
+            try:
+                os.makedirs(self.store, exist_ok=True)
+            except OSError as e:
+                raise _path_error(self.store, "cannot make the store's folder", e) from e
             self._made_dir = True
         me = socket.gethostname()
         for _ in range(20):
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            except OSError as e:
+                self._drop_made_dir()
+                raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -171,11 +187,7 @@ class StoreLock:
             pass
         finally:
             os.close(fd)
-        if self._made_dir:
-            try:
-                os.rmdir(self.store)            # only succeeds when empty
-            except OSError:
-                pass
+        self._drop_made_dir()
 
     @property
     def held(self) -> bool:

@@ -96,6 +96,36 @@ def test_cli_refuses_a_folder_that_is_not_a_store_and_leaves_it_alone(tmp_path, 
     assert "is a file, not a folder" in capsys.readouterr().err and f.read_text() == "not a folder"
 
 
+def test_out_that_cannot_be_made_is_a_one_line_error(tmp_path, capsys):
+    """--out under a file, or somewhere the file system refuses (/sys is read-only even for root)."""
+    from pipeline.__main__ import main
+    f = tmp_path / "afile"
+    f.write_text("a file")
+    outs = [f / "x.zarr", f / "sub" / "x.zarr"]
+    if _sys_read_only():
+        outs += [Path("/sys/denoise-test.zarr"), Path("/sys/denoise-test/sub/x.zarr")]
+    for out in outs:
+        rc = main(["dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("error: ") and "Traceback" not in err, (out, err)
+        assert str(out) in err and "choose another" in err, err
+    assert f.read_text() == "a file"
+    from stores.errors import StorePathError
+    with pytest.raises(StorePathError, match=f"store path {f}/x.zarr: cannot make the store's folder"):
+        StoreLock(f / "x.zarr").acquire()
+
+
+def _sys_read_only() -> bool:
+    if not os.path.isdir("/sys"):
+        return False
+    try:
+        os.mkdir("/sys/denoise-probe")
+    except OSError:
+        return True
+    os.rmdir("/sys/denoise-probe")
+    return False
+
+
 def test_library_refuses_foreign_folders_and_existing_stores_unless_overwrite(tmp_path):
     folders = _foreign_folders(tmp_path)
     for folder in folders.values():
@@ -245,6 +275,24 @@ def test_resume_renders_a_complete_frame_again_when_a_shard_file_is_lost(killed_
     assert validate_store(str(out)).ok
 
 
+def test_resume_renders_a_frame_again_when_its_completion_flag_is_damaged(killed_in_creation):
+    """A flipped byte in ``status/complete`` of a complete frame: the next run re-renders that frame
+    (no traceback from the pre-flight store check)."""
+    out, d = killed_in_creation["out"], killed_in_creation["dir"]
+    assert killed_in_creation["c"].returncode == 0
+    flag = out / "status" / "complete" / "c" / "2"
+    data = bytearray(flag.read_bytes())
+    data[0] ^= 0x01                                                # fails its crc32c
+    flag.write_bytes(bytes(data))
+    r = subprocess.run(_cli(out, summary=d / "f.json"), env=_env(), cwd=ROOT, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stdout[-3000:] + r.stderr[-3000:]
+    s = json.loads((d / "f.json").read_text())
+    assert s["rendered"] == 1 and s["complete"] == 4 and s["validation"]["ok"], s
+    from stores.reader import open_store
+    assert open_store(out).complete_frames() == [0, 1, 2, 3]
+
+
 # ---- 8: a half-created store from the library's side ---------------------------------------------
 def test_half_created_store_is_named_and_made_again(tmp_path):
     store = tmp_path / "h.zarr"
@@ -348,6 +396,6 @@ def test_store_made_before_clip_ids_resumes_with_its_old_split(tmp_path):
     assert "clip_ids" not in legacy.content_dict() and cfg.content_dict()["clip_ids"] == "balanced"
     store = str(tmp_path / "old.zarr")
     open_or_create(store, cfg.store_layout(), json.loads(json.dumps(legacy.content_dict())))
-    n, run_cfg = check_existing_store(cfg, store)
-    assert n == 0 and run_cfg.clip_ids == "scene_seed"
+    run_cfg = check_existing_store(cfg, store)
+    assert run_cfg.clip_ids == "scene_seed"
     assert [f.clip_id for f in run_cfg.frames()] == [f.seed for f in cfg.frames()]
