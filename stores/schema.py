@@ -530,9 +530,13 @@ def _clear(path_or_url) -> None:
 
 
 def _creation_record() -> dict:
+    """Who is creating the store: host, pid, the process's start time (``proc_start``, clock ticks
+    since boot: tells the creator from a later process that reused its pid) and the wall-clock start."""
     import socket
     import time
-    return {"host": socket.gethostname(), "pid": os.getpid(),
+
+    from stores.lock import _proc_start
+    return {"host": socket.gethostname(), "pid": os.getpid(), "proc_start": _proc_start(os.getpid()),
             "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 

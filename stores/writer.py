@@ -177,7 +177,8 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
     Nothing that is not ours is deleted: a non-empty folder that is not a store raises
     ForeignStoreError unless ``overwrite`` (which also replaces an existing store). A store whose
     creation was cut short (``IncompleteStoreError``) is made again, unless its creator still runs
-    on this host."""
+    on this host (the same pid and process start time: a later process that reused the pid does not
+    count)."""
     from stores.errors import IncompleteStoreError, StoreLockedError
     if overwrite or not schema._exists(path):
         schema.create_store(path, layout, config, overwrite=overwrite)
@@ -188,7 +189,8 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
         c = e.creator
         import socket
         from stores.lock import pid_alive
-        if c.get("host") == socket.gethostname() and c.get("pid") != os.getpid() and pid_alive(c.get("pid", -1)):
+        if (c.get("host") == socket.gethostname() and c.get("pid") != os.getpid()
+                and pid_alive(c.get("pid", -1), c.get("proc_start"))):
             raise StoreLockedError(f"{os.fspath(path)!s} is being created by pid {c.get('pid')} on {c.get('host')} "
                                    f"(started {c.get('started')})", holder=c) from e
         schema.create_store(path, layout, config, overwrite=True)     # ours, and nothing was written yet

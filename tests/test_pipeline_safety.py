@@ -318,6 +318,32 @@ def test_half_created_store_is_named_and_made_again(tmp_path):
     assert dict(schema.open_group(store)[0].attrs)["config"] == {"again": True}
 
 
+def test_half_created_store_whose_pid_was_reused_is_made_again(tmp_path):
+    """The creation record's pid now belongs to a later process (its start time differs): not the
+    creator, so the store is made again; the same pid with its own start time still hands off."""
+    import zarr
+    from stores.lock import _proc_start
+    store = tmp_path / "r.zarr"
+    schema.create_store(store, TINY)
+    sleeper = subprocess.Popen(["sleep", "60"])
+    try:
+        real = _proc_start(sleeper.pid)
+        root = zarr.open_group(str(store), mode="r+")
+        for start, reused in ((real, False), (real - 1, True)):
+            root.attrs["creating"] = {"host": socket.gethostname(), "pid": sleeper.pid, "proc_start": start,
+                                      "started": "2026-01-01T00:00:00Z"}
+            if reused:
+                w = open_or_create(store, TINY, {"again": True})
+                assert w.num_frames == 2 and "creating" not in dict(schema.open_group(store)[0].attrs)
+            else:
+                with pytest.raises(StoreLockedError, match=f"being created by pid {sleeper.pid}"):
+                    open_or_create(store, TINY)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    assert isinstance(dict(schema.open_group(store)[0].attrs).get("config"), dict)
+
+
 # ---- 8, 15: config checks that stop a run before anything starts ---------------------------------
 def _smoke() -> dict:
     return yaml.safe_load(SMOKE.read_text())
