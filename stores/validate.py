@@ -321,14 +321,25 @@ def run(args) -> int:
 
 def mark_damaged(path, rep: StoreReport) -> list[int]:
     """Mark ``rep``'s damaged frames incomplete (``StoreWriter.mark_failed``), so a resume re-renders
-    and rewrites them. Returns the frames marked."""
+    and rewrites them. Returns the frames marked. Holds the store's writer lock (``stores.lock``)
+    while it writes: StoreLockedError (nothing written) if a dataset run holds it."""
+    from stores.errors import StoreLockedError
+    from stores.lock import StoreLock
     from stores.writer import StoreWriter
-    w = StoreWriter(path)
-    why = {f.index: f.damage[0] for f in rep.frames if f.damage}
-    out = []
-    for i in rep.damaged_frames:
-        w.mark_failed(i, f"damaged: {why.get(i, 'frames/status metadata chunk')}")
-        out.append(i)
+    try:
+        lock = StoreLock(path, command="validate --mark-damaged").acquire()
+    except StoreLockedError as e:
+        raise StoreLockedError(f"not marking the damaged frames {rep.damaged_frames} (nothing was written): {e}",
+                               holder=e.holder) from e
+    try:
+        w = StoreWriter(path)
+        why = {f.index: f.damage[0] for f in rep.frames if f.damage}
+        out = []
+        for i in rep.damaged_frames:
+            w.mark_failed(i, f"damaged: {why.get(i, 'frames/status metadata chunk')}")
+            out.append(i)
+    finally:
+        lock.release()
     return out
 
 

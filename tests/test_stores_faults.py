@@ -171,6 +171,24 @@ def test_mark_damaged_lets_a_resume_rerender_corrupt_frames(store, capsys):
     assert _validate(store, capsys)[0] == EXIT_OK
 
 
+def test_mark_damaged_refuses_while_a_dataset_run_holds_the_store(store, capsys):
+    from stores.lock import StoreLock, read_lock
+    f = _shard(store, "layers/radiance", 1)
+    data = bytearray(open(f, "rb").read())
+    data[30] ^= 0x80
+    open(f, "wb").write(bytes(data))
+    before = open(_shard(store, "status/complete", 1), "rb").read()
+    with StoreLock(store, command="dataset run"):
+        code = pipeline_main(["validate", str(store), "--mark-damaged"])
+        err = capsys.readouterr().err
+        assert code == 2 and "not marking the damaged frames [1]" in err and "in use by another dataset run" in err, err
+        assert "(dataset run)" in err
+    assert open(_shard(store, "status/complete", 1), "rb").read() == before and StoreWriter(store).incomplete_frames() == []
+    assert pipeline_main(["validate", str(store), "--mark-damaged"]) == EXIT_DAMAGED   # free again: marked
+    assert StoreWriter(store).incomplete_frames() == [1] and read_lock(store) is None
+    capsys.readouterr()
+
+
 def test_damaged_completion_flag_means_rerender(store):
     f = _shard(store, "status/complete", 1)
     data = bytearray(open(f, "rb").read())
