@@ -158,8 +158,8 @@ class LayerFrames(_StoreDataset):
 
 
 def _windows(store, split, T: int, full_windows: bool) -> list[tuple[int, ...]]:
-    """Windows of up to ``T`` consecutive frames of one clip, one ending on each frame; only the full
-    ones when ``full_windows``."""
+    """Windows of up to ``T`` consecutive frames of one clip, one ending on each frame, ordered by that
+    frame's index; only the full ones when ``full_windows``."""
     in_clip = store.meta_column("frame")
     out = []
     for _, idxs in store.clips(split).items():
@@ -172,7 +172,7 @@ def _windows(store, split, T: int, full_windows: bool) -> list[tuple[int, ...]]:
     if not out:
         what = "complete frame" if T == 1 else f"run of {T} consecutive complete frames in one clip"
         raise SplitError(f"split {split!r} of {store.path!s} has no {what}")
-    return out
+    return sorted(out, key=lambda w: w[-1])          # by the frame they end on: store order, as SampleDataset
 
 
 # --------------------------------------------------------------------------------------------

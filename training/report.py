@@ -149,10 +149,12 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     oidns = [one(f"oidn{tag(n)}", "oidn", n) for n in spps]
     results = inputs + models + oidns
 
-    # the reference of the first frame, for the crops
-    from .data import sample_dataset
-    ds = sample_dataset(store, split, 1, None, augment=False, seed=0)
-    ref = ds[0]["reference"].permute(1, 2, 0).numpy()
+    # the reference of the frame the crops show (the first evaluated frame of every method)
+    first = {r["frames"][0]["index"] for r in results}
+    if len(first) != 1:
+        raise DataError(f"the methods' first evaluated frames differ ({sorted(first)}); cannot compare crops")
+    from .data import open_store
+    ref = open_store(store).read_array("reference/radiance", first.pop()).transpose(1, 2, 0)
     crops_image([(r["label"], r["images"][0]) for r in results] + [("reference", ref)], out / "crops.png")
     plot_speed_vs_error(results, out / "speed_vs_error.png")
     fig10 = figure10()
