@@ -22,7 +22,8 @@ from stores import schema
 from stores.contract import FRAME_ARRAYS, FRAME_META
 from stores.codecs import crc32c
 from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
-                           MissingShardError, SampleCountError, SplitError, StoreError, StoreLayoutError)
+                           MissingShardError, SampleCountError, SplitError, StoreCorruptionError, StoreError,
+                           StoreLayoutError)
 from stores.schema import ARRAY_BY_PATH, ARRAY_BY_SOURCE, StoreLayout
 
 DEFAULT_SPLIT = {"train": 0.8, "val": 0.1, "test": 0.1}
@@ -196,13 +197,14 @@ class _ShardReader:
 class Store:
     """A read-only view of a store. Cheap to pickle (re-opens lazily in each process)."""
 
-    def __init__(self, path, *, fast: bool = True, threads: int = 0):
+    def __init__(self, path, *, fast: bool = True, threads: int = 0, check: bool = True):
         self.path = path
         self.fast = fast
         self.threads = int(threads)
         self._pool = None
         self._local = None
-        self.root, self.layout = schema.open_group(path, mode="r")
+        # check=False: the caller has compared the arrays' metadata with the schema already (validate)
+        self.root, self.layout = schema.open_group(path, mode="r", check=check)
         self.version = schema.version_of(self.root)
         self._specs = {s.path: s for s in schema.arrays(self.version)}
         self._init_local()
@@ -232,7 +234,7 @@ class Store:
     # ---------------------------------------------------------------- metadata
     @property
     def num_frames(self) -> int:
-        return len(self._meta_table()["complete"])
+        return int(self.root["status/complete"].shape[0])
 
     @property
     def attrs(self) -> dict:
@@ -278,16 +280,74 @@ class Store:
             raise CorruptChunkError(f"{path}: frame {frame}: chunk file {f} is damaged: {type(e).__name__}: {e}",
                                     array=path, frame=frame, path=f) from e
 
-    def _meta_table(self) -> dict:
+    def _require_chunks(self, paths, frames) -> None:
+        """Raise MissingShardError (array, frame, file) for the first chunk or shard file of the arrays
+        ``paths`` that is missing for one of ``frames`` (frames marked complete: schema v2 writes every
+        chunk, so a missing one is lost data, not zeros). Nothing to check in v1."""
+        if self.version < 2 or not len(frames):
+            return
+        lost = schema.missing_chunks(self.root, frames, self.version, paths=paths)
+        if lost:
+            raise _missing_error(lost)
+
+    def _meta_columns(self) -> list[tuple[str, str]]:
+        """``(table key, array path)`` of the columns of the metadata table."""
+        cols = [(key, schema.meta_path(key, self.version)) for key in list(FRAME_META) + ["clip_id"]]
+        return cols + [("complete", "status/complete"), ("error", "status/error")]
+
+    def _meta(self) -> tuple[dict, dict[int, list[StoreCorruptionError]]]:
+        """The per-frame metadata table and the damage found building it, frame -> errors: a chunk that
+        does not decode (it reads as the fill value here; a damaged completion flag reads False) and,
+        in v2, a missing chunk file of a frame marked complete. Read once, then cached."""
         if self._meta_cache is None:
-            table = {}
-            for key in list(FRAME_META) + ["clip_id"]:
-                table[key] = self._zarr_read(schema.meta_path(key, self.version), slice(None))
+            table: dict = {}
+            damage: dict[int, list[StoreCorruptionError]] = {}
+            for key, path in self._meta_columns():
+                try:
+                    table[key] = self._zarr_read(path, slice(None))
+                except CorruptChunkError:
+                    table[key] = self._read_column_leniently(path, damage)
             table["frame_in_clip"] = table["frame"]
-            table["complete"] = np.asarray(self._zarr_read("status/complete", slice(None)), bool)
-            table["error"] = self._zarr_read("status/error", slice(None))
-            self._meta_cache = table
+            table["complete"] = np.asarray(table["complete"], bool)
+            done = [int(i) for i in np.nonzero(table["complete"])[0]]
+            if self.version >= 2 and done:
+                paths = [p for _, p in self._meta_columns()]
+                for i, lost in schema.missing_chunks(self.root, done, self.version, paths=paths).items():
+                    damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
+            self._meta_cache = (table, {i: damage[i] for i in sorted(damage)})
         return self._meta_cache
+
+    def _read_column_leniently(self, path: str, damage: dict) -> np.ndarray:
+        """Column ``path`` chunk by chunk: every chunk that does not decode reads as the fill value and
+        goes into ``damage`` (frame -> CorruptChunkError)."""
+        arr = self.root[path]
+        out = np.full(arr.shape, arr.fill_value, dtype=object if arr.dtype.kind in "OTU" else arr.dtype)
+        for i in range(arr.shape[0]):
+            try:
+                out[i] = self._zarr_read(path, i, i)
+            except CorruptChunkError as e:
+                damage.setdefault(i, []).append(e)
+        return out.astype(str) if out.dtype == object else out
+
+    def metadata_damage(self) -> dict[int, list[StoreCorruptionError]]:
+        """Frames whose ``frames/*`` or ``status/*`` chunks are damaged or (v2, complete frames) missing,
+        frame -> the errors (each names array, frame and file). ``{}`` for a sound store."""
+        return {i: list(v) for i, v in self._meta()[1].items()}
+
+    def _meta_table(self) -> dict:
+        """The metadata table for whole-store questions (splits, clips, complete frames): raises the
+        first metadata damage of any frame (StoreCorruptionError; ``metadata_damage()`` lists it all)."""
+        table, damage = self._meta()
+        if damage:
+            raise _first_of(damage)
+        return table
+
+    def _frame_row(self, i: int) -> dict:
+        """The metadata table, after checking frame ``i``'s own metadata chunks (damage: raised)."""
+        table, damage = self._meta()
+        if i in damage:
+            raise _first_of({i: damage[i]})
+        return table
 
     def meta_column(self, key: str) -> np.ndarray:
         """One ``frames/*`` column by its ``FRAME_META`` key (or ``clip_id``, ``complete``, ``error``) for
@@ -313,12 +373,13 @@ class Store:
     def _check_complete(self, i: int) -> None:
         """Uses the cached completion flags; a frame cached as incomplete is re-checked on disk (it may
         have been finished since this Store was opened)."""
-        if self._meta_table()["complete"][i]:
+        if self._frame_row(i)["complete"][i]:
             return
-        if bool(self.root["status/complete"][i]):
+        if bool(self._zarr_read("status/complete", i, i)):
             self._meta_cache = None
+            self._frame_row(i)
             return
-        err = str(self.root["status/error"][i])
+        err = str(self._zarr_read("status/error", i, i))
         why = f" (last error: {err})" if err else " (never finished, or its writer stopped mid-frame)"
         raise IncompleteFrameError(f"frame {i} of {os.fspath(self.path)!s} is incomplete{why}")
 
@@ -326,16 +387,23 @@ class Store:
         """``FRAME_META`` of frame ``i`` plus ``clip_id``, ``complete``, ``error`` and the camera matrices
         ``camera_to_world``/``world_to_clip`` (float64, 44). Python scalars."""
         i = self._check_index(i)
-        t = self._meta_table()
+        t = self._frame_row(i)
         out = {}
         for key, typ in FRAME_META.items():
             out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
         out["clip_id"] = int(t["clip_id"][i])
         out["complete"] = bool(t["complete"][i])
         out["error"] = str(t["error"][i])
-        out["camera_to_world"] = self._zarr_read("frames/camera_to_world", i, i)
-        out["world_to_clip"] = self._zarr_read("frames/world_to_clip", i, i)
+        for key in ("camera_to_world", "world_to_clip"):
+            out[key] = self._read_matrix(key, i)
         return out
+
+    def _read_matrix(self, key: str, i: int) -> np.ndarray:
+        """``frames/<key>`` (float64, 44) of frame ``i``; MissingShardError if a complete v2 frame lost it."""
+        path = ARRAY_BY_SOURCE[key].path
+        if bool(self._frame_row(i)["complete"][i]):
+            self._require_chunks([path], [i])
+        return self._zarr_read(path, i, i)
 
     # ---------------------------------------------------------------- images
     def _reader(self, path: str):
@@ -380,17 +448,14 @@ class Store:
         else:
             samples = None
         # v2 writes every shard, so a complete frame without one lost it; v1 skipped all-zero shards
-        strict = self.version >= 2 and bool(self._meta_table()["complete"][i])
+        strict = self.version >= 2 and bool(self._frame_row(i)["complete"][i])
         r = self._reader(path) if spec.image else None
         if r is not None:
             a = r.read(i, y, y + h, x, x + w, samples, self._get_pool(), strict=strict)
         else:
             if strict:
-                there, f = schema.chunk_file(self.root, spec, i)
-                if not there:
-                    raise MissingShardError(f"{path}: frame {i} is marked complete but its shard file {f} is "
-                                            f"missing (re-render the frame: `python -m pipeline dataset` resumes it)",
-                                            array=path, frame=i, path=f)
+                self._require_chunks([path], [i])
+                f = schema.chunk_file(self.root, spec, i)[1]
                 if os.path.isfile(f) and os.path.getsize(f) == 0:      # zarr reads an empty shard as fill
                     raise CorruptChunkError(f"{path}: frame {i}: shard file {f} is damaged: it is empty",
                                             array=path, frame=i, path=f)
@@ -427,7 +492,7 @@ class Store:
             if spec.image:
                 a = self.read_array(spec.path, i, crop, samples=spp, check_complete=False)
             else:
-                a = self._zarr_read(spec.path, i, i)
+                a = self._read_matrix(key, i)
             out[key] = spec.from_store(a, self.layout)
         return out
 
@@ -441,7 +506,8 @@ class Store:
 
     # ---------------------------------------------------------------- splits and clips
     def split_of_frame(self, i: int) -> str:
-        return split_of_clip(int(self._meta_table()["clip_id"][self._check_index(i)]), self.split_fractions)
+        i = self._check_index(i)
+        return split_of_clip(int(self._frame_row(i)["clip_id"][i]), self.split_fractions)
 
     def frames_in_split(self, split: str | None, *, complete_only: bool = True) -> list[int]:
         """Frame indices of ``split`` (None: all), in index order; complete frames only by default."""
@@ -469,7 +535,7 @@ class Store:
     def missing_data(self, frames=None) -> dict[int, list[tuple[str, str]]]:
         """Complete frames (of ``frames``, default all) whose chunk files are not all there, frame ->
         ``[(array, file)]``; always ``{}`` for schema v1 stores (see ``schema.missing_chunks``)."""
-        done = self._meta_table()["complete"]
+        done = self._meta()[0]["complete"]         # a damaged flag reads False (metadata_damage lists it)
         frames = range(self.num_frames) if frames is None else frames
         return schema.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]], self.version)
 
@@ -485,7 +551,7 @@ def frame_problems(store, i: int) -> list[str]:
     reference (the inputs only when the reference is all zero). Damaged data raises (StoreCorruptionError)."""
     st = store if isinstance(store, Store) else open_store(store)
     i = st._check_index(i)
-    t = st._meta_table()
+    t = st._frame_row(i)
     if not t["complete"][i]:
         return ["incomplete"]
     out = []
@@ -508,11 +574,38 @@ def frame_problems(store, i: int) -> list[str]:
     return out
 
 
-def open_store(path, *, fast: bool = True, threads: int = 0) -> Store:
+def _missing_error(lost: dict[int, list[tuple[str, str]]]) -> MissingShardError:
+    """The MissingShardError of the first of ``lost`` (frame -> ``[(array, file)]``, as
+    ``schema.missing_chunks`` gives it), with a count of the others."""
+    i = min(lost)
+    array, f = lost[i][0]
+    kind = "shard" if ARRAY_BY_PATH.get(array) is not None and ARRAY_BY_PATH[array].image else "chunk"
+    more = sum(len(v) for v in lost.values()) - 1
+    also = f"; {more} more missing file(s) (`python -m pipeline validate` lists them)" if more else ""
+    return MissingShardError(f"{array}: frame {i} is marked complete but its {kind} file {f} is missing "
+                             f"(re-render the frame: `python -m pipeline dataset` resumes it){also}",
+                             array=array, frame=i, path=f)
+
+
+def _first_of(damage: dict[int, list[StoreCorruptionError]]) -> StoreCorruptionError:
+    """The first error of ``damage`` (frame -> errors), its message noting how many others there are."""
+    first = damage[min(damage)][0]
+    more = sum(len(v) for v in damage.values()) - 1
+    if not more:
+        return first
+    e = type(first)(f"{first}; and {more} more damaged metadata chunk(s) (`python -m pipeline validate` "
+                    f"lists them)", array=first.array, frame=first.frame, path=first.path)
+    e.__cause__ = first
+    return e
+
+
+def open_store(path, *, fast: bool = True, threads: int = 0, check: bool = True) -> Store:
     """Open an existing store for reading (``StoreNotFoundError``, ``ForeignStoreError`` and
-    ``SchemaVersionError`` otherwise). ``threads >= 2`` decodes the tiles of a crop in a thread pool
-    (Blosc and numpy release the GIL); leave 0 inside DataLoader workers, which already parallelise."""
-    return Store(path, fast=fast, threads=threads)
+    ``SchemaVersionError`` otherwise; ``ArrayMetadataError`` when an array's ``zarr.json`` disagrees
+    with the schema, unless ``check=False`` because the caller compared them already). ``threads >= 2``
+    decodes the tiles of a crop in a thread pool (Blosc and numpy release the GIL); leave 0 inside
+    DataLoader workers, which already parallelise."""
+    return Store(path, fast=fast, threads=threads, check=check)
 
 
 __all__ = ["Store", "open_store", "frame_problems", "split_of_clip", "DEFAULT_SPLIT", "StoreLayout"]

@@ -414,20 +414,39 @@ def chunk_file(root, spec: ArraySpec, frame: int) -> tuple[bool, str]:
     return bool(sync(store.exists(key))), key
 
 
-def missing_chunks(root, frames, version: int | None = None) -> dict[int, list[tuple[str, str]]]:
-    """frame -> ``[(array, file), ...]`` of the per-frame arrays whose chunk or shard file for that frame
-    does not exist. Only meaningful for frames marked complete of schema v2 stores (every chunk is
-    written, even all-zero ones); v1 writers skipped all-zero chunks, so v1 returns ``{}``."""
+def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> dict[int, list[tuple[str, str]]]:
+    """frame -> ``[(array, file), ...]`` of the per-frame arrays (all, or those in ``paths``) whose chunk
+    or shard file for that frame does not exist. Only meaningful for frames marked complete of schema
+    v2 stores (every chunk is written, even all-zero ones); v1 writers skipped all-zero chunks, so v1
+    returns ``{}``. On a local store a one-dimensional array's chunks are one directory listing."""
     version = version_of(root) if version is None else version
     if version < 2:
         return {}
-    specs = [s for s in arrays(version) if s.per_frame]
+    specs = [s for s in arrays(version) if s.per_frame and (paths is None or s.path in paths)]
+    frames = [int(i) for i in frames]
     out: dict[int, list[tuple[str, str]]] = {}
-    for i in frames:
-        lost = [(spec.path, f) for spec in specs for there, f in [chunk_file(root, spec, i)] if not there]
-        if lost:
-            out[int(i)] = lost
-    return out
+    for spec in specs:
+        names = _chunk_names_1d(root, spec) if len(frames) > 8 else None
+        for i in frames:
+            if names is not None and str(i) in names:
+                continue
+            there, f = chunk_file(root, spec, i)
+            if not there:
+                out.setdefault(i, []).append((spec.path, f))
+    return {i: out[i] for i in sorted(out)}
+
+
+def _chunk_names_1d(root, spec: ArraySpec) -> set[str] | None:
+    """The chunk files of a one-dimensional array of a local store (names under ``c/``), else None."""
+    from zarr.storage import LocalStore
+    if len(spec.dims) != 1 or not isinstance(root.store, LocalStore):
+        return None
+    d = os.path.join(str(root.store.root), *(p for p in (root.path.strip("/"),) if p), *spec.path.split("/"), "c")
+    try:
+        with os.scandir(d) as it:
+            return {e.name for e in it if e.is_file()}
+    except FileNotFoundError:
+        return set()
 
 
 def consolidate(path_or_url) -> None:

@@ -5,7 +5,8 @@ Exit codes (``EXIT_*``): 0 no problem; 1 problems found in readable data (incomp
 values out of range, an all-zero reference); 2 not a readable store (no store, not ours, unknown schema
 version, creation cut short, bad arguments); 3 the store is damaged (a complete frame's chunk file
 missing, a truncated/garbage chunk or one failing its crc32c, array metadata that disagrees with the
-schema). Damage is listed in full (every missing shard with its array and frame) before exiting 3.
+schema). Damage is listed in full before exiting 3: every missing shard and every damaged or missing
+``frames/*`` / ``status/*`` / camera-matrix chunk, each with its array, frame and file.
 
 Array metadata (``zarr.json``: dtype, shape, chunks, codecs, fill value, dims) is compared with the
 schema table first; if it disagrees no frame is read (its bytes would be misread).
@@ -30,7 +31,7 @@ import numpy as np
 
 from stores import schema
 from stores.contract import FEATURE_GROUPS
-from stores.errors import StoreCorruptionError, StoreError
+from stores.errors import MissingShardError, StoreCorruptionError, StoreError
 from stores.reader import open_store
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE, EXIT_DAMAGED = 0, 1, 2, 3
@@ -198,11 +199,11 @@ def parse_frames(spec: str | None, num_frames: int) -> list[int]:
 def validate_store(path, frames=None) -> StoreReport:
     """Validate the store at ``path`` (all frames, or the indices in ``frames``). Raises StoreError
     subclasses when the path is not a readable store of a known schema; damage is reported, not raised
-    (``report.damage``, ``FrameReport.damage``; ``report.exit_code`` 3)."""
+    (``report.damage``, ``FrameReport.damage``; ``report.exit_code`` 3): every damaged or missing
+    metadata chunk and every missing shard is listed, each with its array, frame and file."""
     root, lay = schema.open_group(path, mode="r", check=False)
     version = schema.version_of(root)
-    rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(),
-                      num_frames=int(root["status/complete"].shape[0]))
+    rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(), num_frames=lay.num_frames)
 
     def damage(where, msg):
         where.problems.append(msg)
@@ -217,21 +218,17 @@ def validate_store(path, frames=None) -> StoreReport:
     stale = _consolidation_note(path, root, version)
     if stale:
         rep.notes.append(stale)
-    store = open_store(path)
-    try:
-        store.num_frames
-    except StoreCorruptionError as e:
-        damage(rep, str(e))
-        if e.frame is not None:
-            rep.damaged_meta_frames.append(int(e.frame))
-        return rep
+    store = open_store(path, check=False)                  # array_problems ran above
+    meta_damage = store.metadata_damage()                  # frame -> errors of its frames/* and status/* chunks
     indices = range(store.num_frames) if frames is None else frames
+    rep.damaged_meta_frames = sorted(set(meta_damage) & {int(i) for i in indices})
     lost = store.missing_data(indices)
     if version < 2:
         specs = [s for s in schema.arrays(version) if s.image]
         skipped = {}
+        done = store._meta()[0]["complete"]
         for i in indices:
-            if store.complete_mask()[i]:
+            if done[i]:
                 for spec in specs:
                     if not schema.chunk_file(root, spec, i)[0]:
                         skipped.setdefault(spec.path, []).append(int(i))
@@ -239,26 +236,37 @@ def validate_store(path, frames=None) -> StoreReport:
             rep.notes.append(f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}"
                              f"{' ...' if len(fs) > 10 else ''} (schema v1 skipped all-zero shards: read as zeros)")
     for i in indices:
-        meta = store.frames_meta(i)
-        fr_rep = FrameReport(index=i, complete=meta["complete"], error=meta["error"])
+        fr_rep = FrameReport(index=i, complete=False)
+        rep.frames.append(fr_rep)
+        missing = {f for _, f in lost.get(i, [])}
+        for e in meta_damage.get(i, []):        # missing metadata chunks are listed with the shards below
+            if not (isinstance(e, MissingShardError) and e.path in missing):
+                damage(fr_rep, str(e))
+        for array, f in lost.get(i, []):
+            damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
+        try:
+            meta = store.frames_meta(i)
+        except StoreCorruptionError as e:       # a camera matrix, or the metadata damage listed above
+            if i not in meta_damage and e.path not in missing:
+                damage(fr_rep, str(e))
+            continue
+        fr_rep.complete, fr_rep.error = meta["complete"], meta["error"]
         if not meta["complete"]:
             fr_rep.problems.append("incomplete" + (f" (error: {meta['error']})" if meta["error"] else ""))
-        elif i in lost:
-            for array, f in lost[i]:
-                damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
-        else:
-            fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
-            fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
-                                            + meta["nonfinite_reference"])
-            data = {}
-            for key in _IMAGE_KEYS:
-                try:
-                    data[key] = store.read_frame(i, [key])[key]
-                except StoreCorruptionError as e:
-                    damage(fr_rep, str(e))
-            if not fr_rep.damage:
-                check_frame_values(data, fr_rep)
-        rep.frames.append(fr_rep)
+            continue
+        if fr_rep.damage:
+            continue
+        fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
+        fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
+                                        + meta["nonfinite_reference"])
+        data = {}
+        for key in _IMAGE_KEYS:
+            try:
+                data[key] = store.read_frame(i, [key])[key]
+            except StoreCorruptionError as e:
+                damage(fr_rep, str(e))
+        if not fr_rep.damage:
+            check_frame_values(data, fr_rep)
     return rep
 
 
@@ -301,11 +309,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     """Validate and print; returns the exit code (``EXIT_*``: 0 ok, 1 problems, 3 damaged). Raises
     StoreError (exit 2) if the path is not a readable store or the arguments are bad."""
-    root, lay = schema.open_group(args.store, mode="r", check=False)
+    _, lay = schema.open_group(args.store, mode="r", check=False)
     try:
-        frames = parse_frames(args.frames, int(root["status/complete"].shape[0]))
+        frames = parse_frames(args.frames, lay.num_frames)     # the layout's count: no array is read here
     except ValueError as e:
-        raise StoreError(str(e)) from e
+        raise StoreError(f"--frames {args.frames}: {e}") from e
     try:
         rep = validate_store(args.store, frames)
     except StoreCorruptionError as e:       # damage the report could not take in (should not happen)

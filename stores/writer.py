@@ -128,11 +128,6 @@ class StoreWriter:
         lost = schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
         return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
-    def frames_with_missing_data(self) -> dict[int, list[tuple[str, str]]]:
-        """Frames marked complete whose chunk files are not all there: frame -> ``[(array, file)]``."""
-        done = _complete_flags(self.root)
-        return schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
-
     def errors(self) -> dict[int, str]:
         """Frame index -> recorded error text, for frames with one."""
         err = self.root["status/error"][:]

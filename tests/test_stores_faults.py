@@ -382,3 +382,105 @@ def test_every_entry_point_exits_3_on_a_damaged_store(store, tmp_path, capsys):
     assert pipeline_main(["export", str(tmp_path / "none.zarr"), "--format", "exr", "--out", str(tmp_path / "y")]) == 2
     assert pipeline_main(["validate", str(store)]) == EXIT_DAMAGED
     capsys.readouterr()
+
+
+# ----------------------------------------------------------------------------- 2. missing metadata chunks
+@pytest.mark.parametrize("fast", [True, False])
+def test_missing_camera_matrix_chunk_is_not_a_zero_matrix(store, capsys, fast):
+    f = _shard(store, "frames/camera_to_world", 1)
+    assert f.endswith(os.path.join("c", "1", "0", "0"))
+    os.remove(f)
+    st = open_store(store, fast=fast)
+    for read in (lambda: st.frames_meta(1), lambda: st.read_frame(1), lambda: st.read_frame(1, ["camera_to_world"])):
+        with pytest.raises(MissingShardError, match="frames/camera_to_world: frame 1 is marked complete") as e:
+            read()
+        assert (e.value.array, e.value.frame, e.value.path) == ("frames/camera_to_world", 1, f)
+    assert st.frames_meta(0)["camera_to_world"].any() and st.complete_frames() == [0, 1, 2]
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED, text
+    assert f"frames/camera_to_world: frame 1 is complete but its chunk file {f} is missing" in text, text
+    assert text.count("frames/camera_to_world: frame 1") == 1, text
+
+
+def test_missing_clip_id_chunk_is_not_clip_0(store, capsys):
+    """A lost frames/clip_id chunk would read as clip 0 and could move the frame to another split."""
+    f = _shard(store, "frames/clip_id", 1)
+    os.remove(f)
+    st = open_store(store)
+    for read in (lambda: st.frames_in_split("train"), lambda: st.split_of_frame(1), lambda: st.clips(),
+                 lambda: st.frames_meta(1), lambda: st.read_frame(1, ["reference"])):
+        with pytest.raises(MissingShardError, match=f"frames/clip_id: frame 1 .*{f} is missing") as e:
+            read()
+        assert (e.value.array, e.value.frame, e.value.path) == ("frames/clip_id", 1, f)
+    st.read_frame(0)                                  # the other frames still read one by one
+    assert list(st.metadata_damage()) == [1]
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and f"frames/clip_id: frame 1 is complete but its chunk file {f} is missing" in text
+    torch = pytest.importorskip("torch")  # noqa: F841
+    from stores.datasets import SampleDataset
+    with pytest.raises(MissingShardError, match="frames/clip_id: frame 1"):
+        SampleDataset(store, split="train", spp=S, crop=8)
+
+
+def test_missing_metadata_chunk_of_an_incomplete_frame_is_not_damage(tmp_path, capsys):
+    path = tmp_path / "s.zarr"
+    w = open_or_create(path, LAYOUT, {})
+    for i in range(2):
+        w.write_frame(i, synthetic_frame(i, H, W, S))
+    w.mark_failed(1, "render crashed")
+    os.remove(_shard(path, "frames/clip_id", 1))
+    assert open_store(path).complete_frames() == [0]
+    code, text = _validate(path, capsys)
+    assert code == EXIT_PROBLEMS and "DAMAGE" not in text, text
+
+
+# ----------------------------------------------------------------------------- 3. validate lists it all
+def _flip(f, at=0):
+    data = bytearray(open(f, "rb").read())
+    data[at] ^= 0x04
+    open(f, "wb").write(bytes(data))
+
+
+def test_validate_lists_every_damaged_metadata_chunk_and_missing_shard(store, capsys):
+    """A corrupt camera matrix (frame 1), two corrupt frames/* chunks (frames 0 and 2) and a missing
+    shard (frame 2): one report names them all, --json reads, --mark-damaged marks all three frames."""
+    bad = {_shard(store, "frames/world_to_clip", 1): "frames/world_to_clip: frame 1",
+           _shard(store, "frames/scene_seed", 0): "frames/scene_seed: frame 0",
+           _shard(store, "frames/clip_id", 2): "frames/clip_id: frame 2"}
+    for f in bad:
+        _flip(f)
+    gone = _shard(store, "guides/depth", 2)
+    os.remove(gone)
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and "Traceback" not in text, text
+    for f, what in bad.items():
+        assert what in text and f in text, (what, text)
+    assert f"guides/depth: frame 2 is complete but its chunk file {gone} is missing" in text, text
+    assert pipeline_main(["validate", str(store), "--json"]) == EXIT_DAMAGED
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["damaged"] and [f["index"] for f in rep["frames"] if f["damage"]] == [0, 1, 2]
+    assert pipeline_main(["validate", str(store), "--frames", "1", "--mark-damaged"]) == EXIT_DAMAGED
+    assert "marked 1 damaged frame(s) incomplete: [1]" in capsys.readouterr().err
+    assert pipeline_main(["validate", str(store), "--mark-damaged"]) == EXIT_DAMAGED
+    assert "marked 3 damaged frame(s) incomplete: [0, 1, 2]" in capsys.readouterr().err
+    w = StoreWriter(store)
+    assert w.incomplete_frames() == [0, 1, 2] and w.errors()[1].startswith("damaged: frames/world_to_clip: frame 1")
+    for i in range(3):                                  # a resume rewrites them: the store is sound again
+        w.write_frame(i, synthetic_frame(i, H, W, S, motion=False))
+    assert _validate(store, capsys)[0] == EXIT_OK
+
+
+# ----------------------------------------------------------------------------- 4. completion flag metadata
+@pytest.mark.parametrize("how", ["deleted", "garbage"])
+@pytest.mark.parametrize("extra", [[], ["--frames", "0"], ["--json"]])
+def test_validate_on_a_lost_completion_flag_zarr_json_exits_3(store, capsys, how, extra):
+    f = os.path.join(store, "status", "complete", "zarr.json")
+    if how == "deleted":
+        os.remove(f)
+    else:
+        open(f, "w").write("{ not json")
+    code = pipeline_main(["validate", str(store), *extra])
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert code == EXIT_DAMAGED, text
+    assert "status/complete: " + ("missing" if how == "deleted" else "unreadable zarr.json") in text, text
