@@ -135,6 +135,7 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     from stores.lock import StoreLock
     store = cfg.store_path(out)
     cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
+    check_memory_before_start(cfg, scheduler=scheduler, workers=workers)
     if "://" not in store and not Path(store).parent.is_dir():
         try:
             Path(store).parent.mkdir(parents=True, exist_ok=True)
@@ -205,6 +206,17 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
     _print(f"validation: {'ok' if v.get('ok') else ('not run' if v.get('ok') is None else 'PROBLEMS')}"
            + ("".join(f"\n  {p}" for p in v.get("problems", [])[:20]) if not v.get("ok") else ""))
     return summary
+
+
+def check_memory_before_start(cfg: DatasetConfig, *, scheduler: str | None = None, workers: int | None = None) -> None:
+    """Refuse (ConfigError naming the estimate) a frame that cannot fit in the memory of one worker of
+    the cluster this run will start: a LocalCluster of ``workers`` (``--workers``, else the config's,
+    else one per core) on this machine, or the configured batch jobs. An existing scheduler
+    (``--scheduler``, ``cluster.address``) is checked once connected (``_check_worker_memory``)."""
+    c = cfg.cluster
+    if scheduler or c.address or c.kind == "scheduler":
+        return
+    cfg.check_memory(workers=workers if c.kind == "local" else None)
 
 
 def _check_worker_memory(cfg: DatasetConfig, conn) -> None:

@@ -36,7 +36,10 @@ the bare hash, which leaves small stores without val or test scenes). Resuming s
 
 Before anything runs, a frame must fit in a worker's memory: :func:`frame_bytes` (its arrays as
 rendered, twice: the parts and their store copy in the write task) against the memory of one
-worker (``cluster.memory_limit``, else this machine's memory over the workers).
+worker (``cluster.memory_limit``, else this machine's memory over the workers). Loading a config
+does not check it, since its workers are only known once the command line is (``--scheduler``,
+``--workers``): ``python -m pipeline dataset`` checks :meth:`DatasetConfig.check_memory` before it
+starts a LocalCluster or batch jobs, and the workers' own memory limits once connected.
 """
 from __future__ import annotations
 
@@ -293,13 +296,17 @@ class DatasetConfig:
               "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", rc.layer_levels)
         self.scene_gen_config()
         self.store_layout()
-        self.check_memory()
+        # no memory check here: the workers are not known until the CLI has its --scheduler / --workers
+        # (the dataset command checks before it starts a LocalCluster or batch jobs, and once connected)
 
-    def check_memory(self, per_worker: int | None = None, where: str | None = None) -> None:
+    def check_memory(self, per_worker: int | None = None, where: str | None = None, *,
+                     workers: int | None = None) -> None:
         """Raise ConfigError when one frame cannot fit in a worker's memory (``per_worker`` bytes, else
-        :func:`worker_memory`), naming the estimate."""
+        :func:`worker_memory` of this config's cluster with ``workers`` local workers), naming the
+        estimate."""
         need = 2 * frame_bytes(self)
-        have, src = (per_worker, where or "per worker") if per_worker else worker_memory(self.cluster)
+        have, src = ((per_worker, where or "per worker") if per_worker
+                     else worker_memory(self.cluster, workers=workers))
         if have and need > have:
             W, H = self.resolution
             raise ConfigError(
@@ -482,10 +489,11 @@ def _gib(n: float) -> str:
     return f"{n / 2 ** 30:.1f} GiB" if n >= 2 ** 28 else f"{n / 2 ** 20:.1f} MiB"
 
 
-def worker_memory(cluster: ClusterConfig) -> tuple[int | None, str]:
+def worker_memory(cluster: ClusterConfig, *, workers: int | None = None) -> tuple[int | None, str]:
     """Memory one worker may use, in bytes, and where the figure comes from: ``memory_limit`` when
-    given, the batch jobs' ``memory`` over their ``processes``, else (local) this machine's memory over
-    the workers. ``(None, ...)`` when it cannot be known here (an existing scheduler's workers: the
+    given, the batch jobs' ``memory`` over their ``processes``, else (a LocalCluster) this machine's
+    memory over its workers (``workers``, the CLI's ``--workers``, else ``cluster.workers``, else one
+    per core). ``(None, ...)`` when it cannot be known here (an existing scheduler's workers: the
     CLI checks them once connected)."""
     from dask.utils import parse_bytes
     m = cluster.memory_limit
@@ -511,7 +519,7 @@ def worker_memory(cluster: ClusterConfig) -> tuple[int | None, str]:
     except ImportError:  # pragma: no cover - psutil comes with distributed
         return None, "unknown"
     cores = max(1, len(os.sched_getaffinity(0))) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    n = cluster.workers or max(1, cores // cluster.threads_per_worker)
+    n = workers or cluster.workers or max(1, cores // cluster.threads_per_worker)
     return total // n, f"this machine's {total / 2 ** 30:.1f} GiB over {n} worker(s)"
 
 

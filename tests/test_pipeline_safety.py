@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -383,12 +384,26 @@ def test_yaml_merge_keys_may_be_overridden_but_not_repeated(tmp_path):
         load_config(p)
 
 
-def test_a_frame_that_cannot_fit_in_memory_is_refused():
+def test_a_frame_that_cannot_fit_in_memory_is_refused(tmp_path, capsys):
+    """Refused before a cluster starts where the run's workers are known (a LocalCluster, batch jobs),
+    whatever this machine's memory; a config loads (it may be for a remote cluster)."""
+    from pipeline.__main__ import main
+    from pipeline.cli_dataset import check_memory_before_start
     d = _smoke()
     d["resolution"] = 16384
-    with pytest.raises(ConfigError, match=r"16384x16384 cannot be rendered: one frame needs about \d+\.\d GiB "
-                                          r"\([\d,]+ bytes: .*a worker has \d+\.\d GiB \(this machine's"):
-        DatasetConfig.from_dict(d)
+    cfg16k = DatasetConfig.from_dict(d)                         # valid: it may run on a bigger cluster
+    check_memory_before_start(cfg16k, scheduler="tcp://127.0.0.1:1")   # checked there once connected
+    d["cluster"] = {**d["cluster"], "memory_limit": "64GiB"}
+    p = tmp_path / "big.yaml"
+    p.write_text(yaml.safe_dump(d))
+    rc = main(["dataset", "--config", str(p), "--out", str(tmp_path / "big.zarr"), "--no-progress"])
+    out = capsys.readouterr()
+    assert rc == 2 and "dashboard" not in out.out, out.out + out.err          # refused before a cluster
+    assert re.search(r"16384x16384 cannot be rendered: one frame needs about \d+\.\d GiB \([\d,]+ bytes: .*"
+                     r"a worker has 64\.0 GiB \(cluster\.memory_limit 64GiB\)", out.err), out.err
+    assert not (tmp_path / "big.zarr").exists()
+    with pytest.raises(ConfigError, match=r"a worker has \d+\.\d GiB \(this machine's \d+\.\d GiB over 3 worker\(s\)\)"):
+        check_memory_before_start(cfg16k.with_cluster(workers=5), workers=3)     # --workers wins
     from pipeline.config import frame_bytes
     cfg = load_config(SMOKE)
     big = cfg.with_cluster(memory_limit="1PiB").with_overrides(resolution=(16384, 16384))   # fits a 1 PiB worker
