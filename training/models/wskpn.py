@@ -78,11 +78,23 @@ def box(x: torch.Tensor, k: int) -> torch.Tensor:
     return F.avg_pool2d(y, (1, k), stride=1, padding=(0, r), count_include_pad=True) * (k * k)
 
 
+def importance_weights(importance: torch.Tensor) -> torch.Tensor:
+    """e^(I - max I) per map (B M H W), floored at e^-80 (see the module docstring)."""
+    return torch.exp(torch.clamp(importance - importance.detach().amax(dim=(2, 3), keepdim=True), min=EXP_FLOOR))
+
+
+def box_ratio(radiance: torch.Tensor, e: torch.Tensor, k: int) -> torch.Tensor:
+    """box(e r) / box(e) for ``radiance (B C H W)`` and weights ``e (B 1 H W)``: numerator and
+    denominator filtered together as one (C+1)-channel image."""
+    c = radiance.shape[1]
+    s = box(torch.cat((e * radiance, e), dim=1), k)
+    return s[:, :c] / s[:, c:]
+
+
 def box_filter(radiance: torch.Tensor, importance: torch.Tensor, k: int) -> torch.Tensor:
     """Eq. 3-4 in box form: ``radiance (B C H W)`` filtered with the softmax kernels of ``importance
     (B 1 H W)`` over k x k windows: box(e^I r) / box(e^I)."""
-    e = torch.exp(torch.clamp(importance - importance.detach().amax(dim=(2, 3), keepdim=True), min=EXP_FLOOR))
-    return box(e * radiance, k) / box(e, k)
+    return box_ratio(radiance, importance_weights(importance), k)
 
 
 def explicit_kernels(importance: torch.Tensor, k: int) -> torch.Tensor:
@@ -134,9 +146,10 @@ class WSKPN(PixelDenoiser):
         out = self.net(net_in)
         m = len(self.kernel_sizes)
         alpha = torch.softmax(out[:, m:], dim=1)
+        e = importance_weights(out[:, :m])
         res = 0.0
         for i, k in enumerate(self.kernel_sizes):
-            res = res + alpha[:, i:i + 1] * box_filter(irradiance, out[:, i:i + 1], k)
+            res = res + alpha[:, i:i + 1] * box_ratio(irradiance, e[:, i:i + 1], k)
         return res
 
     def fmas_per_pixel(self, spp: int) -> float:
