@@ -78,42 +78,31 @@ def pixel_item_from_samples(radiance: torch.Tensor, features: torch.Tensor) -> d
             "normal": mean[..., g["normal"], :, :], "depth": mean[..., g["depth"], :, :]}
 
 
-class PixelFrames(_StoreDataset):
-    """Per-pixel frames at ``spp`` samples from the stored per-sample inputs (kind ``pixels``).
+class _WindowFrames(_StoreDataset):
+    """Items of one frame, or windows of ``frames = T > 1`` consecutive frames of one clip (same crop
+    and augmentation, every key with a leading T axis). ``full_windows=False`` (evaluation) also gives
+    each frame near a clip's start, and each still, a shorter window that ends on it, so every frame of
+    the split is evaluated once; training batches need equal shapes and use full windows only.
+    Subclasses implement ``_frame(i, region) -> dict`` and set ``spp``."""
 
-    ``frames = 1``: one frame per item. ``frames = T > 1``: windows of T consecutive frames of one clip
-    (same crop and augmentation), every key with a leading T axis. ``full_windows=False`` (evaluation)
-    also gives each frame near a clip's start, and each still, a shorter window that ends on it, so every
-    frame of the split is evaluated once; training batches need equal shapes and use full windows only.
-    """
-
-    def __init__(self, store, split="train", spp: int = 1, crop=128, augment=True, seed=0, frames: int = 1,
-                 full_windows: bool = True, crop_align: int = 1):
+    def __init__(self, store, split, crop, augment, seed, frames: int, full_windows: bool, crop_align: int):
         super().__init__(store, split, crop, augment, seed, crop_align)
-        S = self.store.layout.spp
-        if not 1 <= int(spp) <= S:
-            raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 1..{S}")
-        self.spp, self.T = int(spp), int(frames)
+        self.T = int(frames)
         self.windows = _windows(self.store, split, self.T, full_windows)
 
     def __len__(self) -> int:
         return len(self.windows)
+
+    def _frame(self, i: int, region) -> dict:
+        raise NotImplementedError
 
     def __getitem__(self, idx: int) -> dict:
         win = self.windows[idx]
         rng = self._rng(win[-1])
         oy, ox = self._origin(rng)
         region = self._region(oy, ox)
-        per_t = []
-        for i in win:
-            item = pixel_item_from_samples(**self._samples(i, region, self.spp))
-            g = self._guides(i, region)
-            item.update(reference=g["reference"], stderr=g["stderr"], motion=g["motion"])
-            per_t.append(item)
-        if self.T == 1:
-            out = per_t[0]
-        else:
-            out = {k: torch.stack([d[k] for d in per_t]) for k in per_t[0]}
+        per_t = [self._frame(i, region) for i in win]
+        out = per_t[0] if self.T == 1 else {k: torch.stack([d[k] for d in per_t]) for k in per_t[0]}
         if self.augment:
             out = apply_augment(out, draw_augment(rng))
         out["index"] = torch.tensor(win[-1] if self.T == 1 else win, dtype=torch.int64)
@@ -121,39 +110,45 @@ class PixelFrames(_StoreDataset):
         return out
 
 
-class LayerFrames(_StoreDataset):
+class PixelFrames(_WindowFrames):
+    """Per-pixel frames at ``spp`` samples from the stored per-sample inputs (kind ``pixels``): see
+    :func:`pixel_item_from_samples`, plus ``reference``, ``stderr`` and ``motion``."""
+
+    def __init__(self, store, split="train", spp: int = 1, crop=128, augment=True, seed=0, frames: int = 1,
+                 full_windows: bool = True, crop_align: int = 1):
+        super().__init__(store, split, crop, augment, seed, frames, full_windows, crop_align)
+        S = self.store.layout.spp
+        if not 1 <= int(spp) <= S:
+            raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 1..{S}")
+        self.spp = int(spp)
+
+    def _frame(self, i, region):
+        item = pixel_item_from_samples(**self._samples(i, region, self.spp))
+        g = self._guides(i, region)
+        item.update(reference=g["reference"], stderr=g["stderr"], motion=g["motion"])
+        return item
+
+
+class LayerFrames(_WindowFrames):
     """The sample layers of each frame with the guides (kind ``sampled-layers``): ``layers (L,3,h,w)``,
-    ``layer_spp (L,)`` and the :class:`SampleDataset` guide keys; with ``frames = T > 1`` windows of T
-    consecutive frames (leading T axis)."""
+    ``layer_spp (L,)`` and the :class:`SampleDataset` guide keys."""
 
     def __init__(self, store, split="train", spp: int = 4, crop=128, augment=True, seed=0, frames: int = 1,
                  full_windows: bool = True, crop_align: int = 1):
-        super().__init__(store, split, crop, augment, seed, crop_align)
+        super().__init__(store, split, crop, augment, seed, frames, full_windows, crop_align)
         top = int(sum(self.store.layout.layer_spp))
         if not 0 < float(spp) <= top:
             raise SampleCountError(f"asked for an average of {spp} samples per pixel; the layers hold 1..{top}")
-        self.spp, self.T = spp, int(frames)
-        self.windows = _windows(self.store, split, self.T, full_windows)
+        self.spp = spp
 
-    def __len__(self) -> int:
-        return len(self.windows)
+    def _frame(self, i, region):
+        item = {"layers": _tensor32(self.store.read_array("layers/radiance", i, region))}
+        item.update(self._guides(i, region))
+        return item
 
     def __getitem__(self, idx: int) -> dict:
-        win = self.windows[idx]
-        rng = self._rng(win[-1])
-        oy, ox = self._origin(rng)
-        region = self._region(oy, ox)
-        per_t = []
-        for i in win:
-            item = {"layers": _tensor32(self.store.read_array("layers/radiance", i, region))}
-            item.update(self._guides(i, region))
-            per_t.append(item)
-        out = per_t[0] if self.T == 1 else {k: torch.stack([d[k] for d in per_t]) for k in per_t[0]}
-        if self.augment:
-            out = apply_augment(out, draw_augment(rng))
+        out = super().__getitem__(idx)
         out["layer_spp"] = torch.tensor(self.store.layout.layer_spp, dtype=torch.float32)
-        out["index"] = torch.tensor(win[-1] if self.T == 1 else win, dtype=torch.int64)
-        out["origin"] = torch.tensor([oy, ox], dtype=torch.int64)
         return out
 
 
