@@ -184,7 +184,7 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None   # small stores: whole frames
     try:
         val_ds = model_dataset(spec, store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed,
-                               skip_bad_frames=cfg.skip_bad_frames)
+                               full_windows=False, skip_bad_frames=cfg.skip_bad_frames)   # every val frame
     except DataError as e:
         if not isinstance(e.__cause__, SplitError):
             raise
