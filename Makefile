@@ -33,7 +33,7 @@ report: setup    ## evaluate RUNS on STORE and write a report
 COMPARE_MODELS ?= layer pixelgather layer-optimized samplesplat
 COMPARE_STEPS ?= 800
 REALTIME_MODELS ?= nbg wskpn
-REALTIME_STEPS ?= 4000
+REALTIME_STEPS ?= 10000
 compare: setup   ## the CPU comparison of docs/training.md: train-cpu + eval-cpu stores, each model, report (hours)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
