@@ -119,7 +119,7 @@ def run(frames: int = 6, res: int = 32, ref_spp: int = 256, objects: int = 20, n
     print(f"  1 worker : {res_['frames_per_min_1_worker']:.2f} frames/min (efficiency {one['efficiency']:.0%})")
     print(f"  2 workers: {res_['frames_per_min_2_workers']:.2f} frames/min (efficiency {two['efficiency']:.0%}) "
           f"-> {res_['speedup_2_vs_1']:.2f}x (target >= 1.7x)")
-    print(f"  mean task seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in res_["mean_task_s"].items()))
+    print("  mean task seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in res_["mean_task_s"].items()))
     print(f"  scheduler overhead: {res_['scheduler_overhead_per_task_ms']:.2f} ms per task = "
           f"{100 * (res_['overhead_vs_render_task'] or 0):.3f} % of a mean render task (target < 2 %)")
     return res_

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from pipeline.config import DatasetConfig, load_config
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError
 
 DEFAULT_CONFIG = "configs/default.yaml"
 

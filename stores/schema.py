@@ -31,7 +31,7 @@ import numpy as np
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
-                           StoreError, StoreExistsError, StoreLayoutError, StoreNotFoundError)
+                           StoreExistsError, StoreLayoutError, StoreNotFoundError)
 
 SCHEMA_VERSION = 2                 # what create_store writes
 READABLE_VERSIONS = (1, 2)         # what open_group reads (and appends to, in its own layout)

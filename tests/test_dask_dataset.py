@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 import zarr
 
+from procs import kill_group, start_scheduler
+
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
 PY = sys.executable
@@ -71,14 +73,6 @@ def _arrays(store: Path) -> dict[str, np.ndarray]:
         f"{grp}/{name}": a[...] for grp, sub in g.groups() for name, a in sub.arrays()}
 
 
-def _kill_group(proc: subprocess.Popen) -> None:
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    proc.wait(timeout=30)
-
-
 @pytest.fixture(scope="module")
 def local_store(tmp_path_factory):
     """The smoke dataset on a LocalCluster: the CLI (and its worker processes) SIGKILLed after the first
@@ -91,7 +85,7 @@ def local_store(tmp_path_factory):
         before = _wait_for_frames(out, p, 1, timeout=400).copy()
         killed_running = p.poll() is None
     finally:
-        _kill_group(p)
+        kill_group(p)
     before = _complete(out)                     # the kill may have landed after one more frame
     mtimes = {i: _frame_files(out, i) for i in np.nonzero(before)[0]}
     t0 = time.monotonic()
@@ -161,13 +155,8 @@ def dask_cluster(tmp_path):
     """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes (no nanny) on 127.0.0.1,
     started as a user would, without ``--preload``: the client prepares them (``pipeline.cluster.WorkerInit``)."""
     sf = tmp_path / "scheduler.json"
-    procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(sf)], env=_env(), cwd=ROOT, start_new_session=True,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [start_scheduler(sf, _env())]
     try:
-        t0 = time.monotonic()
-        while not sf.exists() and time.monotonic() - t0 < 60:
-            time.sleep(0.2)
         workers = [subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--no-nanny",
                                      "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}"],   # no --preload
                                     env=_env(), cwd=ROOT,
@@ -181,7 +170,7 @@ def dask_cluster(tmp_path):
         yield address, workers
     finally:
         for p in reversed(procs):
-            _kill_group(p)
+            kill_group(p)
 
 
 def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(local_store, dask_cluster, tmp_path):
@@ -197,7 +186,7 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
         log, _ = p.communicate(timeout=500)
     finally:
         if p.poll() is None:
-            _kill_group(p)
+            kill_group(p)
     assert p.returncode == 0, log[-4000:]
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["cluster"] == "scheduler" and s["complete"] == 4 and s["ok"] and s["validation"]["ok"]

@@ -13,7 +13,6 @@ import hashlib
 import json
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -30,6 +29,8 @@ from stores.errors import ForeignStoreError, IncompleteStoreError, StoreExistsEr
 from stores.lock import StoreLock, read_lock
 from stores.schema import StoreLayout
 from stores.writer import open_or_create
+
+from procs import kill_group
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -55,14 +56,6 @@ def _tree(path: Path) -> dict[str, str]:
     """Every file under ``path`` -> sha1 of its bytes (what must survive untouched)."""
     return {str(p.relative_to(path)): hashlib.sha1(p.read_bytes()).hexdigest()
             for p in sorted(path.rglob("*")) if p.is_file()}
-
-
-def _kill_group(proc: subprocess.Popen) -> None:
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    proc.wait(timeout=30)
 
 
 # ---- 1. never delete a folder that is not ours ---------------------------------------------------
@@ -165,7 +158,7 @@ def test_lock_refuses_a_live_holder_and_takes_over_from_a_dead_one(tmp_path):
         assert f"pid {p.pid} on host {socket.gethostname()}, started 20" in msg and "(holder)" in msg
         assert e.value.holder["pid"] == p.pid
     finally:
-        _kill_group(p)                                     # dies holding it: the file stays behind
+        kill_group(p)                                     # dies holding it: the file stays behind
     assert read_lock(store)["pid"] == p.pid
     with StoreLock(store) as lock:
         assert lock.took_over["pid"] == p.pid and read_lock(store)["pid"] == os.getpid()
@@ -219,7 +212,7 @@ def killed_in_creation(tmp_path_factory):
         half = {"zarr.json": json.loads((out / "zarr.json").read_text()), "lock": read_lock(out),
                 "stray": (out / "stray.txt").exists()}
     finally:
-        _kill_group(a)
+        kill_group(a)
     c = subprocess.run(_cli(out, summary=d / "c.json"), env=_env(), cwd=ROOT, capture_output=True, text=True,
                        timeout=600)
     return {"out": out, "a": a, "b": b, "half": half, "c": c, "dir": d,
@@ -311,7 +304,7 @@ def test_half_created_store_is_named_and_made_again(tmp_path):
         with pytest.raises(StoreLockedError, match=f"being created by pid {p.pid}"):   # alive: hands off
             open_or_create(store, TINY)
     finally:
-        _kill_group(p)
+        kill_group(p)
     with pytest.raises(IncompleteStoreError, match=f"creation by pid {p.pid} .* was cut short"):
         schema.open_group(store)
     w = open_or_create(store, TINY, {"again": True})

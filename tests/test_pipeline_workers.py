@@ -9,10 +9,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from procs import start_scheduler
 
 ROOT = Path(__file__).resolve().parent.parent
 DASK = str(Path(sys.executable).parent / "dask")
@@ -54,13 +55,8 @@ def _mesh_task():
 @pytest.fixture
 def plain_cluster(tmp_path):
     sf = tmp_path / "scheduler.json"
-    procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(sf)], env=_env(), cwd=ROOT, start_new_session=True,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [start_scheduler(sf, _env())]
     try:
-        t0 = time.monotonic()
-        while not sf.exists() and time.monotonic() - t0 < 60:
-            time.sleep(0.2)
         procs.append(_start_worker(sf, "nanny"))
         procs.append(_start_worker(sf, "bare", "--no-nanny"))
         yield sf, procs

@@ -54,7 +54,7 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
         batch = spec.input_kind.example_batch(1, n, size, size, spec.frames, torch.Generator().manual_seed(0))
         fast = m.for_inference()
         with torch.no_grad():
-            s, c = _best(lambda: fast(batch), repeats)
+            s, c = _best(lambda f=fast: f(batch), repeats)
         res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count())
         del m, fast
     if oidn:
