@@ -28,27 +28,28 @@ from stores.errors import StoreLockedError, StorePathError
 from stores.schema import LOCK_NAME
 
 
-def _proc_start(pid: int) -> int | None:
-    """Start time of ``pid`` in clock ticks since boot (``/proc/<pid>/stat`` field 22), None if unknown."""
+def _proc_stat(pid: int) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after "pid (comm)" (the state is the first), None if unknown."""
     try:
         with open(f"/proc/{int(pid)}/stat") as f:
             text = f.read()
     except OSError:
         return None
-    rest = text[text.rindex(")") + 2:].split()     # fields after "pid (comm)": state is field 3
+    return text[text.rindex(")") + 2:].split()
+
+
+def _proc_start(pid: int) -> int | None:
+    """Start time of ``pid`` in clock ticks since boot (``/proc/<pid>/stat`` field 22), None if unknown."""
+    rest = _proc_stat(pid)
     try:
-        return int(rest[19])
+        return int(rest[19]) if rest else None
     except (IndexError, ValueError):
         return None
 
 
 def _proc_state(pid: int) -> str | None:
-    try:
-        with open(f"/proc/{int(pid)}/stat") as f:
-            text = f.read()
-    except OSError:
-        return None
-    return text[text.rindex(")") + 2:].split()[0]
+    rest = _proc_stat(pid)
+    return rest[0] if rest else None
 
 
 def pid_alive(pid: int, proc_start: int | None = None) -> bool:

@@ -6,14 +6,13 @@ Real processes on 127.0.0.1: one worker with a nanny, one without, one started a
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from procs import start_scheduler
+from procs import kill_group, start_scheduler
 
 ROOT = Path(__file__).resolve().parent.parent
 DASK = str(Path(sys.executable).parent / "dask")
@@ -30,14 +29,6 @@ def _start_worker(sf: Path, name: str, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([DASK, "worker", "--scheduler-file", str(sf), "--nthreads", "1", "--host", "127.0.0.1",
                              "--no-dashboard", "--name", name, *extra], env=_env(), cwd=ROOT,
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-
-def _stop(p: subprocess.Popen) -> None:
-    try:
-        os.killpg(p.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    p.wait(timeout=30)
 
 
 def _mesh_task():
@@ -62,7 +53,7 @@ def plain_cluster(tmp_path):
         yield sf, procs
     finally:
         for p in reversed(procs):
-            _stop(p)
+            kill_group(p)
 
 
 def test_plain_dask_workers_need_no_preload(plain_cluster):
