@@ -1,11 +1,21 @@
-"""Checkpoints that resume exactly: model and optimiser state, RNG states, step, the training config,
-the model's config and the store's schema version (and path). ``load`` refuses a mismatch with a
-named error (:class:`CheckpointError`)."""
+"""Checkpoints that resume exactly and are safe to share: model and optimiser state, RNG states, step,
+the training config, the model's config and the store's schema version (and path).
+
+Everything in a checkpoint is plain data (dicts, lists, tuples, str, int, float, bool, None and
+tensors), so :func:`load` reads it with ``torch.load(..., weights_only=True)``: opening a file someone
+shared never runs code it carries. :func:`save` refuses to write anything else, naming the field. A
+file that would need pickle (a ``/1`` checkpoint of an older version of this project, or a crafted
+one) is refused with a :class:`CheckpointError` that names it and the objects it asks for; one you
+made yourself and trust converts once with ``python -m training.checkpoint upgrade FILE``.
+``load`` also refuses a mismatch with a named error.
+"""
 from __future__ import annotations
 
 import os
+import pickle
 import random
 import tempfile
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -14,34 +24,64 @@ import torch
 from .config import TrainConfig
 from .errors import CheckpointError
 
-FORMAT = "denoise-datagen.training-checkpoint/1"
+FORMAT = "denoise-datagen.training-checkpoint/2"   # /2: plain data only (weights_only); /1 needed pickle
+OLD_FORMATS = ("denoise-datagen.training-checkpoint/1",)
+PLAIN_TYPES = (type(None), bool, int, float, str, torch.Tensor)
+PLAIN_DATA = "dicts, lists, tuples, str, int, float, bool, None and tensors"
+
+
+def _numpy_state(state: tuple) -> dict:
+    """``np.random.get_state()`` as plain data."""
+    name, keys, pos, has_gauss, gauss = state
+    return {"bit_generator": str(name), "key": torch.from_numpy(np.asarray(keys, np.int64)), "pos": int(pos),
+            "has_gauss": int(has_gauss), "cached_gaussian": float(gauss)}
+
+
+def _python_state(state: tuple) -> dict:
+    """``random.getstate()`` as plain data."""
+    version, internal, gauss_next = state
+    return {"version": int(version), "state": list(internal), "gauss_next": gauss_next}
 
 
 def rng_state() -> dict:
-    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    """The torch, numpy and Python RNG states (and CUDA's) as plain data."""
+    state = {"torch": torch.get_rng_state(), "numpy": _numpy_state(np.random.get_state()),
+             "python": _python_state(random.getstate())}
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
 
 
 def set_rng_state(state: dict) -> None:
+    """Restore what :func:`rng_state` returned (after a save and load)."""
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
+    n = state["numpy"]
+    np.random.set_state((n["bit_generator"], n["key"].numpy().astype(np.uint32), n["pos"], n["has_gauss"],
+                         n["cached_gaussian"]))
+    p = state["python"]
+    random.setstate((p["version"], tuple(p["state"]), p["gauss_next"]))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
-def save(path, *, model, optimizer, step: int, cfg: TrainConfig, store_info: dict, extra: dict | None = None) -> None:
-    """Write atomically (temp file + rename) so an interrupted save never leaves a broken checkpoint."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "format": FORMAT, "model": cfg.model, "model_config": model.config, "train_config": cfg.to_dict(),
-        "state_dict": model.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
-        "step": int(step), "rng": rng_state(), "store": dict(store_info), "torch_version": torch.__version__,
-        **(extra or {}),
-    }
+def check_plain(obj, where: str = "checkpoint") -> None:
+    """Raise :class:`CheckpointError` naming the first field of ``obj`` that is not plain data
+    (``PLAIN_DATA``), which ``torch.load(..., weights_only=True)`` could not read back."""
+    if type(obj) in (dict, OrderedDict):         # subclasses would need pickle
+        for k, v in obj.items():
+            if not isinstance(k, (str, int)) or isinstance(k, bool):
+                raise CheckpointError(f"{where} has a key {k!r} of type {type(k).__name__}; keys must be str or int")
+            check_plain(v, f"{where}.{k}")
+    elif type(obj) in (list, tuple, torch.Size):
+        for i, v in enumerate(obj):
+            check_plain(v, f"{where}[{i}]")
+    elif type(obj) not in PLAIN_TYPES and not isinstance(obj, torch.Tensor):
+        raise CheckpointError(f"{where} is a {type(obj).__module__}.{type(obj).__qualname__}; a checkpoint "
+                              f"holds only plain data ({PLAIN_DATA}) so it loads without pickle")
+
+
+def _write(path: Path, payload: dict) -> None:
+    """``torch.save`` to a temp file, then rename: an interrupted save never leaves a broken file."""
     fd, tmp = tempfile.mkstemp(prefix="checkpoint-", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -52,17 +92,88 @@ def save(path, *, model, optimizer, step: int, cfg: TrainConfig, store_info: dic
             os.unlink(tmp)
 
 
+def save(path, *, model, optimizer, step: int, cfg: TrainConfig, store_info: dict, extra: dict | None = None) -> None:
+    """Write atomically (:func:`_write`). Every field must be plain data (:func:`check_plain`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT, "model": cfg.model, "model_config": dict(model.config), "train_config": cfg.to_dict(),
+        "state_dict": model.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
+        "step": int(step), "rng": rng_state(), "store": dict(store_info), "torch_version": str(torch.__version__),
+        **(extra or {}),
+    }
+    check_plain(payload)
+    _write(path, payload)
+
+
+def _unsafe_globals(path: Path) -> list[str]:
+    """The Python objects a checkpoint file asks pickle for, read without running any of them
+    (empty when torch cannot list them, e.g. for a bare pickle file)."""
+    try:
+        return list(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+    except Exception:   # noqa: BLE001 - not a zip checkpoint, or an older torch: the message says less
+        return []
+
+
+def _unpickler_reason(e: Exception) -> str:
+    """The part of torch's long weights-only refusal that says what it met (``Unsupported global: GLOBAL
+    numpy...``, ``Unsupported operand 110``)."""
+    text = str(e)
+    if "WeightsUnpickler error:" in text:
+        text = text.split("WeightsUnpickler error:", 1)[1].split("Check the documentation", 1)[0]
+    return " ".join(text.split()) or type(e).__name__
+
+
 def load(path, map_location="cpu") -> dict:
+    """Read a checkpoint with ``torch.load(..., weights_only=True)``: only plain data is accepted, so
+    nothing in the file runs. Raises :class:`CheckpointError` for a missing, corrupt, pickle-needing or
+    foreign file."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
-        ck = torch.load(path, map_location=map_location, weights_only=False)
+        ck = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        why = _unpickler_reason(e)
+        if "GLOBAL" not in why:                       # no object asked for: a damaged or foreign file
+            raise CheckpointError(f"cannot read checkpoint {path}: {why}") from e
+        needs = _unsafe_globals(path)
+        what = f"the Python objects {needs}" if needs else f"Python objects beyond plain data ({why})"
+        raise CheckpointError(
+            f"refusing to load {path}: it needs pickle to unpack {what}, and unpickling can run any code "
+            f"the file carries (a checkpoint holds only {PLAIN_DATA}). If you wrote it yourself with an "
+            f"older version of this project and trust it, convert it once: python -m training.checkpoint "
+            f"upgrade {path}; otherwise ask its author for a plain-data checkpoint or retrain.") from e
     except Exception as e:   # torch raises many types for a corrupt file
         raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
-        raise CheckpointError(f"{path} is not a {FORMAT} checkpoint")
+        fmt = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
+        raise CheckpointError(f"{path} is not a {FORMAT} checkpoint (format: {fmt!r})")
     return ck
+
+
+def upgrade(path, out=None) -> Path:
+    """Rewrite a trusted ``/1`` checkpoint (which needs pickle) as a ``/2`` plain-data one, at ``out``
+    (default: in place). This loads ``path`` with pickle: only for files whose origin you trust."""
+    path = Path(path)
+    out = Path(out) if out is not None else path
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)   # trusted by the caller (docstring)
+    except Exception as e:   # noqa: BLE001 - torch raises many types for a corrupt file
+        raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
+    if not isinstance(ck, dict) or ck.get("format") not in OLD_FORMATS + (FORMAT,):
+        raise CheckpointError(f"{path} is not a training checkpoint of this project; nothing written")
+    if ck["format"] in OLD_FORMATS:
+        ck["rng"]["numpy"] = _numpy_state(ck["rng"]["numpy"])
+        ck["rng"]["python"] = _python_state(ck["rng"]["python"])
+        ck["torch_version"] = str(ck.get("torch_version", ""))
+        ck["model_config"] = dict(ck["model_config"])
+        ck["format"] = FORMAT
+    check_plain(ck, str(path))
+    _write(out, ck)
+    return out
 
 
 def check_store(ck: dict, schema_version: int, path=None) -> None:
@@ -78,3 +189,26 @@ def build_model(ck: dict, device="cpu"):
     model = build(ck["model"], **ck["model_config"])
     model.load_state_dict(ck["state_dict"])
     return model.to(device).eval()
+
+
+def main(argv=None) -> int:
+    """``python -m training.checkpoint upgrade FILE [--out NEW]``: convert a trusted old checkpoint."""
+    import argparse
+    import sys
+    ap = argparse.ArgumentParser(prog="python -m training.checkpoint",
+                                 description="Convert a checkpoint you trust to the plain-data format.")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    u = sub.add_parser("upgrade", help="rewrite a /1 checkpoint (needs pickle: trusted files only) as /2")
+    u.add_argument("file")
+    u.add_argument("--out", help="where to write it (default: replace FILE)")
+    a = ap.parse_args(argv)
+    try:
+        print(f"wrote {upgrade(a.file, a.out)} ({FORMAT})")
+    except CheckpointError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
