@@ -44,6 +44,11 @@ class SceneGenConfig:
     Counts are the meshes *placed*; objects outside every frame's view frustum are dropped afterwards,
     so a scene usually holds fewer. ``aperture_range`` is the lens radius as a fraction of the focus
     distance (log-uniform), so defocus looks alike at every scene scale.
+
+    ``material_palette`` K > 0: each scene draws K random materials and every content object (not
+    the room, backdrop, furniture or light panels) takes one of them, so objects share BSDFs and the renderer
+    merges static ones into K meshes (about twice the samples per second); 0: every object draws
+    its own. The layout is the same for every K (the palette has its own random stream).
     """
     outdoor_objects: int = 75
     indoor_objects: int = 50
@@ -62,6 +67,7 @@ class SceneGenConfig:
     tris_per_px: float = 1.0              # triangles per pixel of the projected bounding disc (meshes.triangle_budget)
     max_depth: int = 5                    # path bounces
     shutter: float = 0.5                  # exposure as a fraction of the frame interval
+    material_palette: int = 0             # > 0: content objects draw from this many materials per scene
 
     def __post_init__(self):
         _int_in("outdoor_objects", self.outdoor_objects, 0, 10000)
@@ -82,6 +88,7 @@ class SceneGenConfig:
                 or not (0 < self.tris_per_px <= 1e6)):
             raise ConfigError(f"scene_gen.tris_per_px must be a number in (0, 1e6], got {self.tris_per_px!r}")
         _int_in("max_depth", self.max_depth, 1, 1000)
+        _int_in("material_palette", self.material_palette, 0, 10000)
         if self.model_folder is not None:
             if not isinstance(self.model_folder, (str, Path)) or str(self.model_folder) == "":
                 raise ConfigError(f"scene_gen.model_folder must be a folder path or null, got {self.model_folder!r}")
@@ -91,10 +98,13 @@ class SceneGenConfig:
             object.__setattr__(self, "model_folder", str(p))
 
     def to_dict(self) -> dict:
+        """Plain data; ``material_palette`` only when set, so stores made before it existed still resume."""
         d = asdict(self)
         for k, v in d.items():
             if isinstance(v, tuple):
                 d[k] = list(v)
+        if d["material_palette"] == 0:
+            del d["material_palette"]
         return d
 
     @classmethod
@@ -109,6 +119,3 @@ class SceneGenConfig:
             raise ConfigError(f"scene_gen: unknown field(s) {unknown}; known: {sorted(names)}")
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
         return cls(**kw)
-
-    def objects_for(self, kind: str) -> int:
-        return self.indoor_objects if kind == "indoor" else self.outdoor_objects

@@ -216,6 +216,8 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
     path = cams.camera_path(r_path, lay.origin, lay.target, num_frames, step=lay.camera_step, clamp=lay.clamp)
     frames = [cams.make_camera(o, t, fov) for o, t in path]
     objs: list[Placed] = lay.objects
+    if cfg.material_palette > 0:
+        _apply_palette(np.random.default_rng(ss.spawn(1)[0]), objs, cfg.material_palette)
     # motion: each movable object moves with probability p_object_motion in a scene with motion
     if motion:
         for o in objs:
@@ -259,6 +261,16 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
         out.append(ObjectSpec(o.name, mesh, o.material, o.transform, velocity=v, emitter_radiance=o.emitter))
     return SceneSpec(kind=kind, seed=int(seed), objects=tuple(out), lights=tuple(lay.lights), cameras=tuple(frames),
                      shutter=float(cfg.shutter), max_depth=int(cfg.max_depth))
+
+
+def _apply_palette(rng: np.random.Generator, objs: list, k: int) -> None:
+    """Content objects (movable, not kept structure or furniture, not emitters) take one of ``k`` random
+    materials."""
+    from scene_gen.materials import random_material
+    palette = [random_material(rng) for _ in range(k)]
+    for o in objs:
+        if o.movable and not o.keep and o.emitter is None:
+            o.material = palette[int(rng.integers(k))]
 
 
 @dataclass

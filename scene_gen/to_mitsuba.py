@@ -1,7 +1,9 @@
 """SceneSpec → Mitsuba scene dictionary. The only module that speaks Mitsuba's dict syntax.
 
 Conventions (shared with the renderer):
-- Each object is a shape under its ``name`` key, so ``shape.id() == object.name``. Meshes are baked
+- Each object is a shape under its ``name`` key, so ``shape.id() == object.name``; with ``merge=True``
+  static objects sharing a material are one shape ``merged-<k>`` (:func:`shape_groups` says which
+  objects each shape holds) and identical materials share one BSDF instance. Meshes are baked
   in world space (scale, rotate XYZ-Euler in degrees, translate, plus ``velocity * tau`` for moving
   objects) and handed to Mitsuba as ``mi.Mesh`` objects; nothing touches the disk.
 - ``tau`` is time in frames (see ``scene_gen.spec``); by default the start of the frame's exposure.
@@ -13,6 +15,7 @@ Conventions (shared with the renderer):
 """
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -76,11 +79,15 @@ def world_mesh(obj: ObjectSpec, tau: float = 0.0):
 
 def _mesh_object(mi, obj: ObjectSpec, tau: float, bsdf, emitter):
     v, f, n, uv = world_mesh(obj, tau)
+    return _make_mesh(mi, obj.name, v, f, n, uv, bsdf, emitter)
+
+
+def _make_mesh(mi, name: str, v, f, n, uv, bsdf, emitter):
     props = mi.Properties()
     props["bsdf"] = bsdf
     if emitter is not None:
         props["emitter"] = emitter
-    mesh = mi.Mesh(obj.name, len(v), len(f), props=props, has_vertex_normals=n is not None,
+    mesh = mi.Mesh(name, len(v), len(f), props=props, has_vertex_normals=n is not None,
                    has_vertex_texcoords=uv is not None)
     p = mi.traverse(mesh)
     p["vertex_positions"] = mi.Float(v.ravel())
@@ -209,8 +216,73 @@ def integrator_dict(spec: SceneSpec) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
-def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 256), tau: float | None = None) -> dict:
-    """The Mitsuba scene dict of ``spec`` at ``frame`` with objects at time ``tau`` (default: ``frame``)."""
+# shapes: one per object, or merged by material
+MERGED_PREFIX = "merged-"
+
+
+def material_key(mat: MaterialSpec) -> str:
+    """A material's identity (its canonical JSON): equal keys render identically and share one BSDF."""
+    return json.dumps(mat.to_dict(), sort_keys=True)
+
+
+def shape_groups(spec: SceneSpec, merge: bool = False) -> list[tuple[str, tuple[ObjectSpec, ...]]]:
+    """The shapes of the Mitsuba scene in order: (shape id, the objects it holds).
+
+    Without ``merge`` every object is its own shape, its id the object's name. With ``merge``, static
+    objects without an emitter that share a material (and whose meshes carry the same vertex
+    attributes: normals, UVs) become one mesh with id ``merged-<k>``, so the renderer pays one shape
+    instead of many (the LLVM backend's cost grows with the shape count); moving objects and emitters
+    keep their own shape. Objects of one group share a material, so every per-shape feature
+    (specular colour, roughness; velocity 0) is the same for all of them.
+    """
+    if not merge:
+        return [(o.name, (o,)) for o in spec.objects]
+    from scene_gen import meshes
+    out: list[tuple[str, tuple[ObjectSpec, ...]]] = []
+    groups: dict[tuple, list[ObjectSpec]] = {}
+    slot: dict[tuple, int] = {}
+    for o in spec.objects:
+        if o.moving or o.emitter_radiance is not None:
+            out.append((o.name, (o,)))
+            continue
+        md = meshes.build(o.mesh)
+        key = (material_key(o.material), md.normals is not None, md.uv is not None)
+        if key not in groups:
+            groups[key] = []
+            slot[key] = len(out)
+            out.append(("", ()))
+        groups[key].append(o)
+    names = {o.name for o in spec.objects}
+    k = 0
+    for key, objs in groups.items():
+        if len(objs) == 1:
+            out[slot[key]] = (objs[0].name, (objs[0],))
+            continue
+        while f"{MERGED_PREFIX}{k:03d}" in names:
+            k += 1
+        out[slot[key]] = (f"{MERGED_PREFIX}{k:03d}", tuple(objs))
+        k += 1
+    return out
+
+
+def _merged_mesh(mi, name: str, objs: tuple[ObjectSpec, ...], tau: float, bsdf):
+    """One ``mi.Mesh`` holding the world-space triangles of ``objs`` (same vertex attributes)."""
+    parts = [world_mesh(o, tau) for o in objs]
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    v = np.concatenate([p[0] for p in parts])
+    f = np.concatenate([p[1] + np.uint32(off) for p, off in zip(parts, offsets)])
+    n = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])
+    uv = None if parts[0][3] is None else np.concatenate([np.asarray(p[3], np.float32) for p in parts])
+    return _make_mesh(mi, name, v, f, n, uv, bsdf, None)
+
+
+def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 256), tau: float | None = None,
+               merge: bool = False) -> dict:
+    """The Mitsuba scene dict of ``spec`` at ``frame`` with objects at time ``tau`` (default: ``frame``).
+
+    ``merge``: objects that share a material share one BSDF instance and static ones are merged into
+    one mesh (:func:`shape_groups`); the image's distribution is that of the unmerged scene.
+    """
     mi = _mi()
     if isinstance(res, int):
         res = (res, res)
@@ -221,22 +293,31 @@ def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 
     tau = float(frame if tau is None else tau)
     cam = spec.camera(frame)
     d: dict[str, Any] = {"type": "scene", "integrator": integrator_dict(spec), "sensor": sensor_dict(cam, (w, h), mi)}
-    for obj in spec.objects:
-        bsdf = mi.load_dict(bsdf_dict(obj.material, mi))
+    bsdfs: dict[str, Any] = {}
+
+    def bsdf_of(mat: MaterialSpec):
+        if not merge:
+            return mi.load_dict(bsdf_dict(mat, mi))
+        key = material_key(mat)
+        if key not in bsdfs:
+            bsdfs[key] = mi.load_dict(bsdf_dict(mat, mi))
+        return bsdfs[key]
+
+    for name, objs in shape_groups(spec, merge):
+        if len(objs) > 1:
+            d[name] = _merged_mesh(mi, name, objs, tau, bsdf_of(objs[0].material))
+            continue
+        obj = objs[0]
         emitter = None
         if obj.emitter_radiance is not None:
             emitter = mi.load_dict({"type": "area", "radiance": _rgb(obj.emitter_radiance)})
-        d[obj.name] = _mesh_object(mi, obj, tau, bsdf, emitter)
+        d[obj.name] = _mesh_object(mi, obj, tau, bsdf_of(obj.material), emitter)
     for i, light in enumerate(spec.lights):
         d[f"light_{i:02d}_{light.kind}"] = light_dict(light, mi)
     return d
 
 
-def load(spec: SceneSpec, frame: int = 0, res: tuple[int, int] | int = (256, 256), tau: float | None = None):
+def load(spec: SceneSpec, frame: int = 0, res: tuple[int, int] | int = (256, 256), tau: float | None = None,
+         merge: bool = False):
     """``mi.load_dict(scene_dict(...))``."""
-    return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau))
-
-
-def material_table(spec: SceneSpec) -> dict[str, tuple[tuple[float, float, float], float]]:
-    """object name → (specular colour, roughness), the per-shape features the renderer records."""
-    return {o.name: (o.material.specular_color, o.material.roughness) for o in spec.objects}
+    return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau, merge=merge))

@@ -6,6 +6,7 @@ means, with variances from the per-sample variance of the input loop (not fudge 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -215,6 +216,44 @@ def test_unbiased_motion(mi):
     # the blur is real: the motion-blurred reference differs from the frame at rest
     still = oracle(mi, spec, 0, 256, 5)
     assert np.abs(out["reference"] - still).max() > 0.1
+
+
+def merged_ball_scene(**kw):
+    """ball_scene plus static boxes sharing the floor's and the ball's materials (merged by the renderer)."""
+    base = ball_scene()
+    ball, floor = base.objects
+    extra = (ObjectSpec("box_a", MeshSpec("box"), floor.material, Transform((-1.2, -0.7, 0.5), scale=(0.3, 0.3, 0.3))),
+             ObjectSpec("box_b", MeshSpec("box"), floor.material, Transform((1.3, -0.7, -0.5), scale=(0.3, 0.3, 0.3))),
+             ObjectSpec("box_c", MeshSpec("box"), ball.material, Transform((0.9, -0.8, 1.0), scale=(0.2, 0.2, 0.2))))
+    return ball_scene(extra=extra, **kw)
+
+
+def test_unbiased_and_features_with_merged_shapes(mi):
+    """Static objects sharing a material are merged (fewer shapes), yet the estimates agree with
+    mi.render on the unmerged scene and every sample keeps its object's specular colour and roughness."""
+    from pipeline.render import FrameScene, render_frame
+    from scene_gen.to_mitsuba import MERGED_PREFIX
+    spec = merged_ball_scene(motion=True)
+    c = cfg(spp=32, time_slices=1, ref_time_slices=1)
+    fs = FrameScene(spec, 0, c)
+    ids = [s.id() for s in fs.scene.shapes()]
+    assert len(ids) < len(spec.objects) and any(i.startswith(MERGED_PREFIX) for i in ids) and "ball" in ids
+    static = dataclasses.replace(spec, shutter=0.0)
+    out = render_frame(static, 0, c)
+    _check_unbiased(mi, static, out, c)
+    f = out["features"]
+    alb = f[..., G["albedo"]]
+    floor_like = np.all(np.abs(alb - [0.2, 0.6, 0.3]) < 1e-4, axis=-1)     # floor and boxes a, b
+    ball_like = np.all(np.abs(alb - [0.8, 0.3, 0.2]) < 1e-4, axis=-1)      # ball and box c
+    assert floor_like.sum() > 100 and ball_like.sum() > 100
+    np.testing.assert_allclose(f[floor_like][:, G["specular"]], np.broadcast_to([0.5, 0.4, 0.3], (floor_like.sum(), 3)),
+                               atol=1e-6)
+    np.testing.assert_allclose(f[floor_like][:, G["roughness"]], 0.3, atol=1e-6)
+    np.testing.assert_allclose(f[ball_like][:, G["roughness"]], 1.0)
+    # the moving ball keeps its own shape and velocity: its samples have motion, the merged boxes none
+    mv = render_frame(spec, 0, dataclasses.replace(c, ref_spp=0, layer_levels=0))["features"]
+    ball = np.all(np.abs(mv[..., G["albedo"]] - [0.8, 0.3, 0.2]) < 1e-4, axis=-1)
+    assert np.abs(mv[ball][:, G["motion"]]).max() > 0.1
 
 
 def test_features_top_down_depth_normal_albedo(mi):

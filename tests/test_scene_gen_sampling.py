@@ -343,3 +343,30 @@ def test_clip_camera_path_is_smooth_and_stays_in_the_room(kind):
         assert ((o[:, 1] > 0) & (o[:, 1] < room["height"])).all()
         t = np.array([c.target for c in s.cameras])
         assert rooms.inside_plan(room["rects"], t[:, [0, 2]]).all()
+
+
+@pytest.mark.parametrize("kind", ["indoor", "outdoor"])
+def test_material_palette_keeps_the_layout_and_limits_content_materials(kind):
+    from scene_gen.to_mitsuba import material_key
+    base = sample_scene(11, kind, res=64)
+    pal = sample_scene(11, kind, res=64, config=SceneGenConfig(material_palette=4))
+    assert [(o.name, o.mesh, o.transform, o.velocity) for o in base.objects] == \
+        [(o.name, o.mesh, o.transform, o.velocity) for o in pal.objects]
+    assert base.cameras == pal.cameras and base.lights == pal.lights
+    content = [o for o in pal.objects if o.name.startswith("obj_")]
+    assert len(content) > 8
+    assert len({material_key(o.material) for o in content}) <= 4
+    assert len({material_key(o.material) for o in base.objects if o.name.startswith("obj_")}) > 8
+    # structure and light panels keep their own materials
+    for a, b in zip(base.objects, pal.objects):
+        if not a.name.startswith("obj_"):
+            assert a.material == b.material, a.name
+    assert pal == sample_scene(11, kind, res=64, config=SceneGenConfig(material_palette=4))
+
+
+def test_material_palette_zero_is_not_written():
+    assert "material_palette" not in SceneGenConfig().to_dict()
+    d = SceneGenConfig(material_palette=16).to_dict()
+    assert d["material_palette"] == 16 and SceneGenConfig.from_dict(d) == SceneGenConfig(material_palette=16)
+    with pytest.raises(ConfigError, match="material_palette"):
+        SceneGenConfig(material_palette=-1)

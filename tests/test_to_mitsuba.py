@@ -123,3 +123,45 @@ def test_sunsky_sun_is_in_the_world_direction_given(mi):
     up = _render(mi, _scene([], [light], CameraSpec((0, 0, 0), (0, 10, 0.01), fov=20.0)), res=5, spp=16)
     down = _render(mi, _scene([], [light], CameraSpec((0, 0, 0), (0, -10, 0.01), fov=20.0)), res=5, spp=16)
     assert 0 < up.mean() < 1e3 and up.mean() > 10 * down.mean()   # sky above, (dark) ground below
+
+
+def _shared_material_scene():
+    """Three static boxes and a moving ball that share one material, a floor of another, an emitter."""
+    mat = MaterialSpec("roughplastic", base_color=(0.7, 0.2, 0.1), specular_color=(0.3, 0.2, 0.1), roughness=0.4)
+    objs = [ObjectSpec(f"box{i}", MeshSpec("box"), mat, Transform((i - 1.0, 0.3, 0.0), scale=(0.3, 0.3, 0.3)))
+            for i in range(3)]
+    objs += [ObjectSpec("ball", MeshSpec("sphere"), mat, Transform((0, 1.2, 0), scale=(0.3, 0.3, 0.3)),
+                        velocity=(0.2, 0.0, 0.0)),
+             ObjectSpec("floor", MeshSpec("plane"), MaterialSpec("diffuse"), Transform(scale=(5, 1, 5))),
+             ObjectSpec("lamp", MeshSpec("box"), mat, Transform((0, 3, 0), scale=(0.2, 0.05, 0.2)),
+                        emitter_radiance=(5.0, 5.0, 5.0))]
+    return _scene(objs, [LightSpec("constant", {"radiance": [0.3, 0.3, 0.3]})])
+
+
+def test_shape_groups_merge_static_objects_sharing_a_material():
+    spec = _shared_material_scene()
+    assert [n for n, _ in to_mitsuba.shape_groups(spec)] == [o.name for o in spec.objects]
+    groups = to_mitsuba.shape_groups(spec, merge=True)
+    names = [n for n, _ in groups]
+    assert names == ["merged-000", "ball", "floor", "lamp"]        # moving and emissive objects stay apart
+    assert [o.name for o in dict(groups)["merged-000"]] == ["box0", "box1", "box2"]
+
+
+def test_merged_scene_has_the_same_geometry_and_image(mi):
+    spec = _shared_material_scene()
+    a = to_mitsuba.load(spec, 0, res=16)
+    b = to_mitsuba.load(spec, 0, res=16, merge=True)
+    assert len(a.shapes()) == 6 and len(b.shapes()) == 4
+    np.testing.assert_array_equal(np.array(a.bbox().min), np.array(b.bbox().min))
+    np.testing.assert_array_equal(np.array(a.bbox().max), np.array(b.bbox().max))
+    tris = lambda s: sum(int(sh.face_count()) for sh in s.shapes())  # noqa: E731
+    assert tris(a) == tris(b)
+    # one BSDF instance serves the merged boxes, the ball and the lamp
+    bs = {sh.id(): sh.bsdf() for sh in b.shapes()}
+    assert bs["merged-000"] is bs["ball"] and bs["ball"] is bs["lamp"]
+    # the image's distribution is unchanged: independent 64-spp renders agree within their noise
+    ia = np.stack([np.asarray(mi.render(a, spp=16, seed=s), np.float64)[..., :3] for s in range(4)])
+    ib = np.stack([np.asarray(mi.render(b, spp=16, seed=100 + s), np.float64)[..., :3] for s in range(4)])
+    d = ia.mean(0).mean() - ib.mean(0).mean()
+    se = np.sqrt(ia.mean(axis=(1, 2, 3)).var(ddof=1) / 4 + ib.mean(axis=(1, 2, 3)).var(ddof=1) / 4)
+    assert abs(d) < 5 * se + 1e-4, (d, se)
