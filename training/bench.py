@@ -51,10 +51,16 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
         m = build(name)
         spec = m.input_spec()
         n = spec.default_spp if spp is None else int(spp)
-        batch = spec.input_kind.example_batch(1, n, size, size, spec.frames, torch.Generator().manual_seed(0))
+        stepwise = getattr(m, "stepwise", False)     # recurrent: one frame's step with a history
+        frames = 1 if stepwise else spec.frames
+        batch = spec.input_kind.example_batch(1, n, size, size, frames, torch.Generator().manual_seed(0))
         fast = m.for_inference()
         with torch.no_grad():
-            s, c = _best(lambda f=fast: f(batch), repeats)
+            if stepwise:
+                state = fast.step(batch, None)[1]
+                s, c = _best(lambda f=fast, st=state: f.step(batch, st), repeats)
+            else:
+                s, c = _best(lambda f=fast: f(batch), repeats)
         res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count())
         del m, fast
     if oidn:

@@ -113,40 +113,67 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         info.update(params=model.param_count(), fmas_per_pixel=float(model.fmas_per_pixel(spp)),
                     model_config=model.config, input_kind=spec.kind)
         model = model.for_inference()
+    stepwise = model is not None and getattr(model, "stepwise", False)
+    if stepwise:                          # a recurrent model: single frames in clip order, carrying its state
+        from .inputs import InputSpec
+        spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
     ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False,
                        skip_bad_frames=skip_bad_frames)
     kind = spec.input_kind
     n = len(ds) if not max_frames else min(int(max_frames), len(ds))
-    info["spp"] = int(spp)
+    info["spp"] = spp
+    clip_of = st.meta_column("clip_id")
+    in_clip = st.meta_column("frame")
 
-    def run(item):
+    def run(item, state=None):
+        """-> (output HW3, new state, achieved mean spp, counts HW or None)."""
         if model is None:
             if method == "input":
-                return _hwc(item["radiance"])
-            return oidn_denoise(_hwc(item["radiance"]), _hwc(item["albedo"]), _hwc(item["normal"]))
+                return _hwc(item["radiance"]), None, float(spp), None
+            return oidn_denoise(_hwc(item["radiance"]), _hwc(item["albedo"]), _hwc(item["normal"])), None, float(spp), None
         with torch.no_grad():
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items()}
-            out = model(batch)
+            if stepwise:
+                out, state, extra = model.step(batch, state)
+                counts = extra["counts"][0, 0]
+                achieved, counts = float(counts.float().mean()), counts.cpu().numpy()
+            else:
+                out, achieved, counts = model(batch), float(spp), None
             if out.is_cuda:
                 torch.cuda.synchronize()
-            return _hwc(out[0])
+            return _hwc(out[0]), state, achieved, counts
 
     frames, images = [], {}
+    state, prev_idx, runs, current = None, None, [], []        # runs: consecutive frames of one clip
+    sample_map = None
     for pos in range(n):
         item = ds[pos]
+        idx = int(item["index"].reshape(-1)[-1])
+        follows = (prev_idx is not None and clip_of[idx] == clip_of[prev_idx]
+                   and int(in_clip[idx]) == int(in_clip[prev_idx]) + 1)
+        if not follows:                                          # a clip starts (or a gap): no history
+            state = None
+            if len(current) >= 2:
+                runs.append(current)
+            current = []
         if pos == 0:
             run(item)                                            # warm-up (allocations, OIDN init)
         t = time.perf_counter()
-        out = run(item)
+        out, state, achieved, counts = run(item, state)
         ms = (time.perf_counter() - t) * 1e3
         ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
         h, w = ref.shape[:2]
-        idx = int(item["index"].reshape(-1)[-1])
-        row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6),
+        row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6), "spp": achieved,
                **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
         frames.append(row)
+        current.append((out, ref))
+        if counts is not None and (sample_map is None or (follows and sample_map["clip"] == int(clip_of[idx]))):
+            sample_map = {"index": idx, "clip": int(clip_of[idx]), "counts": counts}   # last frame of the first clip
         if pos in keep:
             images[pos] = out
+        prev_idx = idx
+    if len(current) >= 2:
+        runs.append(current)
     keys = [k for k in frames[0] if k != "index" and not k.startswith("has_")] if frames else []
     info["frames"] = frames
     info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
@@ -155,7 +182,13 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         sel = [f for f in frames if kind_name in frame_kinds(f)]
         if sel:
             info["by_kind"][kind_name] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
+    # temporal PSNR over each run of consecutive frames of one clip, averaged over the runs (NaN: no clips)
+    tp = [metrics.tpsnr(np.stack([o for o, _ in r]), np.stack([g for _, g in r])) for r in runs]
+    info["mean"]["tpsnr"] = float(np.mean(tp)) if tp else float("nan")
+    info["clips"] = len(runs)
     info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
+    if sample_map is not None:
+        info["sample_map"] = sample_map
     if keep:
         info["images"] = images
     return info
@@ -164,5 +197,9 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
 def write_json(result: dict, path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    clean = {k: v for k, v in result.items() if k != "images"}
+    clean = {k: v for k, v in result.items() if k not in ("images", "sample_map")}
+    if "sample_map" in result:                   # the counts image stays out of the JSON; its frame and mean do not
+        sm = result["sample_map"]
+        clean["sample_map"] = {"index": sm["index"], "mean_spp": float(np.mean(sm["counts"])),
+                               "max_spp": int(np.max(sm["counts"]))}
     path.write_text(json.dumps(clean, indent=2, default=float))

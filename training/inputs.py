@@ -131,7 +131,8 @@ class PixelFrames(_WindowFrames):
 
 class LayerFrames(_WindowFrames):
     """The sample layers of each frame with the guides (kind ``sampled-layers``): ``layers (L,3,h,w)``,
-    ``layer_spp (L,)`` and the :class:`SampleDataset` guide keys."""
+    ``layer_spp (L,)``, ``spp`` (the average budget per pixel, a scalar) and the :class:`SampleDataset`
+    guide keys."""
 
     def __init__(self, store, split="train", spp: int = 4, crop=128, augment=True, seed=0, frames: int = 1,
                  full_windows: bool = True, crop_align: int = 1):
@@ -149,6 +150,7 @@ class LayerFrames(_WindowFrames):
     def __getitem__(self, idx: int) -> dict:
         out = super().__getitem__(idx)
         out["layer_spp"] = torch.tensor(self.store.layout.layer_spp, dtype=torch.float32)
+        out["spp"] = torch.tensor(float(self.spp), dtype=torch.float32)     # the average budget per pixel
         return out
 
 
@@ -291,7 +293,11 @@ class SampledLayersKind(InputKind):
                               for n in range(6)], dim=-4)
         batch = PixelsKind().example_batch(b, 1, h, w, frames, generator)
         batch.pop("radiance")
-        return {"layers": layers, "layer_spp": torch.tensor([2.0 ** n for n in range(6)]).expand(b, 6), **batch}
+        return {"layers": layers, "layer_spp": torch.tensor([2.0 ** n for n in range(6)]).expand(b, 6),
+                "spp": torch.full((b,), float(spp)), **batch}
+
+    def target(self, batch):
+        return batch["reference"]          # (B, T, 3, h, w) for windows: a recurrent model outputs every frame
 
 
 KINDS: dict[str, InputKind] = {k.name: k for k in (SamplesKind(), PixelsKind(), ClipsKind(), SampledLayersKind())}

@@ -81,6 +81,8 @@ def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None) ->
         item = to_device({k: v.unsqueeze(0) for k, v in dataset[i].items()}, device)
         out = model(item).float()
         ref = (item["reference"] if kind is None else kind.target(item)).float()
+        if out.dim() == 5:                           # a recurrent model's window: judge its last frame
+            out, ref = out[:, -1], ref[:, -1]
         d = out[0].permute(1, 2, 0).cpu().numpy()
         r = ref[0].permute(1, 2, 0).cpu().numpy()
         rows.append({"loss": float(loss_fn(out, ref)), "relmse": metrics.relmse(d, r),

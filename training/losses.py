@@ -59,3 +59,23 @@ def temporal_l1(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor
         raise ConfigError(f"temporal-l1 needs clips (B, T>=2, C, H, W), got shape {tuple(denoised.shape)}")
     d, r = tonemap(denoised), tonemap(reference)
     return torch.mean(torch.abs((d[:, 1:] - d[:, :-1]) - (r[:, 1:] - r[:, :-1])))
+
+
+@register_loss("l1-temporal")
+def l1_temporal_log(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Eq. 4 of Hasselgren et al. 2020 in their log space (``training.logspace``):
+    ``L1(x_T, y_T) + L1(dx_T, dy_T)``, the spatial term on the last frame of a clip (B, T, 3, H, W)
+    and the temporal one on the difference of its last two frames (``dx_T = x_T - x_{T-1}``), equally
+    weighted. Single frames (B, 3, H, W) or T = 1: the spatial term only."""
+    from .logspace import squeeze
+    if denoised.dim() == 4:
+        return torch.mean(torch.abs(squeeze(denoised) - squeeze(reference)))
+    if denoised.dim() != 5:
+        raise ConfigError(f"l1-temporal needs frames (B, C, H, W) or clips (B, T, C, H, W), got {tuple(denoised.shape)}")
+    x, y = squeeze(denoised[:, -1]), squeeze(reference[:, -1])
+    loss = torch.mean(torch.abs(x - y))
+    if denoised.shape[1] >= 2:
+        dx = x - squeeze(denoised[:, -2])
+        dy = y - squeeze(reference[:, -2])
+        loss = loss + torch.mean(torch.abs(dx - dy))
+    return loss

@@ -2,7 +2,8 @@
 
 ``report(runs, store, out)`` writes ``out/report.md`` (quality/speed table, figure-10 FMA table,
 training budgets), ``out/speed_vs_error.png`` (ms per megapixel, log scale, against relMSE),
-``out/crops.png`` (input / each model / OIDN / reference, tone-mapped) and ``out/eval-<name>.json``.
+``out/crops.png`` (input / each model / OIDN / reference, tone-mapped), ``out/sample_map-<run>.png``
+for adaptive samplers (where the samples went) and ``out/eval-<name>.json``. Figures: matplotlib.
 """
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
 
 from .errors import DataError
 from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, evaluate, write_json
@@ -18,7 +18,8 @@ from .fma import figure10, figure10_markdown
 from .tonemap import tonemap
 
 COLUMNS = (("relmse", "relMSE ↓", "{:.4f}"), ("smape", "SMAPE ↓", "{:.4f}"), ("psnr", "PSNR ↑", "{:.2f}"),
-           ("ssim", "SSIM ↑", "{:.4f}"), ("flip", "FLIP ↓", "{:.4f}"), ("ms_per_megapixel", "ms/MP ↓", "{:.0f}"))
+           ("ssim", "SSIM ↑", "{:.4f}"), ("flip", "FLIP ↓", "{:.4f}"), ("tpsnr", "tPSNR ↑", "{:.2f}"),
+           ("spp", "spp", "{:.2f}"), ("ms_per_megapixel", "ms/MP ↓", "{:.0f}"))
 
 
 def find_runs(runs) -> list[Path]:
@@ -63,61 +64,65 @@ def kinds_markdown(results: list[dict], key: str = "relmse", fmt: str = "{:.4f}"
     return "\n".join(lines)
 
 
-def plot_speed_vs_error(results: list[dict], path, size=(640, 440)) -> None:
-    """Scatter of ms per megapixel (log10 x) against relMSE (y), one labelled point per method (PIL)."""
-    w, h = size
-    left, right, top, bottom = 70, 20, 20, 50
-    img = Image.new("RGB", size, "white")
-    d = ImageDraw.Draw(img)
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")                       # files only, no display
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def plot_speed_vs_error(results: list[dict], path) -> None:
+    """Scatter of ms per megapixel (log x) against relMSE (y), one labelled point per method."""
+    plt = _pyplot()
     pts = [(r["label"], r["mean"]["ms_per_megapixel"], r["mean"]["relmse"]) for r in results
-           if r["mean"].get("ms_per_megapixel", 0) > 0]
-    if not pts:
-        img.save(path)
-        return
-    xs = [math.log10(p[1]) for p in pts]
-    ys = [p[2] for p in pts]
-    x0, x1 = math.floor(min(xs)), math.ceil(max(xs) + 1e-9)
-    x1 = max(x1, x0 + 1)
-    y0, y1 = 0.0, max(ys) * 1.15 or 1.0
-    X = lambda v: left + (v - x0) / (x1 - x0) * (w - left - right)          # noqa: E731
-    Y = lambda v: h - bottom - (v - y0) / (y1 - y0) * (h - top - bottom)    # noqa: E731
-    d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill="black")
-    for e in range(x0, x1 + 1):
-        d.line([(X(e), h - bottom), (X(e), h - bottom + 4)], fill="black")
-        d.text((X(e) - 12, h - bottom + 6), f"1e{e}", fill="black")
-    for i in range(5):
-        v = y0 + (y1 - y0) * i / 4
-        d.line([(left - 4, Y(v)), (left, Y(v))], fill="black")
-        d.text((4, Y(v) - 6), f"{v:.3g}", fill="black")
-    d.text(((w - left) // 2, h - 18), "ms per megapixel (log)", fill="black")
-    d.text((left + 4, 4), "relMSE", fill="black")
-    colors = ["#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
-    for i, ((label, _, yv), xv) in enumerate(zip(pts, xs)):
-        c = colors[i % len(colors)]
-        cx, cy = X(xv), Y(yv)
-        d.ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=c)
-        d.text((cx + 6, cy - 6), label, fill=c)
-    img.save(path)
+           if (r["mean"].get("ms_per_megapixel") or 0) > 0]
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
+    for label, x, y in pts:
+        ax.scatter([x], [y], s=30)
+        ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per megapixel (this machine)")
+    ax.set_ylabel("relMSE")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
-def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64, scale: int = 3) -> None:
-    """Side-by-side tone-mapped centre crops (``crop`` px, upscaled ``scale``x) with labels."""
-    tiles = []
-    for label, im in panels:
+def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64) -> None:
+    """Side-by-side tone-mapped centre crops (``crop`` px, nearest-neighbour) with labels."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(panels), figsize=(1.9 * len(panels), 2.1), dpi=100, squeeze=False)
+    for ax, (label, im) in zip(axes[0], panels):
         h, w = im.shape[:2]
         c = min(crop, h, w)
         y, x = (h - c) // 2, (w - c) // 2
-        t = np.clip(tonemap(im[y:y + c, x:x + c]), 0, 1)
-        t = Image.fromarray((t * 255 + 0.5).astype(np.uint8)).resize((c * scale, c * scale), Image.NEAREST)
-        tiles.append((label, t))
-    tw = max(t.width for _, t in tiles)
-    th = max(t.height for _, t in tiles)
-    img = Image.new("RGB", (len(tiles) * (tw + 4), th + 16), "white")
-    d = ImageDraw.Draw(img)
-    for i, (label, t) in enumerate(tiles):
-        img.paste(t, (i * (tw + 4), 16))
-        d.text((i * (tw + 4) + 2, 2), label, fill="black")
-    img.save(path)
+        ax.imshow(np.clip(tonemap(im[y:y + c, x:x + c]), 0, 1), interpolation="nearest")
+        ax.set_title(label, fontsize=8)
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def sample_map_image(counts: np.ndarray, reference: np.ndarray, path, title: str = "") -> None:
+    """The per-pixel sample counts of an adaptive sampler (heat map, with a colour bar) next to the
+    tone-mapped reference of the same frame."""
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(7.0, 3.2), dpi=100)
+    a.imshow(np.clip(tonemap(reference), 0, 1), interpolation="nearest")
+    a.set_title("reference", fontsize=9)
+    a.axis("off")
+    im = b.imshow(counts, cmap="inferno", interpolation="nearest", vmin=0)
+    b.set_title(f"samples per pixel (mean {counts.mean():.2f}, max {int(counts.max())})", fontsize=9)
+    b.axis("off")
+    fig.colorbar(im, ax=b, fraction=0.046, pad=0.04)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
@@ -157,6 +162,14 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     ref = open_store(store).read_array("reference/radiance", first.pop()).transpose(1, 2, 0)
     crops_image([(r["label"], r["images"][0]) for r in results] + [("reference", ref)], out / "crops.png")
     plot_speed_vs_error(results, out / "speed_vs_error.png")
+    maps = []
+    for r in models:                      # adaptive samplers: where the samples went
+        sm = r.get("sample_map")
+        if sm is not None and float(np.ptp(sm["counts"])) > 0:
+            name = f"sample_map-{r['label'].replace(' ', '')}.png"
+            frame_ref = open_store(store).read_array("reference/radiance", sm["index"]).transpose(1, 2, 0)
+            sample_map_image(sm["counts"], frame_ref, out / name, f"{r['label']}: frame {sm['index']}")
+            maps.append((r["label"], name, sm["index"]))
     fig10 = figure10()
 
     at = ", ".join(f"{n}" for n in spps)
@@ -172,7 +185,15 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
              "than the reference; plain: none of these):", "", kinds_markdown(results), "",
              "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "",
              "PSNR by kind of frame:", "", kinds_markdown(results, "psnr", "{:.2f}"), "",
-             "Crops (inputs / models / OIDN / reference):", "", "![crops](crops.png)", "", "## Training budgets", ""]
+             "Crops (inputs / models / OIDN / reference):", "", "![crops](crops.png)", ""]
+    if any(r.get("clips") for r in results):
+        lines += ["tPSNR is PSNR of the frame-to-frame differences of tone-mapped frames (Hasselgren et al. "
+                  "2020, sec. 3), over each held-out clip in order (recurrent models carry their state through "
+                  "the clip); spp is the achieved mean samples per pixel.", ""]
+    for label, name, idx in maps:
+        lines += [f"Sample map of {label} (frame {idx}, the last of the first held-out clip):", "",
+                  f"![sample map]({name})", ""]
+    lines += ["## Training budgets", ""]
     for r in results:
         if "train_config" in r:
             tc = r["train_config"]
