@@ -147,16 +147,20 @@ class ClusterConfig:
     - ``slurm`` / ``pbs``: start ``jobs`` batch jobs with dask-jobqueue (``pip install dask-jobqueue``);
       ``jobqueue`` holds the keyword arguments of ``SLURMCluster`` / ``PBSCluster`` (cores, memory,
       walltime, queue, account, job_extra_directives, ...).
+
+    ``dashboard_address`` without a host (``:8787``) binds to 127.0.0.1; ``security`` holds
+    ``distributed.security.Security`` settings (``pipeline.cluster.make_security``) for TLS.
     """
     kind: str = "local"
     address: str | None = None
     workers: int | None = None
     threads_per_worker: int = 1
     memory_limit: str | int = "auto"
-    dashboard_address: str | None = ":8787"
+    dashboard_address: str | None = "127.0.0.1:8787"
     connect_timeout: float = 10.0
     jobs: int = 1
     jobqueue: dict = field(default_factory=dict)
+    security: dict | None = None
 
     def validate(self) -> None:
         p = "dataset.cluster"
@@ -175,13 +179,17 @@ class ClusterConfig:
         _need((isinstance(m, str) and m != "") or (_is_int(m) and m >= 0), f"{p}.memory_limit",
               "'auto', a size like '4GiB', or a number of bytes >= 0", m)
         _need(self.dashboard_address is None or isinstance(self.dashboard_address, str),
-              f"{p}.dashboard_address", "null (no dashboard) or an address like ':8787'", self.dashboard_address)
+              f"{p}.dashboard_address", "null (no dashboard) or an address like '127.0.0.1:8787'",
+              self.dashboard_address)
         t = self.connect_timeout
         _need(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and 0 < t <= 3600,
               f"{p}.connect_timeout", "a number of seconds in (0, 3600]", t)
         _need(_is_int(self.jobs) and 1 <= self.jobs <= 100_000, f"{p}.jobs", "an integer in [1, 100000]", self.jobs)
         _need(isinstance(self.jobqueue, dict) and all(isinstance(k, str) for k in self.jobqueue),
               f"{p}.jobqueue", "a mapping of dask-jobqueue keyword arguments", self.jobqueue)
+        if self.security is not None:
+            from pipeline.cluster import check_security
+            check_security(self.security, f"{p}.security")
         if self.kind in ("slurm", "pbs"):
             for k in ("cores", "memory"):
                 _need(k in self.jobqueue, f"{p}.jobqueue.{k}", f"set for kind {self.kind!r} (dask-jobqueue needs it)",
