@@ -530,12 +530,92 @@ def render_oracle(fs: FrameScene, spp: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------
+# the three parts of a frame (one task each in the dataset graph) and their assembly
+INPUT_KEYS = ("radiance", "features", "guides_albedo", "guides_normal", "guides_depth", "guides_motion",
+              "camera_to_world", "world_to_clip")
+LAYER_KEYS = ("layers",)
+REFERENCE_KEYS = ("reference", "reference_stderr")
+
+
+def _contiguous(out: dict, keys) -> dict:
+    for k in keys:
+        out[k] = np.ascontiguousarray(out[k], dtype=FRAME_ARRAYS[k][1])
+    return out
+
+
+def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
+    """Per-sample inputs of a frame: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17),
+    guides (float32, HWC: per-pixel sample means of albedo, normal, depth, motion), ``camera_to_world``
+    and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``
+    and ``seconds``."""
+    t0 = _time.perf_counter()
+    radiance, features, bad = render_inputs(fs, sample_hook)
+    out = {"radiance": radiance, "features": features,
+           "camera_to_world": fs.camera_to_world, "world_to_clip": fs.world_to_clip}
+    for g in ("albedo", "normal", "depth", "motion"):
+        out[f"guides_{g}"] = features[..., FEATURE_GROUPS[g]].mean(axis=2)
+    _contiguous(out, INPUT_KEYS)
+    fs.set_time(0.0)
+    out.update(nonfinite_inputs=int(bad), has_motion=bool(fs.has_motion), has_defocus=bool(fs.has_defocus),
+               seconds=_time.perf_counter() - t0)
+    return out
+
+
+def layers_part(fs: FrameScene) -> dict:
+    """Sample layers of a frame: ``layers`` (float32, LHW3), ``nonfinite_layers``, ``seconds``."""
+    t0 = _time.perf_counter()
+    layers, bad = render_layers(fs)
+    fs.set_time(0.0)
+    return {**_contiguous({"layers": layers}, LAYER_KEYS), "nonfinite_layers": int(bad),
+            "seconds": _time.perf_counter() - t0}
+
+
+def reference_part(fs: FrameScene) -> dict:
+    """Reference of a frame: ``reference`` and ``reference_stderr`` (float32, HW3), ``reference_spp``,
+    ``reference_rel_stderr``, ``nonfinite_reference``, ``seconds``."""
+    t0 = _time.perf_counter()
+    ref, err, spp, rel, bad = render_reference(fs)
+    fs.set_time(0.0)
+    return {**_contiguous({"reference": ref, "reference_stderr": err}, REFERENCE_KEYS),
+            "reference_spp": int(spp), "reference_rel_stderr": float(rel), "nonfinite_reference": int(bad),
+            "seconds": _time.perf_counter() - t0}
+
+
+def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
+    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts."""
+    spec = SceneSpec.from_json(spec_json)
+    out = {k: inputs[k] for k in INPUT_KEYS}
+    out.update({k: layers[k] for k in LAYER_KEYS})
+    out.update({k: reference[k] for k in REFERENCE_KEYS})
+    out["meta"] = {
+        "scene_json": spec_json,
+        "scene_seed": int(spec.seed),
+        "frame": int(frame),
+        "num_frames": int(spec.num_frames),
+        "has_motion": bool(inputs["has_motion"]),
+        "has_defocus": bool(inputs["has_defocus"]),
+        "nonfinite_inputs": int(inputs["nonfinite_inputs"]),
+        "nonfinite_layers": int(layers["nonfinite_layers"]),
+        "nonfinite_reference": int(reference["nonfinite_reference"]),
+        "reference_spp": int(reference["reference_spp"]),
+        "reference_rel_stderr": float(reference["reference_rel_stderr"]),
+        "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
+    }
+    if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
+        raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")
+    return out
+
+
 def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *,
-                 on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None) -> dict:
-    """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``.
+                 on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None,
+                 scene: FrameScene | None = None) -> dict:
+    """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``,
+    i.e. :func:`assemble` of :func:`inputs_part`, :func:`layers_part` and :func:`reference_part` on one
+    loaded scene (what the dataset graph's three tasks do on up to three), plus ``oracle``.
 
     ``on_scene_loaded(scene)`` may modify the freshly loaded ``mi.Scene`` (tests inject NaN emitters
-    with it); ``sample_hook`` see :func:`render_inputs`. Raises ``RenderError`` / ``ConfigError``.
+    with it); ``sample_hook`` see :func:`render_inputs`; ``scene``: an already loaded
+    :class:`FrameScene` of this spec, frame and config. Raises ``RenderError`` / ``ConfigError``.
     """
     cfg = cfg or RenderConfig()
     if not isinstance(cfg, RenderConfig):
@@ -544,43 +624,14 @@ def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *
         raise RenderError(f"frame {frame!r} out of range: the scene has {spec.num_frames} frame(s)")
     frame = int(frame)
     t0 = _time.perf_counter()
-    fs = FrameScene(spec, frame, cfg, on_scene_loaded)
-    radiance, features, bad_in = render_inputs(fs, sample_hook)
-    layers, bad_layers = render_layers(fs)
-    ref, ref_err, ref_spp, ref_rel, bad_ref = render_reference(fs)
-    out = {
-        "radiance": radiance,
-        "features": features,
-        "layers": layers,
-        "reference": ref,
-        "reference_stderr": ref_err,
-        "guides_albedo": features[..., FEATURE_GROUPS["albedo"]].mean(axis=2),
-        "guides_normal": features[..., FEATURE_GROUPS["normal"]].mean(axis=2),
-        "guides_depth": features[..., FEATURE_GROUPS["depth"]].mean(axis=2),
-        "guides_motion": features[..., FEATURE_GROUPS["motion"]].mean(axis=2),
-        "camera_to_world": fs.camera_to_world.astype(np.float64),
-        "world_to_clip": fs.world_to_clip.astype(np.float64),
-    }
+    fs = scene if scene is not None else FrameScene(spec, frame, cfg, on_scene_loaded)
+    load_seconds = _time.perf_counter() - t0
+    parts = inputs_part(fs, sample_hook), layers_part(fs), reference_part(fs)
+    out = assemble(spec.to_json(), frame, *parts)
+    out["meta"]["render_seconds"] += load_seconds
     if cfg.oracle_spp > 0:
         out["oracle"] = render_oracle(fs, cfg.oracle_spp)
-    fs.set_time(0.0)
-    for k, (_, dtype) in FRAME_ARRAYS.items():
-        out[k] = np.ascontiguousarray(out[k], dtype=dtype)
-    out["meta"] = {
-        "scene_json": spec.to_json(),
-        "scene_seed": int(spec.seed),
-        "frame": int(frame),
-        "num_frames": int(spec.num_frames),
-        "has_motion": bool(fs.has_motion),
-        "has_defocus": bool(fs.has_defocus),
-        "nonfinite_inputs": int(bad_in),
-        "nonfinite_layers": int(bad_layers),
-        "nonfinite_reference": int(bad_ref),
-        "reference_spp": int(ref_spp),
-        "reference_rel_stderr": float(ref_rel),
-        "render_seconds": float(_time.perf_counter() - t0),
-    }
-    assert set(out["meta"]) == set(FRAME_META)
+        fs.set_time(0.0)
     return out
 
 

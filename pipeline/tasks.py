@@ -7,31 +7,33 @@ stream, so references can run on other workers (``pipeline.render`` seeds every 
 so splitting changes no byte):
 
 - :func:`make_spec`        → SceneSpec JSON (str)
-- :func:`render_inputs`    → per-sample inputs + guides + camera matrices (dict, see below)
-- :func:`render_layers`    → sample layers (dict)
-- :func:`render_reference` → reference mean + standard error (dict)
-- :func:`write_frame`      → gathers the three parts, writes the frame's region of the store
-  (``status/complete`` last) and returns a small summary dict.
+- :func:`render_inputs`    → per-sample inputs + guides + camera matrices (``pipeline.render.inputs_part``)
+- :func:`render_layers`    → sample layers (``pipeline.render.layers_part``)
+- :func:`render_reference` → reference mean + standard error (``pipeline.render.reference_part``)
+- :func:`write_frame`      → gathers the three parts (``pipeline.render.assemble``), writes the frame's
+  region of the store (``status/complete`` last) and returns a small summary dict.
 
-:func:`render_whole_frame` is the unsplit alternative (one scene load instead of three).
+:func:`render_whole_frame` is the unsplit alternative (``pipeline.render.render_frame``: the same
+three parts on one loaded scene).
 
-Each rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do not
-oversubscribe the cores (see NOTES.md).
+Warm state per worker: the loaded scene of the last frames (:func:`frame_scene`) is kept, so the
+three stream tasks of a frame that land on one worker load and compile it once; meshes are cached
+per process (``scene_gen.meshes``) and drjit caches compiled kernels, so the frames of a clip reuse
+both. Each rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do
+not oversubscribe the cores.
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import threading
 import time
+from collections import OrderedDict
 
-import numpy as np
-
-from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META
-
-# Keys of each part's result (the frame dict of ``stores.contract`` is their union + ``meta``).
-INPUT_KEYS = ("radiance", "features", "guides_albedo", "guides_normal", "guides_depth", "guides_motion",
-              "camera_to_world", "world_to_clip")
-LAYER_KEYS = ("layers",)
-REFERENCE_KEYS = ("reference", "reference_stderr")
+SCENE_CACHE_SIZE = 2          # loaded scenes kept per worker process (a frame's streams, the next frame)
+_scenes: OrderedDict = OrderedDict()
+_scenes_lock = threading.Lock()
 
 
 def worker_threads() -> int | None:
@@ -52,11 +54,49 @@ def _render_cfg(render: dict):
     return cfg
 
 
-def _frame_scene(spec_json: str, frame: int, render: dict):
-    from pipeline.render import FrameScene
-    from scene_gen.spec import SceneSpec
-    spec = SceneSpec.from_json(spec_json)
-    return FrameScene(spec, int(frame), _render_cfg(render))
+class frame_scene:
+    """``with frame_scene(spec_json, frame, render) as fs``: a ``pipeline.render.FrameScene``, taken from
+    this process's cache when the same (spec, frame, config) was loaded before, else loaded.
+
+    A scene is used by one task at a time (taken out of the cache while in use, put back after), so
+    tasks in several threads never share one; ``fs.load_seconds`` is 0 for a cached scene.
+    """
+
+    def __init__(self, spec_json: str, frame: int, render: dict):
+        cfg = _render_cfg(render)
+        self.key = (hashlib.sha1(spec_json.encode()).hexdigest(), int(frame),
+                    json.dumps(cfg.to_dict(), sort_keys=True))
+        self.spec_json, self.frame, self.cfg = spec_json, int(frame), cfg
+
+    def __enter__(self):
+        with _scenes_lock:
+            fs = _scenes.pop(self.key, None)
+        if fs is None:
+            from pipeline.render import FrameScene
+            from scene_gen.spec import SceneSpec
+            t0 = time.perf_counter()
+            fs = FrameScene(SceneSpec.from_json(self.spec_json), self.frame, self.cfg)
+            fs.load_seconds = time.perf_counter() - t0
+        else:
+            fs.load_seconds = 0.0
+        self.fs = fs
+        return fs
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            return False                    # a scene that failed mid-render is not reused
+        self.fs.set_time(0.0)
+        with _scenes_lock:
+            _scenes[self.key] = self.fs
+            _scenes.move_to_end(self.key)
+            while len(_scenes) > SCENE_CACHE_SIZE:
+                _scenes.popitem(last=False)
+        return False
+
+
+def clear_scene_cache() -> None:
+    with _scenes_lock:
+        _scenes.clear()
 
 
 def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene_gen: dict) -> str:
@@ -68,83 +108,44 @@ def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene
     return spec.to_json()
 
 
-def render_inputs(spec_json: str, frame: int, render: dict) -> dict:
-    """Per-sample inputs of one frame: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17),
-    guides (float32, HWC: per-pixel sample means of albedo, normal, depth, motion), ``camera_to_world``
-    and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``
-    and ``seconds``."""
-    from pipeline import render as R
-    t0 = time.perf_counter()
-    fs = _frame_scene(spec_json, frame, render)
-    radiance, features, bad = R.render_inputs(fs)
-    out = {
-        "radiance": radiance, "features": features,
-        "guides_albedo": features[..., FEATURE_GROUPS["albedo"]].mean(axis=2),
-        "guides_normal": features[..., FEATURE_GROUPS["normal"]].mean(axis=2),
-        "guides_depth": features[..., FEATURE_GROUPS["depth"]].mean(axis=2),
-        "guides_motion": features[..., FEATURE_GROUPS["motion"]].mean(axis=2),
-        "camera_to_world": fs.camera_to_world, "world_to_clip": fs.world_to_clip,
-    }
-    for k in INPUT_KEYS:
-        out[k] = np.ascontiguousarray(out[k], dtype=FRAME_ARRAYS[k][1])
-    out.update(nonfinite_inputs=int(bad), has_motion=bool(fs.has_motion), has_defocus=bool(fs.has_defocus),
-               seconds=time.perf_counter() - t0)
+def _part(fn, spec_json: str, frame: int, render: dict) -> dict:
+    with frame_scene(spec_json, frame, render) as fs:
+        out = fn(fs)
+        out["seconds"] += fs.load_seconds
     return out
 
 
+def render_inputs(spec_json: str, frame: int, render: dict) -> dict:
+    """Per-sample inputs of one frame (``pipeline.render.inputs_part``)."""
+    from pipeline.render import inputs_part
+    return _part(inputs_part, spec_json, frame, render)
+
+
 def render_layers(spec_json: str, frame: int, render: dict) -> dict:
-    """Sample layers of one frame: ``layers`` (float32, LHW3), ``nonfinite_layers``, ``seconds``."""
-    from pipeline import render as R
-    t0 = time.perf_counter()
-    fs = _frame_scene(spec_json, frame, render)
-    layers, bad = R.render_layers(fs)
-    return {"layers": np.ascontiguousarray(layers, np.float32), "nonfinite_layers": int(bad),
-            "seconds": time.perf_counter() - t0}
+    """Sample layers of one frame (``pipeline.render.layers_part``)."""
+    from pipeline.render import layers_part
+    return _part(layers_part, spec_json, frame, render)
 
 
 def render_reference(spec_json: str, frame: int, render: dict) -> dict:
-    """Reference of one frame: ``reference`` and ``reference_stderr`` (float32, HW3), ``reference_spp``,
-    ``reference_rel_stderr``, ``nonfinite_reference``, ``seconds``."""
-    from pipeline import render as R
-    t0 = time.perf_counter()
-    fs = _frame_scene(spec_json, frame, render)
-    ref, err, spp, rel, bad = R.render_reference(fs)
-    return {"reference": np.ascontiguousarray(ref, np.float32),
-            "reference_stderr": np.ascontiguousarray(err, np.float32),
-            "reference_spp": int(spp), "reference_rel_stderr": float(rel), "nonfinite_reference": int(bad),
-            "seconds": time.perf_counter() - t0}
+    """Reference of one frame (``pipeline.render.reference_part``)."""
+    from pipeline.render import reference_part
+    return _part(reference_part, spec_json, frame, render)
 
 
 def render_whole_frame(spec_json: str, frame: int, render: dict) -> dict:
     """The whole frame in one task (``pipeline.render.render_frame``): the ``stores.contract`` dict."""
     from pipeline.render import render_frame
-    from scene_gen.spec import SceneSpec
-    return render_frame(SceneSpec.from_json(spec_json), int(frame), _render_cfg(render))
+    with frame_scene(spec_json, frame, render) as fs:
+        out = render_frame(fs.spec, int(frame), fs.cfg, scene=fs)
+        out["meta"]["render_seconds"] += fs.load_seconds
+    return out
 
 
 def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
-    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts."""
-    from scene_gen.spec import SceneSpec
-    spec = SceneSpec.from_json(spec_json)
-    out = {k: inputs[k] for k in INPUT_KEYS}
-    out.update({k: layers[k] for k in LAYER_KEYS})
-    out.update({k: reference[k] for k in REFERENCE_KEYS})
-    out["meta"] = {
-        "scene_json": spec_json,
-        "scene_seed": int(spec.seed),
-        "frame": int(frame),
-        "num_frames": int(spec.num_frames),
-        "has_motion": bool(inputs["has_motion"]),
-        "has_defocus": bool(inputs["has_defocus"]),
-        "nonfinite_inputs": int(inputs["nonfinite_inputs"]),
-        "nonfinite_layers": int(layers["nonfinite_layers"]),
-        "nonfinite_reference": int(reference["nonfinite_reference"]),
-        "reference_spp": int(reference["reference_spp"]),
-        "reference_rel_stderr": float(reference["reference_rel_stderr"]),
-        "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
-    }
-    assert set(out["meta"]) == set(FRAME_META), "stores.contract.FRAME_META changed: update assemble()"
-    return out
+    """The ``stores.contract`` frame dict from the three parts (``pipeline.render.assemble``)."""
+    from pipeline.render import assemble as _assemble
+    return _assemble(spec_json, frame, inputs, layers, reference)
 
 
 def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict, clip_id: int | None = None) -> dict:
@@ -169,9 +170,3 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
             "render_seconds": float(meta["render_seconds"]), "write_seconds": time.perf_counter() - t0,
             "reference_spp": int(meta["reference_spp"]), "reference_rel_stderr": float(meta["reference_rel_stderr"]),
             "nonfinite": int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"])}
-
-
-def validate_store(store: str) -> dict:
-    """Run the store validator; returns its report as a dict (``ok``, ``problems``, ...)."""
-    from stores import validate
-    return validate.validate_store(store)
