@@ -7,7 +7,7 @@ SCHEDULER ?=
 WORKERS ?=
 export DENOISE_DATA ?= $(CURDIR)/data
 
-.PHONY: setup dataset test test-fast bench train report compare compare-realtime preview contact-sheet clean-data help
+.PHONY: setup dataset test test-fast bench train report compare compare-realtime compare-temporal preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -53,6 +53,19 @@ compare-realtime: setup ## the 1-spp part of the comparison: nbg and wskpn on tr
 	if [ "$(REALTIME_REPORT)" = 1 ]; then \
 	  $(PY) -m training report --runs $(addprefix data/runs/,$(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-realtime; \
 	fi
+
+TEMPORAL_MODELS ?= temporal temporal-uniform temporal-perframe
+TEMPORAL_STEPS ?= 1500
+TEMPORAL_CROP ?= 64
+TEMPORAL_CFG ?= {"size": "small"}
+compare-temporal: setup ## adaptive vs uniform vs per-frame at 4 spp on held-out moving clips (train-temporal-cpu; hours on a CPU)
+	$(PY) -m pipeline dataset --config configs/train-temporal-cpu.yaml --out data/train-temporal-cpu.zarr
+	for m in $(TEMPORAL_MODELS); do \
+	  $(PY) -m training train --model $$m --store data/train-temporal-cpu.zarr --steps $(TEMPORAL_STEPS) \
+	    --crop $(TEMPORAL_CROP) --model-cfg '$(TEMPORAL_CFG)' --out data/runs-temporal/$$m || exit 1; \
+	done
+	$(PY) -m training report --runs $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) \
+	  --store data/train-temporal-cpu.zarr --out data/report-temporal
 
 preview: setup   ## render a preview of one scene: SEED, KIND
 	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr

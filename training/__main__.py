@@ -90,7 +90,8 @@ def main(argv=None) -> int:
     t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
     t.add_argument("--spp", type=int, default=None,
                    help="samples per pixel fed to the model (default: the model's, 8 for the layer family, 1 for "
-                        "nbg and wskpn; at most what the store holds)")
+                        "nbg and wskpn; for temporal the average budget per pixel, default 4, at most the sum of "
+                        "the store's layers; at most what the store holds)")
     t.add_argument("--lr", type=float, default=None,
                    help="Adam learning rate (default: the model's; layer family 0.0005, NVlabs/layerdenoise's; "
                         "nbg 1e-4, wskpn 1e-3, their papers')")

@@ -8,6 +8,13 @@ pixel. The model's input declaration (``training.inputs``) chooses what it is fe
 with the mean albedo and normal of the same N samples). Each frame is tagged with its kinds (defocus
 and motion from the store's frame metadata; fireflies from the input samples, see ``firefly_share``)
 and ``by_kind`` holds the means over the frames of each kind.
+
+``mean`` also holds ``spp``, the achieved mean samples per pixel (for an adaptive sampler the mean of
+its per-pixel counts, within half a sample of the asked budget; otherwise the count fed), and
+``tpsnr``, the temporal PSNR over each run of consecutive frames of one clip, averaged over the runs
+(NaN without clips). Recurrent models (``stepwise``, e.g. ``temporal``) are run clip by clip in frame
+order with :meth:`step`, carrying their state; a clip's first frame (or a frame after a gap) starts
+without history. Their ``sample_map`` is the count image of the last frame of the first clip.
 """
 from __future__ import annotations
 

@@ -24,8 +24,9 @@ window's T frames (frame 0: that noisy image), so eq. 4's loss sees the last two
 clip by clip with :meth:`step`; a clip's first frame has no history, so it is sampled uniformly at
 ``n`` spp (the same budget) and its history input is that image itself.
 
-**Settings.** ``size`` ``"large"`` (the paper's LARGE; our widths, 0.8M weights for the two nets,
-against the paper's "~850k" U-nets) or ``"small"`` (its SMALL: a third of the cost); explicit
+**Settings.** ``size`` ``"large"`` (the paper's LARGE; our widths: a 0.90M-weight denoiser and a
+0.56M sampler, against the paper's "~850k" U-nets) or ``"small"`` (its SMALL: 0.31M in all, a third
+of LARGE's FMAs); explicit
 ``sampler_*``/``denoiser_*`` widths override them. ``adaptive=False`` gives the paper's uniform
 baseline (a constant map, ``s_hat = n``); ``recurrent=False`` the per-frame one (no history: zero
 history input, no temporal kernel). ``frames`` is the unroll length. Registered variants:
@@ -222,7 +223,7 @@ class TemporalDenoiser(Denoiser):
     def forward(self, batch: dict) -> torch.Tensor:
         """A single frame (``layers (B L 3 H W)``): its first-frame output. A window (``layers
         (B T L 3 H W)``): ``(B T 3 H W)``, frame 0 the noisy uniform image that starts the history,
-        frames 1.. the unrolled steps."""
+        frames 1.. the unrolled steps (a window of one frame: the first-frame output)."""
         layers = batch["layers"]
         if layers.dim() == 5:
             return self.step(batch, None)[0]
@@ -238,6 +239,8 @@ class TemporalDenoiser(Denoiser):
             return f
 
         f0 = frame(0)
+        if layers.shape[1] == 1:                 # a one-frame window (a clip's first frame): as in evaluation
+            return self.step(f0, None)[0].unsqueeze(1)
         n = self.budget(f0)
         noisy = squeeze(adaptive.compose(adaptive.clean_layers(f0["layers"]),
                                          adaptive.uniform_counts(f0["layers"][:, 0], n)))
