@@ -275,3 +275,25 @@ def test_train_and_evaluate_clip_by_clip(clip_store, tmp_path):
     assert b["mean"]["spp"] == 2 and np.isfinite(b["mean"]["tpsnr"])
     with pytest.raises(Exception, match="samples per pixel"):
         evaluate(tmp_path / "run" / "checkpoint.pt", clip_store, split="test", spp=64, with_flip=False)
+
+
+def test_report_shows_tpsnr_spp_and_the_sample_map(clip_store, tmp_path):
+    from training.config import TrainConfig
+    from training.loop import train
+    from training.report import report
+    m = build("temporal")
+    cfg = TrainConfig(model="temporal", model_cfg={**m.tiny, "frames": 2}, steps=2, batch=2, crop=16, val_every=0,
+                      val_frames=1, val_crop=16, log_every=1, checkpoint_every=2, seed=2, workers=0)
+    train(cfg, clip_store, tmp_path / "runs" / "temporal", progress=False)
+    res = report([tmp_path / "runs" / "temporal"], clip_store, tmp_path / "rep", with_flip=False, progress=False)
+    labels = [r["label"] for r in res["results"]]
+    assert labels == ["input", "temporal", "oidn"]                       # baselines at the run's 4 spp
+    assert all(r["spp"] == 4 for r in res["results"])
+    text = (tmp_path / "rep" / "report.md").read_text()
+    assert "tPSNR" in text and "| spp |" in text
+    for name in ("speed_vs_error.png", "crops.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 1000
+    maps = list((tmp_path / "rep").glob("sample_map-*.png"))
+    # a sampler that has not learnt anything may spend its budget uniformly: then no map is drawn
+    sm = res["results"][1].get("sample_map")
+    assert sm is not None and len(maps) == int(np.ptp(sm["counts"]) > 0)

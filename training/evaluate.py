@@ -5,7 +5,9 @@ metrics (relMSE, SMAPE, PSNR, SSIM, FLIP; see :mod:`training.metrics`) with the 
 each frame in milliseconds per megapixel, their means, the parameter count and the analytic FMAs per
 pixel. The model's input declaration (``training.inputs``) chooses what it is fed. Baselines:
 ``"input"`` (the per-pixel mean of N samples) and ``"oidn"`` (Intel Open Image Denoise on that mean,
-with the mean albedo and normal of the same N samples). Each frame is tagged with its kinds (defocus
+with the mean albedo and normal of the same N samples); with ``baseline_input="sampled-layers"`` the
+N samples of every pixel are composed from the sample layers and the guides are the store's, as a
+sampler's uniform baseline sees them. Each frame is tagged with its kinds (defocus
 and motion from the store's frame metadata; fireflies from the input samples, see ``firefly_share``)
 and ``by_kind`` holds the means over the frames of each kind.
 
@@ -62,11 +64,24 @@ def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().permute(1, 2, 0).cpu().numpy()
 
 
-def baseline_spec(spp: int):
-    """The baselines see per-pixel frames: the mean of the first ``spp`` samples with those samples'
-    albedo and normal (kind ``pixels``), the same input a per-pixel model gets at that spp."""
+BASELINE_INPUTS = ("pixels", "sampled-layers")
+
+
+def baseline_spec(spp: int, kind: str = "pixels"):
+    """The baselines' input. ``pixels``: the mean of the first ``spp`` stored samples with those samples'
+    albedo and normal, the input a per-pixel model gets at that spp. ``sampled-layers``: ``spp`` samples
+    in every pixel composed from the sample layers, with the store's guides, the input of a sampler's
+    uniform baseline at that budget (``temporal``)."""
     from .inputs import InputSpec
-    return InputSpec("pixels", frames=1, default_spp=spp)
+    if kind not in BASELINE_INPUTS:
+        raise ConfigError(f"baseline input must be one of {BASELINE_INPUTS}, got {kind!r}")
+    return InputSpec(kind, frames=1, default_spp=spp)
+
+
+def _uniform_from_layers(item: dict, spp: int) -> torch.Tensor:
+    from . import adaptive
+    layers = adaptive.clean_layers(item["layers"]).unsqueeze(0)
+    return adaptive.compose(layers, adaptive.uniform_counts(layers[:, 0], spp))[0]
 
 
 def frame_tags(store, idx: int) -> dict:
@@ -82,7 +97,7 @@ def frame_tags(store, idx: int) -> dict:
 
 def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
              with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
-             threads: int | None = None, skip_bad_frames: bool = False) -> dict:
+             threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels") -> dict:
     """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
 
     The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
@@ -99,8 +114,9 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     info: dict = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads()}
     if isinstance(method, str) and method in BASELINES:
         spp = int(st.layout.spp if spp is None else spp)
-        spec = baseline_spec(spp)
-        info.update(method=method, params=0, fmas_per_pixel=0.0 if method == "input" else None)
+        spec = baseline_spec(spp, baseline_input)
+        info.update(method=method, params=0, fmas_per_pixel=0.0 if method == "input" else None,
+                    input_kind=baseline_input)
         model = None
     else:
         if isinstance(method, (str, Path)):
@@ -135,9 +151,10 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     def run(item, state=None):
         """-> (output HW3, new state, achieved mean spp, counts HW or None)."""
         if model is None:
+            rad = item["radiance"] if "radiance" in item else _uniform_from_layers(item, spp)
             if method == "input":
-                return _hwc(item["radiance"]), None, float(spp), None
-            return oidn_denoise(_hwc(item["radiance"]), _hwc(item["albedo"]), _hwc(item["normal"])), None, float(spp), None
+                return _hwc(rad), None, float(spp), None
+            return oidn_denoise(_hwc(rad), _hwc(item["albedo"]), _hwc(item["normal"])), None, float(spp), None
         with torch.no_grad():
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items()}
             if stepwise:

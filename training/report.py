@@ -148,10 +148,28 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
         return r
 
     models = [one(d.name, d / "checkpoint.pt", spp) for d in run_dirs]
-    spps = sorted({r["spp"] for r in models})
-    tag = (lambda n: f" @{n}spp") if len(spps) > 1 else (lambda n: "")
-    inputs = [one(f"input{tag(n)}", "input", n) for n in spps]
-    oidns = [one(f"oidn{tag(n)}", "oidn", n) for n in spps]
+    # baselines at each run's spp, from what the run reads: per-pixel means of stored samples, or (for a
+    # sampler) uniform counts composed from the sample layers
+    base_of = lambda r: "sampled-layers" if r.get("input_kind") == "sampled-layers" else "pixels"   # noqa: E731
+    groups = sorted({(r["spp"], base_of(r)) for r in models})
+    spps = sorted({n for n, _ in groups})
+    several_bases = len({b for _, b in groups}) > 1
+
+    def tag(n, base):
+        t = f" @{n}spp" if len(spps) > 1 else ""
+        return t + (" layers" if several_bases and base == "sampled-layers" else "")
+
+    def base_one(label, method, n, base):
+        if progress:
+            print(f"evaluating {label} on {split} ...", flush=True)
+        r = evaluate(method, store, split=split, spp=n, max_frames=max_frames, with_flip=with_flip, keep=(0,),
+                     skip_bad_frames=skip_bad_frames, baseline_input=base)
+        r["label"] = label
+        write_json(r, out / f"eval-{label.replace(' ', '')}.json")
+        return r
+
+    inputs = [base_one(f"input{tag(n, b)}", "input", n, b) for n, b in groups]
+    oidns = [base_one(f"oidn{tag(n, b)}", "oidn", n, b) for n, b in groups]
     results = inputs + models + oidns
 
     # the reference of the frame the crops show (the first evaluated frame of every method)
