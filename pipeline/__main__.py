@@ -1,4 +1,4 @@
-"""``python -m pipeline COMMAND``: render-frame, dataset, validate, export, bench.
+"""``python -m pipeline COMMAND``: render-frame, dataset, validate, export, estimate, bench.
 
 Each sub-command lives in its own module with ``add_arguments(parser)`` and ``run(args) -> int``;
 this file only dispatches and turns library errors into one-line messages and exit codes, the same
@@ -17,6 +17,8 @@ COMMANDS = {
     "dataset": ("pipeline.cli_dataset", "build a dataset from a YAML config on a Dask cluster"),
     "validate": ("stores.validate", "check a store: schema, completeness, NaN/Inf, value ranges"),
     "export": ("stores.export", "export frames of a store to EXR, OIDN or layerdenoise layouts"),
+    "estimate": ("pipeline.estimate", "predict samples, core-hours, store bytes and wall time of a config from a "
+                 "short calibration render"),
     "bench": ("pipeline.bench", "benchmarks that print figures (renderer, store, scheduler, models)"),
 }
 EXIT_CODES_HELP = ("exit status: 0 ok; 1 problems found (validate) or frames failed (dataset); 2 bad input "

@@ -1,0 +1,78 @@
+"""``python -m pipeline estimate``: a real calibration render of a tiny config, figures checked against
+their definitions (samples exactly, core-hours and wall time from the calibrated frame times, store
+bytes from a real store write)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+CONFIG = """
+name: est
+seed: 3
+resolution: [12, 8]
+scenes:
+  - {kind: indoor, count: 3}
+  - {kind: outdoor, count: 2, frames: 2}
+render: {spp: 4, layer_levels: 3, ref_spp: 64, ref_passes: 8, ref_min_passes: 4, time_slices: 2}
+scene_gen: {indoor_objects: 4, outdoor_objects: 5, material_palette: 2}
+cluster: {kind: local, threads_per_worker: 1}
+"""
+
+
+@pytest.fixture(scope="module")
+def estimated(tmp_path_factory):
+    from pipeline.__main__ import main
+    d = tmp_path_factory.mktemp("est")
+    cfg = d / "est.yaml"
+    cfg.write_text(CONFIG)
+    out = d / "est.json"
+    rc = main(["estimate", "--config", str(cfg), "--workers", "3", "--json", str(out)])
+    assert rc == 0
+    return cfg, json.loads(out.read_text())
+
+
+def test_estimate_figures_follow_from_the_calibration(estimated, capsys):
+    from pipeline.config import load_config
+    path, res = estimated
+    p, cal = res["prediction"], res["calibration"]
+    cfg = load_config(path)
+    assert p["frames"] == 3 + 2 * 2
+    assert p["samples"] == 7 * 12 * 8 * (4 + 7 + 64)                 # inputs + layers 1+2+4 + reference
+    assert [f["group"] for f in cal["frames"]] == [0, 1]              # one scene of each group
+    assert all(f["frame_s"] > 0 and f["reference_s"] > 0 for f in cal["frames"])
+    g = {int(k): v for k, v in cal["group_frame_s"].items()}
+    worker_s = 3 * g[0] + 4 * g[1]
+    assert p["worker_hours"] == pytest.approx(worker_s / 3600)
+    assert p["core_hours"] == pytest.approx(worker_s / 3600 * cfg.cluster.threads_per_worker)
+    assert p["wall_s"] == pytest.approx(max(worker_s / 3, max(f["frame_s"] for f in cal["frames"])))
+    # bytes: measured on a real store of the config's layout; compressed below raw float32
+    raw = 12 * 8 * (4 * 20 + 3 * 3 + 6 + 9) * 4
+    assert 0.05 * raw < cal["bytes_per_frame"] < raw
+    assert p["store_bytes"] == int(cal["store_fixed_bytes"] + 7 * cal["bytes_per_frame"])
+
+
+def test_more_workers_shorter_wall(estimated):
+    from pipeline.config import load_config
+    from pipeline.estimate import predict
+    path, res = estimated
+    cfg, cal = load_config(path), res["calibration"]
+    cal["group_frame_s"] = {int(k): v for k, v in cal["group_frame_s"].items()}
+    one, many = predict(cfg, cal, 1), predict(cfg, cal, 1000)
+    assert one["wall_s"] > many["wall_s"]
+    assert many["wall_s"] == pytest.approx(max(f["frame_s"] for f in cal["frames"]))   # the slowest frame
+    assert one["core_hours"] == many["core_hours"]
+
+
+def test_estimate_bad_input_is_exit_2(tmp_path, capsys):
+    from pipeline.__main__ import main
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CONFIG)
+    assert main(["estimate", "--config", str(cfg), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err
+    assert main(["estimate", "--config", str(cfg), "--ref-passes", "99"]) == 2
+    assert "--ref-passes" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(CONFIG.replace("spp: 4,", "spp: 0,"))
+    assert main(["estimate", "--config", str(bad)]) == 2
+    assert "spp" in capsys.readouterr().err
