@@ -6,9 +6,10 @@ frames are exported (an incomplete one is an error naming it).
 * ``exr``: per frame a folder ``frame_NNNNNN/`` with OpenEXR files (float32, ZIP):
   ``input_mean.exr`` (mean of the per-sample radiance), ``layer_NNNNspp.exr`` (each sample layer),
   ``reference.exr``, ``reference_stderr.exr`` (RGB), ``albedo.exr`` (RGB), ``normal.exr`` (RGB = world xyz),
-  ``depth.exr`` (Y), ``motion.exr`` (R = motion_x, G = motion_y, pixels), and tone-mapped sRGB PNG
-  previews (``*.png``: ``x / (1 + x)`` per channel, then the sRGB curve) of input_mean, layers,
-  reference, albedo and normal (``n * 0.5 + 0.5``).
+  ``depth.exr`` (Y), ``motion.exr`` (R = motion_x, G = motion_y, pixels), and 8-bit PNG previews
+  (``*.png``, :func:`stores.imageio.to_srgb8`) of input_mean, layers and reference through the
+  training tone map (``log(1 + x)`` then the sRGB curve, the layer paper's eq. 7, clipped to [0, 1]),
+  of albedo through the sRGB curve, and of normal as ``n * 0.5 + 0.5``.
 * ``oidn``: the naming read by Intel Open Image Denoise's training toolkit (``training/dataset.py``:
   images are grouped by the name before the last ``_``; a ``NNNNspp`` suffix is an input, ``ref`` the
   target; features are ``.hdr.exr``, ``.alb.exr``, ``.nrm.exr`` with channels R, G, B). One input set per
@@ -39,44 +40,15 @@ import numpy as np
 
 from stores.contract import FEATURE_GROUPS
 from stores.errors import ExportError, StoreError
+from stores.imageio import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
 from stores.validate import cli_main, parse_frames
 
 FORMATS = ("exr", "oidn", "layerdenoise")
 
 
-def srgb8(y: np.ndarray) -> np.ndarray:
-    """Linear ``[0, 1]`` -> 8-bit sRGB (uint8, same shape)."""
-    y = np.clip(np.nan_to_num(np.asarray(y, np.float64), nan=0.0), 0.0, 1.0)
-    s = np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
-    return np.clip(np.rint(s * 255), 0, 255).astype(np.uint8)
-
-
-def tonemap_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear HDR ``(float, HW3)`` -> 8-bit sRGB ``(uint8, HW3)``: Reinhard ``x/(1+x)`` then the sRGB curve."""
-    x = np.nan_to_num(np.maximum(np.asarray(x, np.float64), 0.0), nan=0.0, posinf=1e30)
-    return srgb8(x / (1.0 + x))
-
-
-def write_exr(path: str, channels: dict) -> None:
-    """``channels``: name -> ``(float32, HW)`` or ``"RGB"`` -> ``(float32, HW3)``; ZIP compression."""
-    import OpenEXR
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    chans = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
-    with OpenEXR.File(header, chans) as f:
-        f.write(path)
-
-
-def read_exr(path: str) -> dict:
-    """name -> pixels (``RGB`` grouped as HW3 when present)."""
-    import OpenEXR
-    with OpenEXR.File(path) as f:
-        return {k: np.array(v.pixels) for k, v in f.channels().items()}
-
-
-def _png(path: str, rgb: np.ndarray) -> None:
-    from PIL import Image
-    Image.fromarray(rgb).save(path)
+# ``{"RGB": ...}``-style reading, for callers of this module's former reader
+read_exr = read_exr_channels
 
 
 def _complete(store: Store, frames: list[int]) -> None:
@@ -99,20 +71,17 @@ def export_exr(store: Store, frames: list[int], out: str) -> list[str]:
         for n, s in enumerate(store.layout.layer_spp):
             imgs[f"layer_{s:04d}spp"] = fr["layers"][n]
         for name, rgb in imgs.items():
-            write_exr(os.path.join(d, f"{name}.exr"), {"RGB": rgb})
+            write_exr(os.path.join(d, f"{name}.exr"), rgb)
             written.append(os.path.join(d, f"{name}.exr"))
             if name == "reference_stderr":
                 continue
             if name == "normal":
-                preview = np.clip(np.rint((rgb * 0.5 + 0.5) * 255), 0, 255).astype(np.uint8)
-            elif name == "albedo":
-                preview = srgb8(rgb)
+                write_png(os.path.join(d, f"{name}.png"), rgb * 0.5 + 0.5, mode="linear")
             else:
-                preview = tonemap_srgb(rgb)
-            _png(os.path.join(d, f"{name}.png"), preview)
+                write_png(os.path.join(d, f"{name}.png"), rgb, mode="clamp" if name == "albedo" else "log")
             written.append(os.path.join(d, f"{name}.png"))
-        write_exr(os.path.join(d, "depth.exr"), {"Y": fr["guides_depth"][..., 0]})
-        write_exr(os.path.join(d, "motion.exr"), {"R": fr["guides_motion"][..., 0], "G": fr["guides_motion"][..., 1]})
+        write_exr(os.path.join(d, "depth.exr"), fr["guides_depth"][..., :1], channels="Y")
+        write_exr(os.path.join(d, "motion.exr"), fr["guides_motion"][..., :2], channels="RG")
         written += [os.path.join(d, "depth.exr"), os.path.join(d, "motion.exr")]
     return written
 
@@ -131,7 +100,7 @@ def export_oidn(store: Store, frames: list[int], out: str) -> list[str]:
         for suffix, color in sets:
             for feat, img in (("hdr", color), ("alb", alb), ("nrm", nrm)):
                 path = f"{base}_{suffix}.{feat}.exr"
-                write_exr(path, {"RGB": img})
+                write_exr(path, img)
                 written.append(path)
     return written
 
