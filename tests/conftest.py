@@ -1,4 +1,8 @@
-"""Shared fixtures: the Mitsuba variant, tiny scenes, temporary stores. Markers slow/gpu skip themselves."""
+"""What every test module shares: the ``slow`` and ``gpu`` markers skip themselves (``RUN_SLOW=1`` runs
+slow tests; gpu tests need a CUDA device), and the ``mi`` fixture is Mitsuba with the project's variant.
+
+Tiny scenes and temporary stores are not fixtures here: each module builds its own from helpers
+(``test_stores_synthetic.synthetic_frame``, ``test_training.make_store``, pytest's ``tmp_path``)."""
 from __future__ import annotations
 
 import os
@@ -22,6 +26,7 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def mi():
-    """Mitsuba with the project's variant (llvm_ad_rgb on CPU), 2 threads."""
+    """Mitsuba with the project's variant (``pipeline.variant``: llvm_ad_rgb without a GPU), drjit's
+    thread pool left at its default."""
     from pipeline.variant import mitsuba
     return mitsuba()
