@@ -14,7 +14,7 @@ and ``by_kind`` holds the means over the frames of each kind.
 ``mean`` also holds ``spp``, the achieved mean samples per pixel (for an adaptive sampler the mean of
 its per-pixel counts, within half a sample of the asked budget; otherwise the count fed), and
 ``tpsnr``, the temporal PSNR over each run of consecutive frames of one clip, averaged over the runs
-(NaN without clips). Recurrent models (``stepwise``, e.g. ``temporal``) are run clip by clip in frame
+(null without clips). Recurrent models (``stepwise``, e.g. ``temporal``) are run clip by clip in frame
 order with :meth:`step`, carrying their state; a clip's first frame (or a frame after a gap) starts
 without history. Their ``sample_map`` is the count image of the last frame of the first clip.
 """
@@ -206,9 +206,9 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         sel = [f for f in frames if kind_name in frame_kinds(f)]
         if sel:
             info["by_kind"][kind_name] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
-    # temporal PSNR over each run of consecutive frames of one clip, averaged over the runs (NaN: no clips)
+    # temporal PSNR over each run of consecutive frames of one clip, averaged over the runs (None: no clips)
     tp = [metrics.tpsnr(np.stack([o for o, _ in r]), np.stack([g for _, g in r])) for r in runs]
-    info["mean"]["tpsnr"] = float(np.mean(tp)) if tp else float("nan")
+    info["mean"]["tpsnr"] = float(np.mean(tp)) if tp else None
     info["clips"] = len(runs)
     info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
     if sample_map is not None:
