@@ -1,17 +1,29 @@
 """Renderer benchmark (``python -m pipeline bench --only render``): figures, not a timed test.
 
-On one generated scene, in one process, with JIT kernels warmed up first:
+Printed in one run, every speed a ratio of two rates measured back to back in this process (or, for
+the dataset, in the same run), since the machine may be shared:
 
-- samples/s of the per-sample input loop (``pipeline.render.render_inputs``: radiance + 17 features)
-  and of plain ``mi.render`` (path integrator, same scene, same spp); their ratio (target >= 0.7);
-- samples/s of the reference path (``render_reference``: passes of the production size, 128 spp,
-  + batch-means standard error) and of one ``mi.render`` call with the same total spp; their ratio
-  (target >= 0.9);
+- **input loop vs mi.render** on one generated scene (``configs/default.yaml``'s scene generator,
+  loaded as the renderer loads it: merged shapes): samples/s of ``pipeline.render.render_inputs``
+  (radiance + 17 features) against plain ``mi.render`` of the same scene and spp (target >= 0.9);
+- **reference vs mi.render**: ``render_reference`` (passes of the production size, 128 spp, plus the
+  batch-means standard error) against one ``mi.render`` call of the same total spp (target >= 0.9);
+- **generated scene vs the Cornell box** (``mi.cornell_box()``, same resolution, bounces and spp):
+  ``mi.render`` on the generated scene as the renderer loads it, and as it was loaded before shapes
+  were merged (one shape a mesh, no material palette), each against the Cornell box (target >= 0.5);
+- **end-to-end dataset samples/s vs the Cornell box**: ``python -m pipeline dataset`` on four stills
+  (two indoor, two outdoor, default scene generator) on a LocalCluster of ``e2e_workers`` workers,
+  all samples (inputs, layers, references) over the wall time, start-up and validation included,
+  against ``mi.render`` on the Cornell box with as many drjit threads (target >= 0.5);
+- **frames per hour at 256x256** for the default scene mix: ``pipeline.estimate.calibrate`` of the
+  first indoor and outdoor scene of ``configs/default.yaml`` at 256x256 (one thread a worker), their
+  frame times weighted by the mix's frames of each kind, for one worker and for this machine's
+  workers;
 - peak resident memory of a child process that renders one whole 256x256x8 frame (inputs, layers,
   a small reference) with ``render_frame`` (target < 4 GiB).
 
-Throughput is measured at ``res`` (default 128x128: the ratios do not depend on it, the machine is
-shared) as the best of ``repeats`` alternating runs of ours and ``mi.render``.
+Throughput of the loops is measured at ``res`` (default 128x128: the ratios do not depend on it) as
+the best of ``repeats`` alternating runs of ours and ``mi.render``.
 """
 from __future__ import annotations
 
@@ -20,13 +32,18 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-TARGET_INPUT_RATIO = 0.7
+TARGET_INPUT_RATIO = 0.9
 TARGET_REFERENCE_RATIO = 0.9
+TARGET_CORNELL_RATIO = 0.5
 TARGET_PEAK_GIB = 4.0
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_CONFIG = ROOT / "configs" / "default.yaml"
 
 _CHILD = r"""
 import json, resource, sys, time
@@ -55,38 +72,113 @@ def _best_pair(fa, fb, repeats: int) -> tuple[float, float]:
     return ta, tb
 
 
+def _cornell(mi, res: int, max_depth: int):
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=res, height=res, rfilter={"type": "box"})
+    d["integrator"] = {"type": "path", "max_depth": max_depth + 1, "rr_depth": max_depth + 2}
+    return mi.load_dict(d)
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: str | None = None) -> dict:
+    """Wall time and samples of ``python -m pipeline dataset`` on four stills (a child process)."""
+    import yaml
+    passes = 32 if ref_spp >= 32 * 16 else 8
+    cfg = {"name": "bench-e2e", "seed": 4242, "resolution": [res, res],
+           "scenes": [{"kind": "indoor", "count": 2}, {"kind": "outdoor", "count": 2}],
+           "render": {"spp": 8, "layer_levels": 6, "ref_spp": ref_spp, "ref_passes": passes,
+                      "ref_min_passes": passes // 2},
+           "scene_gen": scene_gen, "tasks": {"retries": 0},
+           "cluster": {"kind": "local", "workers": workers, "threads_per_worker": 1, "dashboard_address": None}}
+    with tempfile.TemporaryDirectory(prefix="bench-e2e-", dir=os.environ.get("DENOISE_DATA") or None) as tmp:
+        path = Path(tmp) / "e2e.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "pipeline", "dataset", "--config", str(path),
+                            "--out", str(Path(tmp) / "e2e.zarr"), "--workers", str(workers)],
+                           capture_output=True, text=True, env=_env(), cwd=ROOT)
+        wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise RuntimeError("the end-to-end dataset run failed: " + "\n".join((r.stdout + r.stderr).strip().splitlines()[-8:]))
+    samples = 4 * res * res * (8 + 63 + ref_spp)
+    return {"wall_s": wall, "samples": samples, "msamples_per_s": samples / wall / 1e6}
+
+
+def frames_per_hour(*, res: int, workers: int, scene_gen: dict | None = None) -> dict:
+    """Frames per hour at ``res`` for the default config's scene mix (``pipeline.estimate.calibrate``)."""
+    from pipeline.config import SceneGroup, load_config
+    from pipeline.estimate import calibrate
+    d = load_config(DEFAULT_CONFIG)
+    mix = {k: sum(g.count * g.frames for g in d.scenes if g.kind == k) for k in ("indoor", "outdoor")}
+    # the first scene of each kind keeps its seed: groups in the default order, one scene each
+    cal_cfg = d.with_overrides(resolution=(res, res), scene_gen={**d.scene_gen, **(scene_gen or {})},
+                               scenes=tuple(SceneGroup(k, 1) for k in ("indoor", "outdoor")))
+    cal = calibrate(cal_cfg, per_group=1, ref_passes=2, threads=1, log=lambda *a: None)
+    t = {f["kind"]: f["frame_s"] for f in cal["frames"]}
+    mean_s = sum(mix[k] * t[k] for k in mix) / sum(mix.values())
+    return {"frame_s": t, "mean_frame_s": mean_s, "frames_per_hour_per_worker": 3600.0 / mean_s,
+            "frames_per_hour": 3600.0 / mean_s * workers, "workers": workers}
+
+
 def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, ref_passes: int = 4,
-        ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256) -> dict:
+        ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256,
+        e2e_res: int = 64, e2e_ref_spp: int = 1024, e2e_workers: int | None = None, fph_res: int = 256,
+        scene_gen: dict | None = None) -> dict:
     """Print and return the renderer's figures (dict of floats). ``memory_res``: the edge of the frame
-    whose peak memory is measured in a child process (256 for the target; the tests use a tiny one)."""
+    whose peak memory is measured in a child process (256 for the target; the tests use a tiny one);
+    ``e2e_*``: the end-to-end dataset run; ``fph_res``: the frames-per-hour resolution (0: skip);
+    ``scene_gen``: overrides of the default config's scene generator (the tiny run's few objects)."""
     from pipeline import render as R
+    from pipeline.config import load_config
+    from scene_gen.config import SceneGenConfig
     from scene_gen.sampling import sample_scene
 
-    spec = sample_scene(seed, kind, num_frames=1, res=res)
+    workers = e2e_workers or max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 2)
+    overrides = dict(scene_gen or {})
+    scene_gen = {**load_config(DEFAULT_CONFIG).scene_gen, **overrides}
+    spec = sample_scene(seed, kind, num_frames=1, res=res, config=SceneGenConfig.from_dict(scene_gen))
+    # the benchmark measures one static pass: motion slicing is a scene property, not loop speed
+    spec = dataclasses.replace(spec, shutter=0.0) if spec.has_motion else spec
     # the reference with its production pass size (4096 spp in 32 passes = 128 spp a pass), fewer passes
     ref_spp = ref_passes * ref_pass_spp
     cfg = R.RenderConfig(res=(res, res), spp=spp, ref_spp=ref_spp, ref_passes=ref_passes,
                          ref_min_passes=min(16, ref_passes), layer_levels=0)
-    # the benchmark measures one static pass: motion slicing is a scene property, not loop speed
-    spec = dataclasses.replace(spec, shutter=0.0) if spec.has_motion else spec
     fs = R.FrameScene(spec, 0, cfg)
     mi = fs.mi
+    threads = int(fs.dr.thread_count())
+    before_gen = SceneGenConfig.from_dict({k: v for k, v in scene_gen.items() if k != "material_palette"})
+    before_spec = dataclasses.replace(sample_scene(seed, kind, num_frames=1, res=res, config=before_gen), shutter=0.0)
+    before = R.FrameScene(before_spec, 0, cfg, merge=False).scene
+    cornell = _cornell(mi, res, spec.max_depth)
     n_in = res * res * spp
     n_ref = res * res * ref_spp
 
-    def mi_render(k):
-        np.asarray(mi.render(fs.scene, spp=k, seed=12345))
+    def mi_render(scene, k):
+        np.asarray(mi.render(scene, spp=k, seed=12345))
 
     t0 = time.perf_counter()
     R.render_inputs(fs)            # warm-up: compile the kernels once
-    mi_render(spp)
-    mi_render(ref_pass_spp)
+    for sc in (fs.scene, before, cornell):
+        mi_render(sc, spp)
+    mi_render(fs.scene, ref_pass_spp)
     warm = time.perf_counter() - t0
-    t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: mi_render(spp), repeats)
-    t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: mi_render(ref_spp), max(1, repeats - 1))
+    t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: mi_render(fs.scene, spp), repeats)
+    t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: mi_render(fs.scene, ref_spp),
+                                 max(1, repeats - 1))
+    cb_spp = 4 * spp
+    t_gen, t_cb = _best_pair(lambda: mi_render(fs.scene, cb_spp), lambda: mi_render(cornell, cb_spp), repeats)
+    t_before, t_cb2 = _best_pair(lambda: mi_render(before, cb_spp), lambda: mi_render(cornell, cb_spp), repeats)
+    t_cb = min(t_cb, t_cb2)
+    n_cb = res * res * cb_spp
     out = {
-        "scene": f"{kind} seed {seed}, {len(spec.objects)} objects, {res}x{res}",
-        "threads": int(fs.dr.thread_count()),
+        "scene": f"{kind} seed {seed}, {len(spec.objects)} objects, {len(fs.scene.shapes())} shapes "
+                 f"({len(before.shapes())} before merging), {res}x{res}",
+        "threads": threads,
         "warmup_seconds": warm,
         "inputs_msamples_per_s": n_in / t_in / 1e6,
         "mi_render_msamples_per_s": n_in / t_mi / 1e6,
@@ -94,13 +186,50 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
         "reference_msamples_per_s": n_ref / t_ref / 1e6,
         "mi_render_reference_msamples_per_s": n_ref / t_mi_ref / 1e6,
         "reference_ratio": t_mi_ref / t_ref,
+        "cornell_msamples_per_s": n_cb / t_cb / 1e6,
+        "generated_msamples_per_s": n_cb / t_gen / 1e6,
+        "generated_vs_cornell": t_cb / t_gen,
+        "generated_before_merge_msamples_per_s": n_cb / t_before / 1e6,
+        "generated_before_merge_vs_cornell": t_cb / t_before,
     }
+    print(f"renderer on {out['scene']} ({threads} threads, warm-up {warm:.1f} s):", flush=True)
+    print(f"  input loop  {out['inputs_msamples_per_s']:.2f} Msamples/s vs mi.render "
+          f"{out['mi_render_msamples_per_s']:.2f}: ratio {out['inputs_ratio']:.2f} (target >= {TARGET_INPUT_RATIO})")
+    print(f"  reference   {out['reference_msamples_per_s']:.2f} Msamples/s vs mi.render "
+          f"{out['mi_render_reference_msamples_per_s']:.2f}: ratio {out['reference_ratio']:.2f} "
+          f"(target >= {TARGET_REFERENCE_RATIO})")
+    print(f"  generated   {out['generated_msamples_per_s']:.2f} Msamples/s vs Cornell box "
+          f"{out['cornell_msamples_per_s']:.2f}: ratio {out['generated_vs_cornell']:.2f} "
+          f"(target >= {TARGET_CORNELL_RATIO}; before merging {out['generated_before_merge_vs_cornell']:.2f})",
+          flush=True)
+    if e2e_res:
+        e2e = end_to_end(res=e2e_res, ref_spp=e2e_ref_spp, workers=workers, scene_gen=scene_gen)
+        # the Cornell box at the dataset's size, with as many threads as the dataset's workers
+        cb = _cornell(mi, e2e_res, spec.max_depth)
+        fs.dr.set_thread_count(workers)
+        mi_render(cb, 64)
+        t = time.perf_counter()
+        mi_render(cb, 256)
+        cb_rate = e2e_res * e2e_res * 256 / (time.perf_counter() - t) / 1e6
+        fs.dr.set_thread_count(threads)
+        out.update({"dataset_msamples_per_s": e2e["msamples_per_s"], "dataset_wall_s": e2e["wall_s"],
+                    "dataset_samples": e2e["samples"], "dataset_cornell_msamples_per_s": cb_rate,
+                    "dataset_vs_cornell": e2e["msamples_per_s"] / cb_rate})
+        print(f"  dataset     {e2e['msamples_per_s']:.2f} Msamples/s end to end ({e2e['samples'] / 1e6:.1f} M samples, "
+              f"4 stills {e2e_res}x{e2e_res}, {e2e_ref_spp}-spp references, {workers} workers, {e2e['wall_s']:.0f} s) "
+              f"vs Cornell box {cb_rate:.2f}: ratio {out['dataset_vs_cornell']:.2f} (target >= {TARGET_CORNELL_RATIO})",
+              flush=True)
+    if fph_res:
+        fph = frames_per_hour(res=fph_res, workers=workers, scene_gen=overrides)
+        out.update({"frames_per_hour": fph["frames_per_hour"],
+                    "frames_per_hour_per_worker": fph["frames_per_hour_per_worker"],
+                    "frame_s_by_kind": fph["frame_s"]})
+        print(f"  {fph_res}x{fph_res} frames/hour (default scene mix, 4096-spp references): "
+              f"{fph['frames_per_hour']:.1f} on {workers} workers ({fph['frames_per_hour_per_worker']:.1f} a worker; "
+              + ", ".join(f"{k} {v:.0f} s a frame" for k, v in fph["frame_s"].items()) + ")", flush=True)
     if memory:
-        env = dict(os.environ)
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
         r = subprocess.run([sys.executable, "-c", _CHILD, str(seed), kind, str(memory_res), "8"],
-                           capture_output=True, text=True, env=env, cwd=root)
+                           capture_output=True, text=True, env=_env(), cwd=ROOT)
         tag = f"frame_{memory_res}x{memory_res}x8"
         if r.returncode == 0:
             child = json.loads(r.stdout.strip().splitlines()[-1])
@@ -108,14 +237,6 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
         else:
             raise RuntimeError(f"the {memory_res}x{memory_res} memory child failed: "
                                + "\n".join((r.stderr or "").strip().splitlines()[-5:]))
-    print(f"renderer on {out['scene']} ({out['threads']} threads, warm-up {warm:.1f} s):")
-    print(f"  input loop  {out['inputs_msamples_per_s']:.2f} Msamples/s vs mi.render "
-          f"{out['mi_render_msamples_per_s']:.2f}: ratio {out['inputs_ratio']:.2f} (target >= {TARGET_INPUT_RATIO})")
-    print(f"  reference   {out['reference_msamples_per_s']:.2f} Msamples/s vs mi.render "
-          f"{out['mi_render_reference_msamples_per_s']:.2f}: ratio {out['reference_ratio']:.2f} "
-          f"(target >= {TARGET_REFERENCE_RATIO})")
-    tag = f"frame_{memory_res}x{memory_res}x8"
-    if f"{tag}_peak_gib" in out:
         print(f"  {memory_res}x{memory_res}x8 frame: peak memory {out[tag + '_peak_gib']:.2f} GiB "
               f"(target < {TARGET_PEAK_GIB} at 256x256), {out[tag + '_seconds']:.1f} s")
     return out
