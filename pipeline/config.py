@@ -52,15 +52,16 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
+from scene_gen.spec import SCENE_KINDS
+from stores.schema import StoreLayout
 
-SCENE_KINDS = ("indoor", "outdoor")
 CLIP_ID_SCHEMES = ("balanced", "scene_seed")
 SPLIT_SHUFFLE = 0x5B17           # SeedSequence([seed, SPLIT_SHUFFLE]) shuffles the balanced split
 CLIP_ID_STRIDE = 2 ** 31         # clip id candidates: scene_seed + j * stride (scene seeds are < 2**31)
 MAX_CLIP_ID_TRIES = 1_000_000
 CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
 MAX_RES = 16384
-STORE_KEYS = frozenset({"tile", "radiance_encoding", "feature_dtype"})   # stores.schema.StoreLayout fields
+STORE_KEYS = frozenset(StoreLayout.encoding_fields())   # what `dataset.store` may set
 
 
 def _is_int(v) -> bool:
@@ -340,7 +341,6 @@ class DatasetConfig:
     def store_layout(self):
         """The :class:`stores.schema.StoreLayout` of the dataset (``store`` holds its encoding fields)."""
         from stores.errors import StoreError
-        from stores.schema import StoreLayout
         allowed = sorted(STORE_KEYS)
         unknown = sorted(set(self.store) - STORE_KEYS)
         if unknown:

@@ -1,12 +1,9 @@
 """Errors raised by the pipeline. Command-line ``main()`` turns them into exit codes."""
+from scene_gen.errors import VariantError  # noqa: F401  (raised by the variant leaf, scene_gen.variant)
 
 
 class PipelineError(Exception):
     """Base class of every pipeline error."""
-
-
-class VariantError(PipelineError, RuntimeError):
-    """The Mitsuba variant cannot start (missing or broken libLLVM, no CUDA, ...)."""
 
 
 class ConfigError(PipelineError, ValueError):

@@ -16,11 +16,10 @@ import os
 
 def prepare_environment() -> None:
     """drjit's libLLVM and single-threaded BLAS/OpenMP pools (inherited by worker processes)."""
-    from pipeline.variant import find_libllvm
-    from pipeline.errors import PipelineError
+    from scene_gen.variant import VariantError, find_libllvm
     try:
         lib = find_libllvm()
-    except PipelineError:
+    except VariantError:
         lib = None
     if lib:
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", lib)

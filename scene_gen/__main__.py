@@ -39,7 +39,7 @@ def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, thre
     """Render frame ``frame`` of ``spec`` with Mitsuba's own ``mi.render`` (float32, HWC linear RGB).
 
     Moving objects are shown at the middle of the exposure (previews do not blur)."""
-    from pipeline.variant import mitsuba
+    from scene_gen.variant import mitsuba
     from scene_gen import to_mitsuba
     mi = mitsuba(threads=threads)
     tau = frame + 0.5 * spec.shutter if spec.has_motion else None
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except Exception as e:  # a library failure: still one line, but say what it was
-        from pipeline.errors import VariantError
+        from scene_gen.errors import VariantError
         if isinstance(e, VariantError):
             print(f"error: {e}", file=sys.stderr)
             return 2

@@ -15,3 +15,7 @@ class MeshError(SceneGenError, RuntimeError):
 
 class ConfigError(SpecError):
     """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
+
+
+class VariantError(SceneGenError, RuntimeError):
+    """The Mitsuba variant cannot start (missing or broken libLLVM, no CUDA, ...); ``scene_gen.variant``."""

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from scene_gen import cameras as cams
+from scene_gen.layout import Layout, Placed, probe_params, random_shape, register_family, upright
 from scene_gen.materials import diffuse, random_material, random_texture
 from scene_gen.spec import LightSpec, MeshSpec, Transform
 
@@ -20,9 +21,9 @@ def _f(x) -> float:
     return round(float(x), 6)
 
 
+@register_family("outdoor")
 def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov: float, res: int,
                    user_models: list[str]):
-    from scene_gen.sampling import Layout, Placed, probe_params, random_shape, upright
 
     # camera
     height = math.exp(r_cam.uniform(math.log(0.8), math.log(6.0)))

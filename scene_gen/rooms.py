@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from scene_gen.errors import MeshError, SpecError
+from scene_gen.layout import Layout, Placed, light_color, probe_params, random_shape, register_family, upright
 
 ROOM_TYPES = ("box", "long", "L", "T", "U", "cross", "hall", "loft", "studio")
 PARTS = ("floor", "walls", "ceiling")
@@ -364,11 +365,11 @@ def _sample_in_plan(rng, rects, margin, n_try=4):
     return np.array([(c[0] + c[2]) / 2, (c[1] + c[3]) / 2])
 
 
+@register_family("indoor")
 def layout_indoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov: float, res: int,
                   user_models: list[str]):
-    """Room, furniture, ~``cfg.indoor_objects`` meshes, 4 area lights, 1 point light, 1 probe (a sampling.Layout)."""
+    """Room, furniture, ~``cfg.indoor_objects`` meshes, 4 area lights, 1 point light, 1 probe (a ``scene_gen.layout.Layout``)."""
     from scene_gen.materials import diffuse, random_color, random_material, random_texture
-    from scene_gen.sampling import Layout, Placed, light_color, probe_params, random_shape, upright
     from scene_gen.spec import LightSpec, MaterialSpec, MeshSpec, Transform
 
     room_type = ROOM_TYPES[int(rng.integers(len(ROOM_TYPES)))]

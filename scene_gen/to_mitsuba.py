@@ -30,7 +30,7 @@ FAR_CLIP = 1e4
 
 
 def _mi():
-    from pipeline.variant import mitsuba
+    from scene_gen.variant import mitsuba
     return mitsuba()
 
 

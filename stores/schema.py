@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -40,6 +40,9 @@ STORE_KIND = "denoise-datagen.sample-store"
 RADIANCE_ENCODINGS = ("float32", "log16")
 FEATURE_DTYPES = ("float16", "float32")
 FLOAT16_MAX = 65504.0
+
+
+SHAPE_FIELDS = ("num_frames", "height", "width", "spp", "layer_spp")   # StoreLayout fields set by the frames
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,12 @@ class StoreLayout:
     @property
     def num_layers(self) -> int:
         return len(self.layer_spp)
+
+    @classmethod
+    def encoding_fields(cls) -> tuple[str, ...]:
+        """The fields a dataset config chooses (``dataset.store``); the others (:data:`SHAPE_FIELDS`)
+        follow from its frames, resolution and render settings."""
+        return tuple(f.name for f in fields(cls) if f.name not in SHAPE_FIELDS)
 
     @property
     def tile_y(self) -> int:

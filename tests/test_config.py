@@ -205,3 +205,12 @@ def test_split_fractions_reach_the_store_reader(tmp_path):
     p.write_text(yaml.safe_dump({"name": "s", "scenes": [{"kind": "indoor", "count": 2}], "split": {"train": -1}}))
     with pytest.raises(ConfigError, match="dataset.split"):
         load_config(p)
+
+
+def test_scene_kinds_and_store_keys_have_one_source():
+    from pipeline import config as C
+    from scene_gen import spec
+    from stores.schema import SHAPE_FIELDS, StoreLayout
+    assert C.SCENE_KINDS is spec.SCENE_KINDS
+    assert C.STORE_KEYS == {"tile", "radiance_encoding", "feature_dtype"}
+    assert C.STORE_KEYS | set(SHAPE_FIELDS) == set(StoreLayout.__dataclass_fields__)

@@ -8,7 +8,8 @@ import pytest
 from scene_gen.__main__ import main, render_spec
 from scene_gen.config import SceneGenConfig
 from scene_gen.materials import diffuse, random_material
-from scene_gen.sampling import probe_params, sample_scene
+from scene_gen.layout import probe_params
+from scene_gen.sampling import sample_scene
 from scene_gen.spec import (LIGHT_KINDS, MATERIAL_KINDS, CameraSpec, LightSpec, MeshSpec, ObjectSpec, SceneSpec,
                             Transform)
 

@@ -370,3 +370,16 @@ def test_material_palette_zero_is_not_written():
     assert d["material_palette"] == 16 and SceneGenConfig.from_dict(d) == SceneGenConfig(material_palette=16)
     with pytest.raises(ConfigError, match="material_palette"):
         SceneGenConfig(material_palette=-1)
+
+
+def test_scene_families_are_registered_by_kind():
+    from scene_gen import layout, outdoor
+    from scene_gen.spec import SCENE_KINDS
+    assert layout.family_names() == sorted(SCENE_KINDS)
+    assert layout.family("outdoor") is outdoor.layout_outdoor
+    with pytest.raises(ConfigError, match="scene kind must be one of"):
+        layout.family("underwater")
+    with pytest.raises(ConfigError, match="not a scene kind"):
+        layout.register_family("underwater")(lambda *a: None)
+    with pytest.raises(ConfigError, match="already registered"):
+        layout.register_family("outdoor")(lambda *a: None)

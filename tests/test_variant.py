@@ -44,3 +44,30 @@ def test_unknown_variant_is_refused():
     r = _run({"MI_VARIANT": "llvm_ad_hyperspectral", "DENOISE_FORCE_CPU": "1"})
     assert r.returncode == 3
     assert "unknown Mitsuba variant" in r.stdout and "llvm_ad_rgb" in r.stdout
+
+
+def test_scene_gen_renders_without_importing_pipeline():
+    """The variant is a leaf (scene_gen.variant): scene generation and its Mitsuba scenes need no
+    pipeline module (pipeline imports scene_gen, never the other way)."""
+    code = ("import sys\n"
+            "from scene_gen.sampling import sample_scene\n"
+            "from scene_gen import to_mitsuba\n"
+            "from scene_gen.variant import mitsuba\n"
+            "spec = sample_scene(2, 'outdoor', res=8)\n"
+            "mi = mitsuba()\n"
+            "img = mi.render(to_mitsuba.load(spec, 0, 8, merge=True), spp=1)\n"
+            "import scene_gen.__main__\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'pipeline'))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_pipeline_variant_is_the_leaf():
+    import pipeline.variant as pv
+    import scene_gen.variant as sv
+    from pipeline.errors import VariantError
+    from scene_gen.errors import SceneGenError
+    assert pv.mitsuba is sv.mitsuba and pv.VariantError is VariantError is sv.VariantError
+    assert issubclass(VariantError, SceneGenError) and issubclass(VariantError, RuntimeError)
