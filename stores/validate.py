@@ -53,6 +53,8 @@ class FrameReport:
     ranges: dict = field(default_factory=dict)           # array -> [min, max] of finite values
     ref_rel_stderr: float | None = None                  # measured mean relative standard error
     ref_rel_stderr_meta: float | None = None             # the renderer's figure
+    psnr_ceiling: float | None = None                    # dB: PSNR of the truth against this reference
+    relmse_floor: float | None = None                    # relMSE of the truth against this reference
     renderer_nonfinite: int = 0                          # NaN/Inf the renderer replaced (frames/nonfinite_*)
     problems: list = field(default_factory=list)         # everything wrong (damage included)
     damage: list = field(default_factory=list)           # missing / corrupt files of this frame
@@ -105,8 +107,16 @@ class StoreReport:
         lines.append(f"  complete {len(done)}/{len(self.frames)} checked; incomplete: {self.incomplete or 'none'}")
         rel = [f.ref_rel_stderr for f in done if f.ref_rel_stderr is not None]
         if rel:
-            lines.append(f"  reference rel. stderr: mean {np.mean(rel):.4g}, median {np.median(rel):.4g}, "
-                         f"max {np.max(rel):.4g} (frame {done[int(np.argmax(rel))].index})")
+            q = np.percentile(rel, [10, 50, 90])
+            lines.append(f"  reference rel. stderr: mean {np.mean(rel):.4g}, 10/50/90 % {q[0]:.4g} / {q[1]:.4g} / "
+                         f"{q[2]:.4g}, max {np.max(rel):.4g} (frame {done[int(np.argmax(rel))].index})")
+        ceil = [f.psnr_ceiling for f in done if f.psnr_ceiling is not None and np.isfinite(f.psnr_ceiling)]
+        if ceil:
+            floor = [f.relmse_floor for f in done if f.relmse_floor is not None]
+            lines.append(f"  reference error as a metric limit: PSNR ceiling (tone-mapped, eq. 7) median "
+                         f"{np.median(ceil):.1f} dB, lowest {np.min(ceil):.1f} dB; relMSE floor median "
+                         f"{np.median(floor):.3g}, highest {np.max(floor):.3g}: a denoiser scored against these "
+                         "references cannot be told apart from the truth beyond them")
         replaced = sum(f.renderer_nonfinite for f in done)
         if replaced:
             lines.append(f"  NaN/Inf replaced by the renderer: {replaced} values in "
@@ -174,6 +184,25 @@ def check_frame_values(fr: dict, report: FrameReport) -> None:
     ref, se = fr["reference"].astype(np.float64), fr["reference_stderr"].astype(np.float64)
     if np.isfinite(ref).all() and np.isfinite(se).all():
         report.ref_rel_stderr = float(np.mean(se / np.maximum(np.abs(ref), 1e-3)))
+        report.psnr_ceiling, report.relmse_floor = reference_limits(ref, se)
+
+
+RELMSE_EPS = 0.01     # as training.metrics.relmse
+
+
+def reference_limits(ref: np.ndarray, stderr: np.ndarray) -> tuple[float, float]:
+    """What a reference's own noise allows a metric to show: the expected PSNR (dB, on tone-mapped
+    values, ``stores.imageio.tonemap``, peak 1) and relMSE (``(d - r)^2 / (r^2 + 0.01)``) of the *true*
+    image scored against this reference (``ref``, ``stderr``: float, HWC). Delta method: the
+    tone-mapped error of a pixel is ``T'(ref) * stderr``, its slope taken by central differences."""
+    from stores.imageio import tonemap
+    ref = np.asarray(ref, np.float64)
+    se = np.asarray(stderr, np.float64)
+    h = np.maximum(se, 1e-6)
+    slope = (tonemap(ref + h) - tonemap(np.maximum(ref - h, 0.0))) / (ref + h - np.maximum(ref - h, 0.0))
+    mse = float(np.mean((slope * se) ** 2))
+    psnr = float("inf") if mse == 0.0 else float(10.0 * np.log10(1.0 / mse))
+    return psnr, float(np.mean(se ** 2 / (ref ** 2 + RELMSE_EPS)))
 
 
 def parse_frames(spec: str | None, num_frames: int) -> list[int]:

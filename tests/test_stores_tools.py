@@ -243,3 +243,28 @@ def test_pipeline_cli_dispatches_to_stores(store2, tmp_path, capsys):
     assert (tmp_path / "o" / "f000000_ref.hdr.exr").exists()
     assert pm.main(["validate", str(tmp_path / "missing.zarr")]) == 2
     assert "no store" in capsys.readouterr().err
+
+
+def test_reference_limits_match_a_simulated_reference():
+    """The PSNR ceiling and relMSE floor are what the true image scores against a noisy reference."""
+    from stores.imageio import tonemap
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.05, 4.0, (64, 64, 3))
+    se = 0.02 * truth + 0.002
+    ref = truth + rng.normal(size=truth.shape) * se
+    psnr, floor = validate.reference_limits(ref, se)
+    mse = np.mean((tonemap(truth) - tonemap(ref)) ** 2)
+    assert psnr == pytest.approx(10 * np.log10(1 / mse), abs=0.3)
+    assert floor == pytest.approx(np.mean((truth - ref) ** 2 / (ref ** 2 + 0.01)), rel=0.1)
+    assert validate.reference_limits(ref, np.zeros_like(se)) == (float("inf"), 0.0)
+    # halving the error raises the ceiling by 20 log10(2) dB
+    assert validate.reference_limits(ref, se / 2)[0] - psnr == pytest.approx(6.02, abs=0.05)
+
+
+def test_validate_states_the_reference_error(tmp_path, store2):
+    path, _ = store2
+    rep = validate.validate_store(path)
+    done = [f for f in rep.frames if f.complete]
+    assert done and all(f.psnr_ceiling is not None and f.psnr_ceiling > 10 for f in done)
+    text = rep.format()
+    assert "PSNR ceiling" in text and "relMSE floor" in text and "10/50/90 %" in text
