@@ -8,18 +8,18 @@ renderer settings and one drjit thread per worker thread (``cluster.threads_per_
 dataset worker runs): frame 0 of the first ``--scenes-per-group`` scenes of every scene group, each
 timed as the dataset's tasks spend it (scene load with mesh building and kernel compilation, the
 full per-sample inputs, the full sample layers) and the reference from ``--ref-passes`` passes of
-its production size (the rest of its passes are extrapolated: passes cost alike). The calibration
+its production size (the rest of its passes are extrapolated: passes cost alike). Times are the CPU
+seconds of the calibrating process, so other work on the machine does not inflate them. The calibration
 frames are written to a temporary store with the config's layout to measure stored bytes.
 
 It prints, for the whole dataset:
 
 - samples: frames x pixels x (spp + layer samples + reference spp), the reference at its cap
   (``ref_spp``; with ``ref_target_rel_stderr`` frames may stop earlier, so the figure is a ceiling);
-- core-hours at this machine's speed (the group's mean calibrated frame time x its frames x
-  threads per worker);
+- core-hours at this machine's speed (the group's mean calibrated CPU seconds a frame x its frames);
 - store bytes (calibrated bytes per frame x frames) and their share of raw float32;
 - wall time on ``--workers`` N workers of this speed: core time / (N x threads), and never less than
-  the slowest frame; scheduling and write overheads are not included.
+  the slowest frame; scheduling, write and cluster start-up overheads are not included.
 
 Error: the figures scale with the calibration frames, which are a handful of random scenes; half
 of the scenes move (time slices cost more), so the mix of a few frames can differ from the whole
@@ -94,32 +94,38 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int = 2, threads: int | No
     frames, arrays = [], []
     render = {**cfg.render, "res": list(cfg.resolution)}
     for gi, ref in picks:
-        t0 = time.perf_counter()
+        # CPU seconds of this process (all its threads): the work a worker of this speed does,
+        # whatever else runs on the machine; wall seconds are kept beside them
+        w0, c0 = time.perf_counter(), time.process_time()
         spec_json = tasks.make_spec(ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), dict(cfg.scene_gen))
         spec = SceneSpec.from_json(spec_json)
         fs = R.FrameScene(spec, ref.frame, rc)
-        t_load = time.perf_counter() - t0
+        cpu = {"load_s": time.process_time() - c0}
+        c = time.process_time()
         inputs = R.inputs_part(fs)
+        cpu["inputs_s"], c = time.process_time() - c, time.process_time()
         layers = R.layers_part(fs)
-        t_ref, ref_part = 0.0, None
+        cpu["layers_s"], c = time.process_time() - c, time.process_time()
         if rc.ref_spp:
             fs.cfg = cal_rc
             ref_part = R.reference_part(fs)
             fs.cfg = rc
-            t_ref = ref_part["seconds"] / cal_rc.ref_passes * rc.ref_passes
+            cpu["reference_s"] = (time.process_time() - c) / cal_rc.ref_passes * rc.ref_passes
         else:
             ref_part = R.reference_part(fs)
+            cpu["reference_s"] = time.process_time() - c
+        wall = time.perf_counter() - w0
         ref_part = {**ref_part, "reference_spp": rc.ref_spp}
         frame = {"group": gi, "kind": ref.kind, "scene_seed": ref.seed, "objects": len(spec.objects),
-                 "has_motion": spec.has_motion, "load_s": t_load, "inputs_s": inputs["seconds"],
-                 "layers_s": layers["seconds"], "reference_s": t_ref}
-        frame["frame_s"] = t_load + inputs["seconds"] + layers["seconds"] + t_ref
+                 "has_motion": spec.has_motion, **cpu, "calibration_wall_s": wall}
+        frame["frame_s"] = sum(cpu.values())
         frames.append(frame)
         arrays.append(R.assemble(spec_json, ref.frame, inputs, layers, ref_part))
         log(f"  calibrated {ref.kind} scene {ref.scene} (seed {ref.seed}, {len(spec.objects)} objects"
-            f"{', motion' if spec.has_motion else ''}): {frame['frame_s']:.1f} s a frame "
-            f"(load {t_load:.1f}, inputs {inputs['seconds']:.1f}, layers {layers['seconds']:.1f}, "
-            f"reference {t_ref:.1f} from {cal_rc.ref_passes if rc.ref_spp else 0} of {rc.ref_passes} passes)")
+            f"{', motion' if spec.has_motion else ''}): {frame['frame_s']:.1f} CPU-s a frame "
+            f"(load {cpu['load_s']:.1f}, inputs {cpu['inputs_s']:.1f}, layers {cpu['layers_s']:.1f}, "
+            f"reference {cpu['reference_s']:.1f} from {cal_rc.ref_passes if rc.ref_spp else 0} of "
+            f"{rc.ref_passes} passes; {wall:.1f} s wall)")
     with tempfile.TemporaryDirectory(prefix="estimate-", dir=os.environ.get("DENOISE_DATA") or None) as tmp:
         path = Path(tmp) / "calibration.zarr"
         layout = cfg.store_layout().with_frames(len(arrays))
@@ -145,9 +151,10 @@ def predict(cfg, cal: dict, workers: int) -> dict:
     layer_samples = 2 ** rc.layer_levels - 1
     per_frame_samples = W * H * (rc.spp + layer_samples + rc.ref_spp)
     frames = cfg.num_frames
-    worker_s = sum(g.count * g.frames * cal["group_frame_s"][gi] for gi, g in enumerate(cfg.scenes))
     threads = cal["threads"]
-    longest = max(f["frame_s"] for f in cal["frames"])
+    core_s = sum(g.count * g.frames * cal["group_frame_s"][gi] for gi, g in enumerate(cfg.scenes))
+    worker_s = core_s / threads                       # a worker's threads share a frame's work
+    longest = max(f["frame_s"] for f in cal["frames"]) / threads
     wall = max(worker_s / max(1, workers), longest)
     store_bytes = cal["store_fixed_bytes"] + cal["bytes_per_frame"] * frames
     return {
@@ -155,10 +162,10 @@ def predict(cfg, cal: dict, workers: int) -> dict:
         "samples_per_frame": {"inputs": W * H * rc.spp, "layers": W * H * layer_samples,
                               "reference_max": W * H * rc.ref_spp},
         "reference_early_stop": rc.ref_target_rel_stderr is not None,
-        "core_hours": worker_s * threads / 3600.0, "worker_hours": worker_s / 3600.0,
+        "core_hours": core_s / 3600.0, "worker_hours": worker_s / 3600.0,
         "store_bytes": int(store_bytes), "store_share_of_float32": cal["bytes_per_frame"] / cal["raw_bytes_per_frame"],
         "workers": int(workers), "threads_per_worker": threads, "wall_s": wall,
-        "calibrated_samples_per_s": per_frame_samples * len(cal["frames"]) / sum(f["frame_s"] for f in cal["frames"]),
+        "calibrated_samples_per_core_s": per_frame_samples * len(cal["frames"]) / sum(f["frame_s"] for f in cal["frames"]),
     }
 
 
@@ -202,7 +209,7 @@ def run(args) -> int:
     spf = p["samples_per_frame"]
     cap = "at most " if p["reference_early_stop"] else ""
     print(f"calibration: {len(cal['frames'])} frame(s) in {p['calibration_s']:.0f} s, {cal['threads']} drjit "
-          f"thread(s) ({p['calibrated_samples_per_s'] / 1e6:.2f} M samples/s a worker, everything included)")
+          f"thread(s) ({p['calibrated_samples_per_core_s'] / 1e6:.3f} M samples per core-second, everything included)")
     print(f"samples:     {cap}{p['samples']:.3g} ({spf['inputs']:.3g} inputs + {spf['layers']:.3g} layers + "
           f"{cap}{spf['reference_max']:.3g} reference a frame; {rc.spp}, {2 ** rc.layer_levels - 1} and "
           f"{rc.ref_spp} spp)")

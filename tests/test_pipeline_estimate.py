@@ -40,11 +40,14 @@ def test_estimate_figures_follow_from_the_calibration(estimated, capsys):
     assert p["frames"] == 3 + 2 * 2
     assert p["samples"] == 7 * 12 * 8 * (4 + 7 + 64)                 # inputs + layers 1+2+4 + reference
     assert [f["group"] for f in cal["frames"]] == [0, 1]              # one scene of each group
-    assert all(f["frame_s"] > 0 and f["reference_s"] > 0 for f in cal["frames"])
+    for f in cal["frames"]:
+        assert f["reference_s"] > 0 and f["frame_s"] == pytest.approx(
+            f["load_s"] + f["inputs_s"] + f["layers_s"] + f["reference_s"])
     g = {int(k): v for k, v in cal["group_frame_s"].items()}
-    worker_s = 3 * g[0] + 4 * g[1]
+    core_s = 3 * g[0] + 4 * g[1]                                      # CPU seconds of every frame
+    worker_s = core_s / cfg.cluster.threads_per_worker
+    assert p["core_hours"] == pytest.approx(core_s / 3600)
     assert p["worker_hours"] == pytest.approx(worker_s / 3600)
-    assert p["core_hours"] == pytest.approx(worker_s / 3600 * cfg.cluster.threads_per_worker)
     assert p["wall_s"] == pytest.approx(max(worker_s / 3, max(f["frame_s"] for f in cal["frames"])))
     # bytes: measured on a real store of the config's layout; compressed below raw float32
     raw = 12 * 8 * (4 * 20 + 3 * 3 + 6 + 9) * 4
