@@ -38,12 +38,13 @@ def _config(path: str | None):
 def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, threads: int | None = None) -> np.ndarray:
     """Render frame ``frame`` of ``spec`` with Mitsuba's own ``mi.render`` (float32, HWC linear RGB).
 
-    Moving objects are shown at the middle of the exposure (previews do not blur)."""
+    Moving objects are shown at the middle of the exposure (previews do not blur). Static objects
+    sharing a material are merged, as the dataset renderer does (the same image, faster)."""
     from scene_gen.variant import mitsuba
     from scene_gen import to_mitsuba
     mi = mitsuba(threads=threads)
     tau = frame + 0.5 * spec.shutter if spec.has_motion else None
-    scene = to_mitsuba.load(spec, frame, res=(res, res), tau=tau)
+    scene = to_mitsuba.load(spec, frame, res=(res, res), tau=tau, merge=True)
     img = mi.render(scene, spp=spp, seed=seed)
     return np.asarray(img, dtype=np.float32)[..., :3]
 
