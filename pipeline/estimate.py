@@ -125,7 +125,7 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int = 2, threads: int | No
             f"{', motion' if spec.has_motion else ''}): {frame['frame_s']:.1f} CPU-s a frame "
             f"(load {cpu['load_s']:.1f}, inputs {cpu['inputs_s']:.1f}, layers {cpu['layers_s']:.1f}, "
             f"reference {cpu['reference_s']:.1f} from {cal_rc.ref_passes if rc.ref_spp else 0} of "
-            f"{rc.ref_passes} passes; {wall:.1f} s wall)")
+            f"{rc.ref_passes} passes; calibrating it took {wall:.1f} s)")
     with tempfile.TemporaryDirectory(prefix="estimate-", dir=os.environ.get("DENOISE_DATA") or None) as tmp:
         path = Path(tmp) / "calibration.zarr"
         layout = cfg.store_layout().with_frames(len(arrays))
