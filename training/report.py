@@ -76,11 +76,15 @@ def plot_speed_vs_error(results: list[dict], path) -> None:
     plt = _pyplot()
     pts = [(r["label"], r["mean"]["ms_per_megapixel"], r["mean"]["relmse"]) for r in results
            if (r["mean"].get("ms_per_megapixel") or 0) > 0]
+    from matplotlib.ticker import NullFormatter
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
-    for label, x, y in pts:
-        ax.scatter([x], [y], s=30)
-        ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    markers = "osD^v<>p*hX"
+    for i, (label, x, y) in enumerate(pts):            # a legend, not annotations: close points stay legible
+        ax.scatter([x], [y], s=36, marker=markers[i % len(markers)], label=label)
     ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    if pts:
+        ax.legend(fontsize=8, loc="best")
     ax.set_xlabel("ms per megapixel (this machine)")
     ax.set_ylabel("relMSE")
     ax.set_ylim(bottom=0)
