@@ -7,7 +7,7 @@ SCHEDULER ?=
 WORKERS ?=
 export DENOISE_DATA ?= $(CURDIR)/data
 
-.PHONY: setup dataset test test-fast bench train report compare compare-realtime compare-temporal preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test test-fast bench train report compare compare-realtime compare-temporal preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -20,6 +20,9 @@ dataset: setup   ## build the dataset of CONFIG (default: configs/default.yaml) 
 
 test: setup      ## the whole test suite
 	$(PY) -m pytest -q tests
+
+estimate: setup  ## predict samples, core-hours, store bytes and wall time of CONFIG on WORKERS workers
+	$(PY) -m pipeline estimate --config $(CONFIG) $(if $(WORKERS),--workers $(WORKERS))
 
 bench: setup     ## benchmarks that print figures
 	$(PY) -m pipeline bench
