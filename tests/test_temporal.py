@@ -297,3 +297,13 @@ def test_report_shows_tpsnr_spp_and_the_sample_map(clip_store, tmp_path):
     # a sampler that has not learnt anything may spend its budget uniformly: then no map is drawn
     sm = res["results"][1].get("sample_map")
     assert sm is not None and len(maps) == int(np.ptp(sm["counts"]) > 0)
+
+
+def test_clips_shorter_than_the_window_are_refused_with_the_fix(clip_store, tmp_path):
+    from training.config import TrainConfig
+    from training.errors import DataError
+    from training.loop import train
+    cfg = TrainConfig(model="temporal", model_cfg={**build("temporal").tiny, "frames": 5}, steps=1, batch=1,
+                      crop=16, workers=0)
+    with pytest.raises(DataError, match=r"longest is 4.*windows of 5 frames.*--model-cfg"):
+        train(cfg, clip_store, tmp_path / "run", progress=False)

@@ -158,17 +158,22 @@ def _windows(store, split, T: int, full_windows: bool) -> list[tuple[int, ...]]:
     """Windows of up to ``T`` consecutive frames of one clip, one ending on each frame, ordered by that
     frame's index; only the full ones when ``full_windows``."""
     in_clip = store.meta_column("frame")
-    out = []
+    out, longest = [], 0
     for _, idxs in store.clips(split).items():
         for end in range(len(idxs)):
             start = end
             while start > 0 and end - start + 1 < T and int(in_clip[idxs[start - 1]]) + 1 == int(in_clip[idxs[start]]):
                 start -= 1
+            longest = max(longest, end - start + 1)
             if end - start + 1 == T or not full_windows:
                 out.append(tuple(idxs[start:end + 1]))
     if not out:
-        what = "complete frame" if T == 1 else f"run of {T} consecutive complete frames in one clip"
-        raise SplitError(f"split {split!r} of {store.path!s} has no {what}")
+        if T == 1:
+            raise SplitError(f"split {split!r} of {store.path!s} has no complete frame")
+        raise SplitError(f"split {split!r} of {store.path!s} has no run of {T} consecutive complete frames in one "
+                         f"clip (the longest is {longest}): the model reads windows of {T} frames; train on a "
+                         "store with longer clips, or shorten the model's window (e.g. --model-cfg "
+                         "'{\"frames\": N}' for temporal)")
     return sorted(out, key=lambda w: w[-1])          # by the frame they end on: store order, as SampleDataset
 
 
