@@ -40,6 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.estimate import scratch_dir
+
 TARGET_INPUT_RATIO = 0.9
 TARGET_REFERENCE_RATIO = 0.9
 TARGET_CORNELL_RATIO = 0.5
@@ -61,14 +63,6 @@ print(json.dumps({"seconds": time.perf_counter() - t,
 """
 
 
-
-def _scratch_dir() -> str | None:
-    """``$DENOISE_DATA`` (the Makefile's data folder; created if missing, as on a fresh clone), else the
-    system's temporary folder."""
-    d = os.environ.get("DENOISE_DATA")
-    if d:
-        os.makedirs(d, exist_ok=True)
-    return d or None
 
 def _best_pair(fa, fb, repeats: int) -> tuple[float, float]:
     """Best wall time of ``fa`` and of ``fb``, run alternately so load changes hit both alike."""
@@ -106,7 +100,7 @@ def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: s
                       "ref_min_passes": passes // 2},
            "scene_gen": scene_gen, "tasks": {"retries": 0},
            "cluster": {"kind": "local", "workers": workers, "threads_per_worker": 1, "dashboard_address": None}}
-    with tempfile.TemporaryDirectory(prefix="bench-e2e-", dir=_scratch_dir()) as tmp:
+    with tempfile.TemporaryDirectory(prefix="bench-e2e-", dir=scratch_dir()) as tmp:
         path = Path(tmp) / "e2e.yaml"
         path.write_text(yaml.safe_dump(cfg))
         import resource

@@ -39,13 +39,14 @@ from pipeline.errors import ConfigError
 
 
 
-def _scratch_dir() -> str | None:
+def scratch_dir() -> str | None:
     """``$DENOISE_DATA`` (the Makefile's data folder; created if missing, as on a fresh clone), else the
     system's temporary folder."""
     d = os.environ.get("DENOISE_DATA")
     if d:
         os.makedirs(d, exist_ok=True)
     return d or None
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="dataset YAML")
@@ -135,7 +136,7 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int = 2, threads: int | No
             f"(load {cpu['load_s']:.1f}, inputs {cpu['inputs_s']:.1f}, layers {cpu['layers_s']:.1f}, "
             f"reference {cpu['reference_s']:.1f} from {cal_rc.ref_passes if rc.ref_spp else 0} of "
             f"{rc.ref_passes} passes; calibrating it took {wall:.1f} s)")
-    with tempfile.TemporaryDirectory(prefix="estimate-", dir=_scratch_dir()) as tmp:
+    with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:
         path = Path(tmp) / "calibration.zarr"
         layout = cfg.store_layout().with_frames(len(arrays))
         create_store(str(path), layout, {})

@@ -224,18 +224,11 @@ def test_stability_forward_and_backward(case):
 
 # ------------------------------------------------------------------------------------ real store
 def make_clip_store(path, clips=(2, 1, 1), frames=4, h=16, w=16):
-    from stores.reader import split_of_clip
     from stores.schema import StoreLayout
     from stores.writer import open_or_create
     from test_stores_synthetic import synthetic_frame
-    want = dict(zip(("train", "val", "test"), clips))
-    seeds, seed = [], 100
-    while any(want.values()):
-        s = split_of_clip(seed)
-        if want.get(s, 0) > 0:
-            want[s] -= 1
-            seeds.append(seed)
-        seed += 1
+    from test_training import seeds_by_split
+    seeds = seeds_by_split(clips, start=100)
     layout = StoreLayout(num_frames=len(seeds) * frames, height=h, width=w, spp=2, tile=16)
     writer = open_or_create(str(path), layout, {"test": True})
     i = 0

@@ -19,22 +19,28 @@ TINY = dict(embed=8, context=8, kernel_size=5, partition_hidden=(8,), kernel_hid
             unet_encoder=((8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,)))
 
 
-def make_store(path, h=32, w=32, spp=2, per_split=(4, 2, 2)):
-    """A real store with ``per_split`` frames in train/val/test (scenes chosen by the store's split hash)."""
+def seeds_by_split(per_split, start: int = 0) -> list[int]:
+    """The first scene seeds from ``start`` that the store's split hash puts ``per_split`` (train, val,
+    test) in each split."""
     from stores.reader import split_of_clip
-    from stores.schema import StoreLayout
-    from stores.writer import open_or_create
-    from test_stores_synthetic import synthetic_frame
-
     want = dict(zip(("train", "val", "test"), per_split))
-    seeds = []
-    seed = 0
+    seeds, seed = [], start
     while any(want.values()):
         s = split_of_clip(seed)
         if want.get(s, 0) > 0:
             want[s] -= 1
             seeds.append(seed)
         seed += 1
+    return seeds
+
+
+def make_store(path, h=32, w=32, spp=2, per_split=(4, 2, 2)):
+    """A real store with ``per_split`` frames in train/val/test (scenes chosen by the store's split hash)."""
+    from stores.schema import StoreLayout
+    from stores.writer import open_or_create
+    from test_stores_synthetic import synthetic_frame
+
+    seeds = seeds_by_split(per_split)
     layout = StoreLayout(num_frames=len(seeds), height=h, width=w, spp=spp, tile=16)
     writer = open_or_create(str(path), layout, {"test": True})
     for i, s in enumerate(seeds):
