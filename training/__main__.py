@@ -1,4 +1,4 @@
-"""``python -m training train|evaluate|report|bench|fma`` (see ``--help`` of each)."""
+"""``python -m training train|evaluate|report|bench|denoise|fma`` (see ``--help`` of each)."""
 from __future__ import annotations
 
 import argparse
@@ -57,6 +57,11 @@ def _bench(a) -> int:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps(res, indent=2, default=float))
     return 0
+
+
+def _denoise(a) -> int:
+    from .denoise import denoise_cli
+    return denoise_cli(a)
 
 
 def _fma(a) -> int:
@@ -156,6 +161,25 @@ def main(argv=None) -> int:
     b.add_argument("--json", help='write {name: {"ms_per_mp": ...}} (with "oidn") to this file')
     b.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
     b.set_defaults(fn=_bench)
+
+    d = sub.add_parser("denoise", help="apply a trained checkpoint to your own render (EXR images, a store "
+                                       "frame or a render-frame .npz), like OIDN's oidnDenoise")
+    d.add_argument("--checkpoint", required=True, help="a checkpoint.pt written by `train` (or 'oidn')")
+    d.add_argument("--input", help="noisy radiance, an OpenEXR image (per-pixel models), or the .npz of "
+                                   "`python -m pipeline render-frame` (any model)")
+    d.add_argument("--albedo", help="albedo guide (EXR), when the model uses it")
+    d.add_argument("--normal", help="world-space normal guide (EXR), when the model uses it")
+    d.add_argument("--depth", help="depth guide (EXR, first channel), when the model uses it")
+    d.add_argument("--store", help="a Zarr store: denoise its frame --frame (instead of --input)")
+    d.add_argument("--frame", type=int, help="frame index in --store")
+    d.add_argument("--spp", type=int, default=None,
+                   help="input samples per pixel from a store or .npz (default: the checkpoint's)")
+    d.add_argument("--tile", type=int, default=0,
+                   help="denoise in square tiles of this many pixels (with overlap) to bound memory; "
+                        "0: automatic (whole image when it fits)")
+    d.add_argument("--device", default="cpu", help="cpu, cuda, ... (default cpu)")
+    d.add_argument("--out", required=True, help="denoised radiance, written as OpenEXR")
+    d.set_defaults(fn=_denoise)
 
     f = sub.add_parser("fma", help="figure 10: FMAs against spp")
     f.set_defaults(fn=_fma)
