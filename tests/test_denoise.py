@@ -1,0 +1,172 @@
+"""``python -m training denoise``: EXR images, store frames and render-frame .npz files through a saved
+checkpoint, checked against evaluation's own output for the same frame; clear errors; tiles."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stores.imageio import read_exr, write_exr
+from test_temporal import make_clip_store
+from test_training import make_store
+from training import checkpoint as ckpt
+from training.__main__ import main
+from training.config import TrainConfig
+from training.models import build
+
+
+def save_model(path, name, store, **over):
+    """A checkpoint of a freshly initialised ``name`` (tiny settings), as `train` writes it."""
+    from training.data import open_store
+    torch.manual_seed(0)
+    m = build(name, **{**build(name).tiny, **over})
+    cfg = TrainConfig(model=name, model_cfg=dict(m.config), steps=1, batch=1, crop=16, workers=0)
+    ckpt.save(path, model=m, optimizer=None, step=0, cfg=cfg,
+              store_info={"schema_version": open_store(store).schema_version, "path": str(store)})
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return make_store(tmp_path_factory.mktemp("dn") / "tiny.zarr", h=32, w=32, spp=2, per_split=(1, 1, 2))
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    return make_clip_store(tmp_path_factory.mktemp("dnc") / "clips.zarr", clips=(1, 1, 1), frames=3)
+
+
+def _evaluated(ck, store, index, spp=None):
+    """Evaluation's output for store frame ``index`` (the oracle: the path `report` takes)."""
+    from training.data import open_store
+    from training.evaluate import evaluate
+    split = open_store(store).split_of_frame(index)
+    r = evaluate(ck, store, split=split, spp=spp, with_flip=False, keep=tuple(range(64)))
+    pos = [f["index"] for f in r["frames"]].index(index)
+    return r["images"][pos]
+
+
+def _test_frame(store):
+    from training.data import open_store
+    return open_store(store).frames_in_split("test")[0]
+
+
+def _exr_inputs(store, index, tmp_path, spp=1):
+    """The per-pixel item of ``index`` (mean of the first ``spp`` samples and of their features) as EXRs."""
+    from training.data import open_store
+    from training.inputs import pixel_item_from_samples
+    st = open_store(store)
+    rad = torch.from_numpy(np.ascontiguousarray(st.read_array("inputs/radiance", index)[:spp])).float()
+    feat = torch.from_numpy(np.ascontiguousarray(st.read_array("inputs/features", index)[:spp])).float()
+    item = pixel_item_from_samples(rad, feat)
+    paths = {}
+    for k, v in item.items():
+        img = v.permute(1, 2, 0).numpy()
+        paths[k] = str(write_exr(tmp_path / f"{k}.exr", img, "RGB" if img.shape[-1] == 3 else "Y"))
+    return paths
+
+
+def _run(*args):
+    return main(["denoise", *map(str, args)])
+
+
+def test_exr_images_give_evaluations_output(store, tmp_path):
+    ck = save_model(tmp_path / "wskpn.pt", "wskpn", store)
+    i = _test_frame(store)
+    p = _exr_inputs(store, i, tmp_path)
+    assert _run("--checkpoint", ck, "--input", p["radiance"], "--albedo", p["albedo"], "--normal", p["normal"],
+                "--depth", p["depth"], "--out", tmp_path / "out.exr") == 0
+    out, names = read_exr(tmp_path / "out.exr")
+    want = _evaluated(ck, store, i)
+    assert names == "RGB" and out.shape == want.shape == (32, 32, 3)
+    np.testing.assert_allclose(out, want, rtol=1e-4, atol=1e-5)
+    noisy, _ = read_exr(p["radiance"])
+    assert np.abs(out - noisy).mean() > 1e-4                        # it did filter
+
+
+def test_store_frames_for_per_sample_recurrent_and_oidn(store, clips, tmp_path):
+    i = _test_frame(store)
+    ck = save_model(tmp_path / "layer.pt", "layer", store)
+    assert _run("--checkpoint", ck, "--store", store, "--frame", i, "--spp", 2, "--out", tmp_path / "l.exr") == 0
+    np.testing.assert_allclose(read_exr(tmp_path / "l.exr")[0], _evaluated(ck, store, i, spp=2), rtol=1e-4, atol=1e-5)
+    # a recurrent sampler: the last frame of a clip, after the frames before it (state carried, as evaluation)
+    from training.data import open_store
+    st = open_store(clips)
+    last = st.clips("test")[next(iter(st.clips("test")))][-1]
+    tk = save_model(tmp_path / "temporal.pt", "temporal", clips)
+    assert _run("--checkpoint", tk, "--store", clips, "--frame", last, "--spp", 2, "--out", tmp_path / "t.exr") == 0
+    got = read_exr(tmp_path / "t.exr")[0]
+    np.testing.assert_allclose(got, _evaluated(tk, clips, last, spp=2), rtol=1e-4, atol=1e-5)
+    assert _run("--checkpoint", "oidn", "--store", store, "--frame", i, "--out", tmp_path / "o.exr") == 0
+    assert np.isfinite(read_exr(tmp_path / "o.exr")[0]).all()
+
+
+def test_render_frame_npz(mi, tmp_path):
+    """The .npz of `python -m pipeline render-frame` (a real Mitsuba render) for a per-pixel, a per-sample
+    and a sampler model."""
+    from pipeline.__main__ import main as pipeline_main
+    npz = tmp_path / "f.npz"
+    assert pipeline_main(["render-frame", "--seed", "3", "--kind", "indoor", "--res", "16", "--spp", "2",
+                          "--ref-spp", "16", "--out", str(npz)]) == 0
+    z = np.load(npz)
+    store = make_store(tmp_path / "s.zarr", h=16, w=16, spp=2, per_split=(1, 0, 0))     # schema for the checkpoints
+    for name in ("nbg", "layer", "temporal"):
+        ck = save_model(tmp_path / f"{name}.pt", name, store)
+        out = tmp_path / f"{name}.exr"
+        assert _run("--checkpoint", ck, "--input", npz, "--spp", 2, "--out", out) == 0
+        img = read_exr(out)[0]
+        assert img.shape == (16, 16, 3) and np.isfinite(img).all()
+    # per-pixel input from the .npz is the mean of its samples: the same as EXRs of that mean
+    mean = z["radiance"][:, :, :2].mean(axis=2)
+    assert np.abs(mean).sum() > 0
+
+
+def test_clear_errors(store, tmp_path, capsys):
+    ck = save_model(tmp_path / "wskpn.pt", "wskpn", store)
+    i = _test_frame(store)
+    p = _exr_inputs(store, i, tmp_path)
+    base = ["--checkpoint", ck, "--input", p["radiance"], "--out", tmp_path / "o.exr"]
+
+    def err(*extra):
+        assert _run(*base, *extra) == 2
+        return capsys.readouterr().err
+
+    assert "--depth missing" in err("--albedo", p["albedo"], "--normal", p["normal"])
+    write_exr(tmp_path / "small.exr", np.ones((16, 16, 3), np.float32))
+    assert "16x16" in err("--albedo", tmp_path / "small.exr", "--normal", p["normal"], "--depth", p["depth"])
+    bad = read_exr(p["radiance"])[0]
+    bad[3, 5] = np.nan
+    bad[7, 1, 2] = np.inf
+    base[3] = str(write_exr(tmp_path / "nan.exr", bad))
+    e = err("--albedo", p["albedo"], "--normal", p["normal"], "--depth", p["depth"])
+    assert "2 pixel(s) with NaN or Inf" in e and "y=3, x=5" in e
+    lk = save_model(tmp_path / "layer.pt", "layer", store)
+    assert _run("--checkpoint", lk, "--input", p["radiance"], "--out", tmp_path / "o.exr") == 2
+    assert "--store S --frame I" in capsys.readouterr().err
+    assert _run("--checkpoint", tmp_path / "none.pt", "--input", p["radiance"], "--out", tmp_path / "o.exr") == 2
+    assert _run("--checkpoint", ck, "--store", store, "--frame", 99, "--out", tmp_path / "o.exr") == 2
+    assert "frames 0..3" in capsys.readouterr().err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_tiles_cover_the_image_once_and_match_the_whole_pass(store, tmp_path):
+    from training.denoise import denoise, tiles
+    H, W = 100, 77
+    seen = np.zeros((H, W), int)
+    for (y0, y1, x0, x1), (ky0, ky1, kx0, kx1) in tiles(H, W, 32):
+        assert y0 % 16 == 0 and x0 % 16 == 0 and y0 <= ky0 and ky1 <= y1 and x0 <= kx0 and kx1 <= x1
+        seen[ky0:ky1, kx0:kx1] += 1
+    assert (seen == 1).all()
+    # a 96x96 per-pixel item: 9 tiles of 32 px with 32 px of context against one pass
+    g = torch.Generator().manual_seed(1)
+    yy, xx = torch.meshgrid(torch.linspace(0, 6, 96), torch.linspace(0, 6, 96), indexing="ij")
+    base = (torch.sin(yy) * torch.cos(xx) + 1.5).expand(3, 96, 96)
+    item = {"radiance": base * (1 + 0.5 * torch.rand(3, 96, 96, generator=g)),
+            "albedo": torch.full((3, 96, 96), 0.5), "normal": torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 96, 96),
+            "depth": torch.ones(1, 96, 96), "motion": torch.zeros(2, 96, 96)}
+    for name in ("wskpn", "nbg"):        # both look no further than the margin: tiles change nothing
+        m = build(name, **build(name).tiny).for_inference()
+        whole = denoise(m, [item], tile=-1)
+        tiled = denoise(m, [item], tile=32)
+        assert np.isfinite(tiled).all() and np.abs(whole - item["radiance"].permute(1, 2, 0).numpy()).mean() > 0.05
+        assert np.abs(tiled - whole).max() < 1e-5 * np.abs(whole).max(), name

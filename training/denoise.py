@@ -1,0 +1,336 @@
+"""``python -m training denoise``: apply a trained checkpoint to your own render, like OIDN's ``oidnDenoise``.
+
+    python -m training denoise --checkpoint CKPT --input noisy.exr [--albedo a.exr --normal n.exr
+                               --depth d.exr] --out out.exr
+    python -m training denoise --checkpoint CKPT --input frame.npz --out out.exr     # render-frame's .npz
+    python -m training denoise --checkpoint CKPT --store S.zarr --frame I --out out.exr
+
+What a model reads decides the input it accepts (``training.inputs``):
+
+* per-pixel models (kind ``pixels``: nbg, wskpn) take EXR images: the noisy radiance and the guides the
+  model was trained with (albedo, normal, depth; each an HW3 EXR, depth its first channel). A missing
+  guide is an error naming it: a denoiser fed a made-up guide gives a plausible but wrong image.
+* per-sample models (kind ``samples``/``clips``: the layer family) need the samples of every pixel: the
+  ``.npz`` of ``python -m pipeline render-frame`` (``radiance`` HWS3, ``features`` HWS17) or a store frame.
+* samplers (kind ``sampled-layers``: temporal) compose their input from sample layers: an ``.npz`` or a
+  store frame. A recurrent model denoises a store frame after running the frames of its clip before it,
+  carrying its state, as in evaluation (an ``.npz`` is a clip's first frame).
+* ``--checkpoint oidn`` runs Intel Open Image Denoise on the same inputs (guides optional).
+
+Any model gets an ``.npz`` or a store frame; each is turned into the model's input as in training (the
+mean of the first N samples and of their features for a per-pixel model, N the checkpoint's spp unless
+``--spp``). Images that differ in size, and NaN or Inf in the radiance or a guide, are refused with the
+count and the first pixel (clean them, or re-render: the store's NaN/Inf rule does this for renders).
+
+Large images are denoised in tiles (``--tile``, or automatically above :data:`AUTO_TILE_PIXELS`): each
+tile is run with a margin of :data:`TILE_MARGIN` pixels of context on every side (its origin aligned to
+:data:`TILE_ALIGN`, so the networks' downsampling grid is the whole image's) and only its centre is kept.
+Memory then follows the tile, not the image; the result differs from a whole-image pass only where the
+model looks further than the margin (the bilateral grid's cells, the deepest U-net levels).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import ConfigError, DataError
+
+AUTO_TILE_PIXELS = 1024 * 1024      # larger images are tiled automatically (peak memory of a pass grows with it)
+AUTO_TILE = 512
+TILE_MARGIN = 32
+TILE_ALIGN = 16                     # the deepest downsampling of the registered U-nets (4 levels of 2x)
+GUIDES = ("albedo", "normal", "depth")
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_method(checkpoint: str, device: str = "cpu"):
+    """``(model in inference form, spec, train spp, name)``, or ``(None, None, None, "oidn")``."""
+    if checkpoint == "oidn":
+        return None, None, None, "oidn"
+    from . import checkpoint as ckpt
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ConfigError(f"--checkpoint {checkpoint}: no such file (a checkpoint.pt written by "
+                          "`python -m training train`, or 'oidn')")
+    ck = ckpt.load(path, map_location=device)
+    model = ckpt.build_model(ck, device)
+    spec = model.input_spec()
+    spp = int(ck["train_config"].get("spp") or spec.default_spp)
+    return model.for_inference(), spec, spp, ck["model"]
+
+
+def _finite(name: str, a: np.ndarray) -> np.ndarray:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        where = np.argwhere(bad)[0]
+        raise DataError(f"{name} has {int(bad.any(axis=-1).sum() if a.ndim == 3 else bad.sum())} pixel(s) "
+                        f"with NaN or Inf (the first at y={where[0]}, x={where[1]}); replace them (e.g. by 0) "
+                        "before denoising")
+    return a
+
+
+def _read_image(path: str, name: str, channels: int) -> np.ndarray:
+    from stores.imageio import read_exr
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--{name} {path}: no such file")
+    try:
+        img, names = read_exr(p)
+    except Exception as e:  # noqa: BLE001 - OpenEXR raises plain exceptions for non-EXR files
+        raise DataError(f"--{name} {path} is not a readable OpenEXR image: {e}") from e
+    if img.shape[-1] < channels:
+        raise DataError(f"--{name} {path} has channels {names!r}; {channels} are needed")
+    return _finite(f"--{name} {path}", img[..., :channels])
+
+
+def _chw(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(np.moveaxis(np.asarray(a, np.float32), -1, 0)))
+
+
+def items_from_exr(spec, a) -> list[dict]:
+    """One item (channel-first tensors) from ``--input`` and the guide EXRs, for a per-pixel model (or
+    OIDN: ``spec`` None)."""
+    rad = _read_image(a.input, "input", 3)
+    H, W = rad.shape[:2]
+    kind = None if spec is None else spec.kind
+    if kind is not None and kind != "pixels":
+        raise ConfigError(f"this model reads {'sample layers' if kind == 'sampled-layers' else 'per-sample inputs'} "
+                          f"(input kind {kind!r}), which an EXR image does not hold: give the .npz of "
+                          "`python -m pipeline render-frame` as --input, or --store S --frame I")
+    if kind == "pixels" and spec.frames > 1:
+        raise ConfigError(f"this model accumulates {spec.frames} frames of a clip; denoise a store frame "
+                          "(--store S --frame I) so that it gets the frames before it")
+    item = {"radiance": _chw(rad)}
+    need = GUIDES if kind == "pixels" else ("albedo", "normal")        # OIDN: optional albedo and normal
+    missing = [g for g in need if getattr(a, g) is None] if kind == "pixels" else []
+    if missing:
+        raise ConfigError(f"this model was trained with the albedo, normal and depth guides; "
+                          f"{', '.join('--' + g for g in missing)} missing (write them from your renderer's AOVs; "
+                          "a made-up guide gives a plausible but wrong image)")
+    for g in need:
+        path = getattr(a, g)
+        if path is None:
+            continue
+        img = _read_image(path, g, 1 if g == "depth" else 3)
+        if img.shape[:2] != (H, W):
+            raise DataError(f"--{g} {path} is {img.shape[1]}x{img.shape[0]}; --input {a.input} is {W}x{H}")
+        item[g] = _chw(img)
+    if kind == "pixels":
+        item["motion"] = torch.zeros(2, H, W)
+    return [item]
+
+
+def _npz_item(spec, z, spp: int) -> dict:
+    from .inputs import pixel_item_from_samples
+
+    def need(*keys):
+        missing = [k for k in keys if k not in z]
+        if missing:
+            raise DataError(f"the .npz has no {missing} (is it from `python -m pipeline render-frame`?)")
+
+    need("guides_albedo", "guides_normal", "guides_depth", "guides_motion")
+    dep = np.asarray(z["guides_depth"], np.float32)
+    guides = {"albedo": _chw(z["guides_albedo"]), "normal": _chw(z["guides_normal"]),
+              "depth": _chw(dep if dep.ndim == 3 else dep[..., None]), "motion": _chw(z["guides_motion"])}
+    kind = "pixels" if spec is None else spec.kind
+    if kind in ("pixels", "samples", "clips"):
+        need("radiance", "features")
+        rad = np.asarray(z["radiance"], np.float32)                     # H W S 3
+        S = rad.shape[2]
+        if not 1 <= spp <= S:
+            raise DataError(f"--spp {spp}: the .npz holds {S} samples per pixel")
+        r = torch.from_numpy(np.ascontiguousarray(rad[:, :, :spp].transpose(2, 3, 0, 1)))
+        f = torch.from_numpy(np.ascontiguousarray(np.asarray(z["features"], np.float32)[:, :, :spp]
+                                                  .transpose(2, 3, 0, 1)))
+        if kind == "samples":
+            return {"radiance": r, "features": f, **guides}
+        if kind == "clips":
+            return {"radiance": r[None], "features": f[None], **{k: v[None] for k, v in guides.items()}}
+        return {**guides, **pixel_item_from_samples(r, f), "motion": guides["motion"]}
+    need("layers")
+    layers = _chw(np.asarray(z["layers"], np.float32))                 # L H W 3 -> 3 L H W ...
+    layers = layers.permute(1, 0, 2, 3).contiguous()                   # ... -> L 3 H W
+    L = layers.shape[0]
+    top = 2 ** L - 1
+    if not 0 < spp <= top:
+        raise DataError(f"--spp {spp}: the .npz's {L} sample layers hold 1..{top} samples per pixel")
+    return {"layers": layers, "layer_spp": torch.tensor([2.0 ** n for n in range(L)]),
+            "spp": torch.tensor(float(spp)), **guides}
+
+
+def items_from_npz(spec, path: str, spp: int) -> list[dict]:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--input {path}: no such file")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            item = _npz_item(spec, {k: z[k] for k in z.files}, spp)
+    except (ValueError, OSError) as e:
+        raise DataError(f"--input {path} is not a readable .npz: {e}") from e
+    for k, v in item.items():
+        if v.is_floating_point() and k not in ("radiance", "layers", "features"):
+            _finite(f"{k} of {path}", np.moveaxis(v.numpy(), 0, -1) if v.dim() == 3 else v.numpy())
+    return [item]
+
+
+def items_from_store(spec, store: str, frame: int, spp: int, stepwise: bool) -> list[dict]:
+    """The model's item for store frame ``frame`` (preceded by the frames of its clip before it, for a
+    recurrent model), built as in evaluation."""
+    from .data import model_dataset, open_store
+    from .evaluate import baseline_spec
+    from .inputs import InputSpec
+    st = open_store(store)
+    n = st.layout.num_frames
+    if not isinstance(frame, int) or not 0 <= frame < n:
+        raise ConfigError(f"--frame {frame}: the store has frames 0..{n - 1}")
+    if frame not in st.frames_in_split(None):
+        raise DataError(f"frame {frame} of {st.path} is not complete (see python -m pipeline validate)")
+    split = st.split_of_frame(frame)
+    if spec is None:
+        spec = baseline_spec(spp)
+    if stepwise or spec.frames == 1:
+        spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
+    ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False)
+    attr = "frames" if hasattr(ds, "frames") else "windows"
+    ends = [int(w[-1]) if isinstance(w, tuple) else int(w) for w in getattr(ds, attr)]
+    if frame not in ends:
+        raise DataError(f"frame {frame} of {st.path} is not usable ({split} split)")
+    pos = ends.index(frame)
+    if not stepwise:
+        return [ds[pos]]
+    clip, in_clip = st.meta_column("clip_id"), st.meta_column("frame")
+    first = pos
+    while (first > 0 and clip[ends[first - 1]] == clip[frame]
+           and int(in_clip[ends[first - 1]]) + 1 == int(in_clip[ends[first]])):
+        first -= 1
+    return [ds[p] for p in range(first, pos + 1)]
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+
+
+def _check_sizes(items: list[dict]) -> tuple[int, int]:
+    sizes = {tuple(v.shape[-2:]) for it in items for k, v in it.items() if torch.is_tensor(v) and v.dim() >= 3}
+    if len(sizes) != 1:
+        raise DataError(f"the inputs differ in size: {sorted(sizes)}")
+    return sizes.pop()
+
+
+def _run_oidn(item: dict) -> np.ndarray:
+    from .evaluate import _uniform_from_layers
+    from .oidn import oidn_denoise
+    rad = item["radiance"] if "radiance" in item else _uniform_from_layers(item, int(item["spp"]))
+    if rad.dim() == 4:                       # per-sample radiance (S 3 H W): its mean
+        rad = rad.mean(dim=0)
+    hwc = lambda t: None if t is None else t.permute(1, 2, 0).numpy()   # noqa: E731
+    return oidn_denoise(hwc(rad), hwc(item.get("albedo")), hwc(item.get("normal")))
+
+
+def run_sequence(model, items: list[dict], device: str = "cpu") -> np.ndarray:
+    """The model's output (HW3 float32) for the last item; a recurrent model steps through all of them."""
+    if model is None:
+        return _run_oidn(items[-1])
+    state = None
+    with torch.no_grad():
+        for item in items:
+            batch = {k: v.unsqueeze(0).to(device) for k, v in item.items() if torch.is_tensor(v)}
+            if getattr(model, "stepwise", False):
+                out, state, _ = model.step(batch, state)
+            else:
+                out = model(batch)
+    out = out[0]
+    if out.dim() == 4:                       # a window's outputs: the last frame's
+        out = out[-1]
+    return out.float().permute(1, 2, 0).cpu().numpy()
+
+
+def tiles(H: int, W: int, tile: int, margin: int = TILE_MARGIN, align: int = TILE_ALIGN):
+    """``(read window (y0, y1, x0, x1), keep window in image coordinates)`` of each tile: cores of
+    ``tile`` px on a grid, each read with ``margin`` px of context, the read origin aligned to ``align``."""
+    for cy in range(0, H, tile):
+        for cx in range(0, W, tile):
+            ky1, kx1 = min(cy + tile, H), min(cx + tile, W)
+            y0, x0 = max(0, (cy - margin) // align * align), max(0, (cx - margin) // align * align)
+            y1, x1 = min(H, ky1 + margin), min(W, kx1 + margin)
+            yield (y0, y1, x0, x1), (cy, ky1, cx, kx1)
+
+
+def _crop(items: list[dict], y0, y1, x0, x1) -> list[dict]:
+    return [{k: (v[..., y0:y1, x0:x1] if torch.is_tensor(v) and v.dim() >= 3 else v) for k, v in it.items()}
+            for it in items]
+
+
+def denoise(model, items: list[dict], tile: int = 0, device: str = "cpu", progress: bool = False) -> np.ndarray:
+    """Denoise the last of ``items`` (see :func:`run_sequence`), in tiles of ``tile`` px (0: automatic,
+    the whole image up to :data:`AUTO_TILE_PIXELS`; < 0: never)."""
+    H, W = _check_sizes(items)
+    if tile == 0:
+        tile = AUTO_TILE if H * W > AUTO_TILE_PIXELS else -1
+    if tile < 0 or (tile >= H and tile >= W):
+        return run_sequence(model, items, device)
+    out = np.zeros((H, W, 3), np.float32)
+    grid = list(tiles(H, W, tile))
+    for i, ((y0, y1, x0, x1), (ky0, ky1, kx0, kx1)) in enumerate(grid):
+        part = run_sequence(model, _crop(items, y0, y1, x0, x1), device)
+        out[ky0:ky1, kx0:kx1] = part[ky0 - y0:ky1 - y0, kx0 - x0:kx1 - x0]
+        if progress:
+            print(f"\rtile {i + 1}/{len(grid)}", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    return out
+
+
+def denoise_cli(a) -> int:
+    from stores.imageio import write_exr
+    from .models.common import flush_denormals
+    flush_denormals()
+    if (a.input is None) == (a.store is None):
+        raise ConfigError("give --input (an EXR image or a render-frame .npz) or --store S --frame I, not both")
+    if a.store is not None and a.frame is None:
+        raise ConfigError("--store needs --frame I (the frame index to denoise)")
+    if a.store is None and a.frame is not None:
+        raise ConfigError("--frame needs --store")
+    if a.store is not None and any(getattr(a, g) for g in GUIDES):
+        raise ConfigError("a store frame brings its own guides; --albedo/--normal/--depth go with --input")
+    if a.tile and a.tile < 2 * TILE_ALIGN:
+        raise ConfigError(f"--tile {a.tile}: at least {2 * TILE_ALIGN} pixels (0: automatic)")
+    model, spec, train_spp, name = load_method(a.checkpoint, a.device)
+    stepwise = model is not None and getattr(model, "stepwise", False)
+    t0 = time.perf_counter()
+    if a.store is not None:
+        if spec is None:             # OIDN on a store frame: the per-pixel mean of all its samples
+            from .data import open_store
+            spp = a.spp or int(open_store(a.store).layout.spp)
+        else:
+            spp = a.spp or train_spp
+        items = items_from_store(spec, a.store, a.frame, spp, stepwise)
+        src = f"frame {a.frame} of {a.store}" + (f" (after {len(items) - 1} frames of its clip)" if len(items) > 1 else "")
+    elif a.input.endswith(".npz"):
+        spp = a.spp or train_spp or 8
+        items = items_from_npz(spec, a.input, spp)
+        src = a.input
+    else:
+        if a.spp:
+            raise ConfigError("--spp applies to a store frame or an .npz; an EXR image is fed as it is")
+        items = items_from_exr(spec, a)
+        src = a.input
+    H, W = _check_sizes(items)
+    out = denoise(model, items, tile=a.tile, device=a.device, progress=True)
+    if not np.isfinite(out).all():
+        raise DataError(f"{name} produced {int((~np.isfinite(out)).any(axis=-1).sum())} non-finite pixels on {src}")
+    write_exr(a.out, out)
+    ms = (time.perf_counter() - t0) * 1e3
+    print(f"{name}: {src} ({W}x{H}) -> {a.out} in {ms:.0f} ms")
+    return 0
+
+
+__all__ = ["denoise", "denoise_cli", "items_from_exr", "items_from_npz", "items_from_store", "load_method",
+           "run_sequence", "tiles", "AUTO_TILE_PIXELS", "TILE_MARGIN"]
