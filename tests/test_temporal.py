@@ -278,12 +278,15 @@ def test_report_shows_tpsnr_spp_and_the_sample_map(clip_store, tmp_path):
     cfg = TrainConfig(model="temporal", model_cfg={**m.tiny, "frames": 2}, steps=2, batch=2, crop=16, val_every=0,
                       val_frames=1, val_crop=16, log_every=1, checkpoint_every=2, seed=2, workers=0)
     train(cfg, clip_store, tmp_path / "runs" / "temporal", progress=False)
-    res = report([tmp_path / "runs" / "temporal"], clip_store, tmp_path / "rep", with_flip=False, progress=False)
+    res = report([tmp_path / "runs" / "temporal"], clip_store, tmp_path / "rep", with_flip=False, progress=False,
+                 clips_store=clip_store)
     labels = [r["label"] for r in res["results"]]
+    assert [r["label"] for r in res["clips"]] == labels and res["clips"][1]["clips"] == 1   # the clips section
+    assert res["clips"][1]["mean"]["tpsnr"] == pytest.approx(res["results"][1]["mean"]["tpsnr"])
     assert labels == ["input", "temporal", "oidn"]                       # baselines at the run's 4 spp
     assert all(r["spp"] == 4 for r in res["results"])
     text = (tmp_path / "rep" / "report.md").read_text()
-    assert "tPSNR" in text and "| spp |" in text
+    assert "tPSNR" in text and "| spp |" in text and "## Moving clips" in text
     for name in ("speed_vs_error.png", "crops.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 1000
     maps = list((tmp_path / "rep").glob("sample_map-*.png"))

@@ -55,7 +55,22 @@ def test_cli_train_evaluate_report(store, tmp_path):
     crops = Image.open(rep / "crops.png")
     assert crops.size[0] > 4 * crops.size[1] > 400          # 5 panels side by side: input, 2 models, oidn, reference
     assert res["mean"]["tpsnr"] is None and res["mean"]["spp"] == 2   # stills only: no temporal PSNR
+    # provenance: the code, versions, the store's dataset config and each run's config and checkpoint hash
+    prov = json.loads((rep / "provenance.json").read_text())
+    assert prov["versions"]["torch"] and prov["versions"]["zarr"] and prov["machine"]["cpus"] >= 1
+    assert prov["stores"]["evaluation"]["config"] == open_store(store).config
+    import hashlib
+    ck = runs / "layer" / "checkpoint.pt"
+    assert prov["runs"][str(runs / "layer")]["sha256"] == hashlib.sha256(ck.read_bytes()).hexdigest()
+    assert prov["runs"][str(runs / "layer")]["train_config"]["steps"] == 2 and "provenance.json" in md
     assert main(["report", "--runs", str(tmp_path / "nothing"), "--store", store, "--out", str(rep)]) == 2
+
+
+def test_frame_kinds_put_the_scene_family_first():
+    from training.evaluate import frame_kinds
+    assert frame_kinds({"scene_kind": "indoor", "has_motion": True}) == ["indoor", "motion"]
+    assert frame_kinds({"scene_kind": "outdoor"}) == ["outdoor", "plain"]
+    assert frame_kinds({"scene_kind": "synthetic", "has_fireflies": True}) == ["fireflies"]
 
 
 def test_firefly_share_counts_outlier_pixels():

@@ -44,7 +44,7 @@ def _evaluate(a) -> int:
 def _report(a) -> int:
     from .report import report
     report(a.runs, a.store, a.out, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
-           skip_bad_frames=a.skip_bad_frames)
+           skip_bad_frames=a.skip_bad_frames, clips_store=a.clips_store, hard_cases=a.hard_cases)
     print(f"wrote {a.out}/report.md")
     return 0
 
@@ -150,6 +150,10 @@ def main(argv=None) -> int:
     r.add_argument("--skip-bad-frames", action="store_true",
                    help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
                         "references), with a warning naming them; default: refuse them")
+    r.add_argument("--clips-store", help="also evaluate everything on the test split of this store of moving "
+                                         "clips (a section with tPSNR; recurrent models carry their state)")
+    r.add_argument("--hard-cases", help="also evaluate everything on each case of this store of "
+                                        "configs/hard-cases.yaml (the hard-case table)")
     r.set_defaults(fn=_report)
 
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")

@@ -35,7 +35,7 @@ from .models.common import flush_denormals
 from .oidn import oidn_denoise
 
 BASELINES = ("input", "oidn")
-KINDS = ("defocus", "motion", "fireflies", "plain")
+KINDS = ("indoor", "outdoor", "defocus", "motion", "fireflies", "plain")   # the scene family, then the hard parts
 
 # A sample 16x brighter than its reference pixel (plus 0.05, for black pixels) alone doubles an 8-spp
 # mean; a frame "has fireflies" when at least 0.2% of its pixels hold one (test frames of
@@ -53,11 +53,12 @@ def firefly_share(radiance: torch.Tensor, reference: torch.Tensor) -> float:
 
 
 def frame_kinds(row: dict) -> list[str]:
-    """The kinds of an evaluated frame (``row`` from ``evaluate``): any of defocus, motion, fireflies,
-    else plain."""
+    """The kinds of an evaluated frame (``row`` from ``evaluate``): its scene family (indoor or outdoor)
+    and any of defocus, motion, fireflies, else plain."""
     kinds = [k for k, key in (("defocus", "has_defocus"), ("motion", "has_motion"),
                               ("fireflies", "has_fireflies")) if row.get(key)]
-    return kinds or ["plain"]
+    scene = [row["scene_kind"]] if row.get("scene_kind") in ("indoor", "outdoor") else []
+    return scene + (kinds or ["plain"])
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
@@ -85,12 +86,16 @@ def _uniform_from_layers(item: dict, spp: int) -> torch.Tensor:
 
 
 def frame_tags(store, idx: int) -> dict:
-    """Kinds of store frame ``idx``, whatever the model reads: defocus and motion from the frame's
-    metadata, fireflies from all of its stored input samples against its reference."""
+    """Kinds of store frame ``idx``, whatever the model reads: the scene family, defocus and motion from
+    the frame's metadata, fireflies from all of its stored input samples against its reference."""
     rad = torch.from_numpy(np.ascontiguousarray(store.read_array("inputs/radiance", idx)))
     ref = torch.from_numpy(np.ascontiguousarray(store.read_array("reference/radiance", idx)))
     share = firefly_share(rad, ref)
-    return {"has_defocus": bool(store.meta_column("has_defocus")[idx]),
+    try:
+        scene_kind = str(json.loads(str(store.meta_column("scene_json")[idx]) or "{}").get("kind", ""))
+    except ValueError:                       # a synthetic store's placeholder: no family
+        scene_kind = ""
+    return {"scene_kind": scene_kind, "has_defocus": bool(store.meta_column("has_defocus")[idx]),
             "has_motion": bool(store.meta_column("has_motion")[idx]),
             "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
 
@@ -198,7 +203,8 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         prev_idx = idx
     if len(current) >= 2:
         runs.append(current)
-    keys = [k for k in frames[0] if k != "index" and not k.startswith("has_")] if frames else []
+    keys = [k for k, v in frames[0].items() if k != "index" and not k.startswith("has_") and not isinstance(v, str)
+            ] if frames else []
     info["frames"] = frames
     info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
     info["by_kind"] = {}

@@ -7,7 +7,9 @@ for adaptive samplers (where the samples went) and ``out/eval-<name>.json``. Fig
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -129,26 +131,72 @@ def sample_map_image(counts: np.ndarray, reference: np.ndarray, path, title: str
     plt.close(fig)
 
 
-def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
-           with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False) -> dict:
-    """Evaluate every run and the baselines; write the report files. Returns the results.
+PACKAGES = ("torch", "numpy", "zarr", "numcodecs", "mitsuba", "drjit", "dask", "distributed", "pyoidn",
+            "scikit-image", "flip-evaluator", "matplotlib", "OpenEXR")
 
-    Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
-    for nbg/wskpn) and the noisy input and OIDN at every spp among the runs, so each model stands next
-    to the baselines at its own sample count (labels gain ``@N spp`` when there are several)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    run_dirs = find_runs(runs)
-    if not run_dirs:
-        raise DataError(f"no run directory with a checkpoint.pt among {list(runs)}")
 
-    def one(label, m, at):
+def provenance(run_dirs, stores: dict, args: dict) -> dict:
+    """What a report's numbers come from: the command, the code (git commit), package versions, the
+    machine, each store's dataset config and each run's training config and checkpoint hash."""
+    import hashlib
+    import platform
+    import subprocess
+    import sys
+    import time
+    from importlib import metadata
+
+    import torch
+
+    from . import checkpoint as ckpt
+    from .data import open_store
+    versions = {"python": platform.python_version()}
+    for pkg in PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                    capture_output=True, text=True, timeout=10).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, None
+    runs = {}
+    for d in run_dirs:
+        ck = ckpt.load(d / "checkpoint.pt")
+        runs[str(d)] = {"model": ck["model"], "model_config": ck["model_config"], "train_config": ck["train_config"],
+                        "step": ck["step"], "store": ck.get("store"),
+                        "sha256": hashlib.sha256((d / "checkpoint.pt").read_bytes()).hexdigest()}
+    st = {}
+    for role, path in stores.items():
+        if path is None:
+            continue
+        s = open_store(path)
+        st[role] = {"path": str(path), "schema_version": s.schema_version, "config": s.config,
+                    "frames": int(s.layout.num_frames)}
+    return {"created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": list(sys.argv),
+            "arguments": args, "git_commit": commit, "git_dirty": dirty, "versions": versions,
+            "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                        "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+                        "cuda": torch.cuda.is_available()},
+            "stores": st, "runs": runs}
+
+
+def evaluate_methods(run_dirs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
+                     with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False,
+                     prefix: str = "") -> tuple[list, list, list, list]:
+    """Evaluate every run at ``spp`` (None: its training spp) and the noisy input and OIDN at each
+    (spp, input) pair among the runs; write ``out/<prefix>eval-<label>.json``. Returns
+    ``(inputs, models, oidns, spps)``."""
+    def one(label, m, at, **kw):
         if progress:
-            print(f"evaluating {label} on {split} ...", flush=True)
+            print(f"evaluating {label} on {split} of {store} ...", flush=True)
         r = evaluate(m, store, split=split, spp=at, max_frames=max_frames, with_flip=with_flip, keep=(0,),
-                     skip_bad_frames=skip_bad_frames)
+                     skip_bad_frames=skip_bad_frames, **kw)
         r["label"] = label
-        write_json(r, out / f"eval-{label.replace(' ', '')}.json")
+        write_json(r, out / f"{prefix}eval-{label.replace(' ', '')}.json")
         return r
 
     models = [one(d.name, d / "checkpoint.pt", spp) for d in run_dirs]
@@ -163,17 +211,36 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
         t = f" @{n}spp" if len(spps) > 1 else ""
         return t + (" layers" if several_bases and base == "sampled-layers" else "")
 
-    def base_one(label, method, n, base):
-        if progress:
-            print(f"evaluating {label} on {split} ...", flush=True)
-        r = evaluate(method, store, split=split, spp=n, max_frames=max_frames, with_flip=with_flip, keep=(0,),
-                     skip_bad_frames=skip_bad_frames, baseline_input=base)
-        r["label"] = label
-        write_json(r, out / f"eval-{label.replace(' ', '')}.json")
-        return r
+    inputs = [one(f"input{tag(n, b)}", "input", n, baseline_input=b) for n, b in groups]
+    oidns = [one(f"oidn{tag(n, b)}", "oidn", n, baseline_input=b) for n, b in groups]
+    return inputs, models, oidns, spps
 
-    inputs = [base_one(f"input{tag(n, b)}", "input", n, b) for n, b in groups]
-    oidns = [base_one(f"oidn{tag(n, b)}", "oidn", n, b) for n, b in groups]
+
+def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
+           with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False,
+           clips_store: str | None = None, hard_cases: str | None = None) -> dict:
+    """Evaluate every run and the baselines; write the report files. Returns the results.
+
+    Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
+    for nbg/wskpn) and the noisy input and OIDN at every spp among the runs, so each model stands next
+    to the baselines at its own sample count (labels gain ``@N spp`` when there are several).
+    ``clips_store``: also evaluate everything on the ``test`` split of a store of moving clips (a section
+    with tPSNR). ``hard_cases``: a store of ``configs/hard-cases.yaml``, evaluated case by case
+    (:mod:`training.hardcases`). ``out/provenance.json`` records the command, code, versions, stores
+    and runs the numbers come from."""
+    import time
+    t_start = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    run_dirs = find_runs(runs)
+    if not run_dirs:
+        raise DataError(f"no run directory with a checkpoint.pt among {list(runs)}")
+    prov = provenance(run_dirs, {"evaluation": store, "clips": clips_store, "hard_cases": hard_cases},
+                      {"runs": [str(r) for r in runs], "store": str(store), "split": split, "spp": spp,
+                       "max_frames": max_frames, "with_flip": with_flip, "skip_bad_frames": skip_bad_frames,
+                       "clips_store": clips_store, "hard_cases": hard_cases})
+    inputs, models, oidns, spps = evaluate_methods(run_dirs, store, out, split, spp, max_frames, with_flip,
+                                                   progress, skip_bad_frames)
     results = inputs + models + oidns
 
     # the reference of the frame the crops show (the first evaluated frame of every method)
@@ -202,7 +269,7 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
              "after one warm-up frame. Each model is evaluated at the samples per pixel it was trained at; "
              "the noisy input and OIDN at each of those counts.", "", table_markdown(results), "",
              "![speed against error](speed_vs_error.png)", "",
-             f"relMSE by kind of frame (frame counts in brackets; defocus and motion from the scene, "
+             f"relMSE by kind of frame (frame counts in brackets; indoor/outdoor, defocus and motion from the scene, "
              f"fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x brighter "
              "than the reference; plain: none of these):", "", kinds_markdown(results), "",
              "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "",
@@ -215,6 +282,24 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     for label, name, idx in maps:
         lines += [f"Sample map of {label} (frame {idx}, the last of the first held-out clip):", "",
                   f"![sample map]({name})", ""]
+    extra = {}
+    if clips_store is not None:
+        ci, cm, co, _ = evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
+                                         skip_bad_frames, prefix="clips-")
+        clip_results = ci + cm + co
+        plot_speed_vs_error(clip_results, out / "clips_speed_vs_error.png")
+        n_clips = max(r.get("clips", 0) for r in clip_results)
+        lines += [f"## Moving clips: test split of `{clips_store}`", "",
+                  f"{len(clip_results[0]['frames'])} frames in {n_clips} held-out clips, in order; recurrent "
+                  "models carry their state through each clip, the others see one frame at a time.", "",
+                  table_markdown(clip_results), "", "![speed against error on clips](clips_speed_vs_error.png)", "",
+                  "relMSE by kind of frame:", "", kinds_markdown(clip_results), ""]
+        extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
+    if hard_cases is not None:
+        from .hardcases import hard_case_report
+        hc = hard_case_report(run_dirs, hard_cases, out, with_flip=with_flip, progress=progress)
+        lines += [f"## Hard cases: `{hard_cases}`", "", hc["markdown"], ""]
+        extra["hard_cases"] = {k: v for k, v in hc.items() if k != "markdown"}
     lines += ["## Training budgets", ""]
     for r in results:
         if "train_config" in r:
@@ -223,5 +308,14 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
                          f"batch {tc['batch']}, crop {tc['crop']}, {tc['spp']} spp, loss {tc['loss']}, lr {tc['lr']}")
     lines += ["", "## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, paper defaults)", "",
               figure10_markdown(fig10), ""]
+    prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
+    (out / "provenance.json").write_text(json.dumps(prov, indent=2, default=str))
+    lines += ["## Provenance", "",
+              f"Every number above was computed by this run of the report ({prov['created']}, "
+              f"{prov['report_seconds']:.0f} s, code {prov['git_commit'] or 'outside git'}"
+              f"{' with local changes' if prov['git_dirty'] else ''}); the command, package versions, "
+              "machine, the stores' dataset configs and each run's training config and checkpoint hash are "
+              "in [provenance.json](provenance.json).", ""]
     (out / "report.md").write_text("\n".join(lines))
-    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10}
+    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10,
+            **extra}
