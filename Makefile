@@ -37,14 +37,20 @@ COMPARE_MODELS ?= layer pixelgather layer-optimized samplesplat
 COMPARE_STEPS ?= 800
 REALTIME_MODELS ?= nbg wskpn
 REALTIME_STEPS ?= 10000
-compare: setup   ## the CPU comparison of docs/training.md: train-cpu + eval-cpu stores, each model, report (hours)
+COMPARE_START := $(shell date +%s)
+compare: setup   ## every denoiser family, OIDN and the inputs on the same held-out scenes, clips and hard cases: one report (hours)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
 	for m in $(COMPARE_MODELS); do \
 	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(COMPARE_STEPS) --crop 64 --out data/runs/$$m || exit 1; \
 	done
 	$(MAKE) --no-print-directory compare-realtime REALTIME_REPORT=0
-	$(PY) -m training report --runs $(addprefix data/runs/,$(COMPARE_MODELS) $(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-eval-cpu
+	$(MAKE) --no-print-directory compare-temporal TEMPORAL_REPORT=0
+	$(PY) -m pipeline dataset --config configs/hard-cases.yaml --out data/hard-cases.zarr
+	$(PY) -m training report --runs $(addprefix data/runs/,$(COMPARE_MODELS) $(REALTIME_MODELS)) \
+	  $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) --store data/eval-cpu.zarr \
+	  --clips-store data/train-temporal-cpu.zarr --hard-cases data/hard-cases.zarr --out data/report-compare
+	@echo "make compare: data/report-compare/report.md in $$(( $$(date +%s) - $(COMPARE_START) )) s"
 
 REALTIME_REPORT ?= 1
 compare-realtime: setup ## the 1-spp part of the comparison: nbg and wskpn on train-cpu, report on eval-cpu (minutes)
@@ -61,14 +67,17 @@ TEMPORAL_MODELS ?= temporal temporal-uniform temporal-perframe
 TEMPORAL_STEPS ?= 1500
 TEMPORAL_CROP ?= 64
 TEMPORAL_CFG ?= {"size": "small"}
+TEMPORAL_REPORT ?= 1
 compare-temporal: setup ## adaptive vs uniform vs per-frame at 4 spp on held-out moving clips (train-temporal-cpu; hours on a CPU)
 	$(PY) -m pipeline dataset --config configs/train-temporal-cpu.yaml --out data/train-temporal-cpu.zarr
 	for m in $(TEMPORAL_MODELS); do \
 	  $(PY) -m training train --model $$m --store data/train-temporal-cpu.zarr --steps $(TEMPORAL_STEPS) \
 	    --crop $(TEMPORAL_CROP) --model-cfg '$(TEMPORAL_CFG)' --out data/runs-temporal/$$m || exit 1; \
 	done
-	$(PY) -m training report --runs $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) \
-	  --store data/train-temporal-cpu.zarr --out data/report-temporal
+	if [ "$(TEMPORAL_REPORT)" = 1 ]; then \
+	  $(PY) -m training report --runs $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) \
+	    --store data/train-temporal-cpu.zarr --out data/report-temporal; \
+	fi
 
 preview: setup   ## render a preview of one scene: SEED, KIND
 	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr
