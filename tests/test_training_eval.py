@@ -55,6 +55,14 @@ def test_cli_train_evaluate_report(store, tmp_path):
     crops = Image.open(rep / "crops.png")
     assert crops.size[0] > 4 * crops.size[1] > 400          # 5 panels side by side: input, 2 models, oidn, reference
     assert res["mean"]["tpsnr"] is None and res["mean"]["spp"] == 2   # stills only: no temporal PSNR
+    # the reference's own limits: evaluate's per-frame figures are validate's, and the report states them
+    from stores.validate import validate_store
+    rep_v = {f.index: f for f in validate_store(store).frames}
+    for f in res["frames"]:
+        assert f["ref_psnr_ceiling"] == pytest.approx(rep_v[f["index"]].psnr_ceiling, rel=1e-4)
+        assert f["ref_relmse_floor"] == pytest.approx(rep_v[f["index"]].relmse_floor, rel=1e-4)
+    assert res["reference"]["psnr_ceiling_lowest"] == pytest.approx(min(f["ref_psnr_ceiling"] for f in res["frames"]))
+    assert "from their stored standard error" in md
     # provenance: the code, versions, the store's dataset config and each run's config and checkpoint hash
     prov = json.loads((rep / "provenance.json").read_text())
     assert prov["versions"]["torch"] and prov["versions"]["zarr"] and prov["machine"]["cpus"] >= 1

@@ -194,6 +194,11 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         h, w = ref.shape[:2]
         row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6), "spp": achieved,
                **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
+        se = item.get("stderr")
+        if se is not None:                        # what the reference's own noise lets a metric resolve
+            from stores.validate import reference_limits
+            ceiling, floor = reference_limits(ref, _hwc(se[-1] if se.dim() == 4 else se))
+            row.update(ref_psnr_ceiling=ceiling, ref_relmse_floor=floor)
         frames.append(row)
         current.append((out, ref))
         if counts is not None and (sample_map is None or (follows and sample_map["clip"] == int(clip_of[idx]))):
@@ -203,8 +208,8 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         prev_idx = idx
     if len(current) >= 2:
         runs.append(current)
-    keys = [k for k, v in frames[0].items() if k != "index" and not k.startswith("has_") and not isinstance(v, str)
-            ] if frames else []
+    keys = [k for k, v in frames[0].items() if k != "index" and not k.startswith(("has_", "ref_"))
+            and not isinstance(v, str)] if frames else []
     info["frames"] = frames
     info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
     info["by_kind"] = {}
@@ -216,6 +221,11 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     tp = [metrics.tpsnr(np.stack([o for o, _ in r]), np.stack([g for _, g in r])) for r in runs]
     info["mean"]["tpsnr"] = float(np.mean(tp)) if tp else None
     info["clips"] = len(runs)
+    ceil = [f["ref_psnr_ceiling"] for f in frames if np.isfinite(f.get("ref_psnr_ceiling", np.nan))]
+    if ceil:
+        floor = [f["ref_relmse_floor"] for f in frames if "ref_relmse_floor" in f]
+        info["reference"] = {"psnr_ceiling_median": float(np.median(ceil)), "psnr_ceiling_lowest": float(np.min(ceil)),
+                             "relmse_floor_median": float(np.median(floor)), "relmse_floor_highest": float(np.max(floor))}
     info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
     if sample_map is not None:
         info["sample_map"] = sample_map

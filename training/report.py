@@ -66,6 +66,17 @@ def kinds_markdown(results: list[dict], key: str = "relmse", fmt: str = "{:.4f}"
     return "\n".join(lines)
 
 
+def reference_note(results: list[dict]) -> list[str]:
+    """A line on what the references' own noise lets the metrics resolve (``evaluate``'s ``reference``)."""
+    ref = next((r["reference"] for r in results if r.get("reference")), None)
+    if not ref:
+        return []
+    return [f"The references are Monte Carlo estimates too: scoring the true image against them would give PSNR "
+            f"{ref['psnr_ceiling_median']:.1f} dB (median over frames; lowest {ref['psnr_ceiling_lowest']:.1f} dB) "
+            f"and relMSE {ref['relmse_floor_median']:.2g} (highest {ref['relmse_floor_highest']:.2g}), from their "
+            "stored standard error. Differences near or beyond these limits are not resolved by this data.", ""]
+
+
 def _pyplot():
     import matplotlib
     matplotlib.use("Agg")                       # files only, no display
@@ -267,7 +278,7 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
              "PSNR and SSIM on tone-mapped values (sRGB(log(x+1)), eq. 7); FLIP is HDR-FLIP. "
              f"Times are wall-clock per frame on this machine ({results[0]['torch_threads']} torch threads), "
              "after one warm-up frame. Each model is evaluated at the samples per pixel it was trained at; "
-             "the noisy input and OIDN at each of those counts.", "", table_markdown(results), "",
+             "the noisy input and OIDN at each of those counts.", "", *reference_note(results), table_markdown(results), "",
              "![speed against error](speed_vs_error.png)", "",
              f"relMSE by kind of frame (frame counts in brackets; indoor/outdoor, defocus and motion from the scene, "
              f"fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x brighter "
@@ -292,7 +303,7 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
         lines += [f"## Moving clips: test split of `{clips_store}`", "",
                   f"{len(clip_results[0]['frames'])} frames in {n_clips} held-out clips, in order; recurrent "
                   "models carry their state through each clip, the others see one frame at a time.", "",
-                  table_markdown(clip_results), "", "![speed against error on clips](clips_speed_vs_error.png)", "",
+                  *reference_note(clip_results), table_markdown(clip_results), "", "![speed against error on clips](clips_speed_vs_error.png)", "",
                   "relMSE by kind of frame:", "", kinds_markdown(clip_results), ""]
         extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
     if hard_cases is not None:
