@@ -156,6 +156,19 @@ def main(argv=None) -> int:
                                         "configs/hard-cases.yaml (the hard-case table)")
     r.set_defaults(fn=_report)
 
+    h = sub.add_parser("hard-cases", help="every run, OIDN and the noisy input on each case of a hard-case store "
+                                          "(configs/hard-cases.yaml): DIR/hard-cases.md and .json")
+    h.add_argument("--store", required=True, help="a store of configs/hard-cases.yaml (every split is evaluated)")
+    h.add_argument("--runs", nargs="*", default=[], help="run folders (each with checkpoint.pt; others are skipped)")
+    h.add_argument("--out", required=True, help="folder for hard-cases.md and hard-cases.json")
+    h.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
+    h.add_argument("--frames", type=int, default=0, help="at most this many frames per split (0: all)")
+
+    def _hard_cases(a) -> int:
+        from .hardcases import hard_cases_cli
+        return hard_cases_cli(a)
+    h.set_defaults(fn=_hard_cases)
+
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")
     b.add_argument("--models", nargs="*", help="registered models to time (default: all)")
     b.add_argument("--size", type=int, default=128, help="square frame size in pixels (default 128)")
