@@ -7,7 +7,7 @@ SCHEDULER ?=
 WORKERS ?=
 export DENOISE_DATA ?= $(CURDIR)/data
 
-.PHONY: setup dataset estimate test test-fast bench train report compare compare-realtime compare-temporal preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test test-fast bench train report compare compare-realtime compare-temporal hard-cases preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -78,6 +78,12 @@ compare-temporal: setup ## adaptive vs uniform vs per-frame at 4 spp on held-out
 	  $(PY) -m training report --runs $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) \
 	    --store data/train-temporal-cpu.zarr --out data/report-temporal; \
 	fi
+
+HARD_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt)
+hard-cases: setup ## render configs/hard-cases.yaml, then evaluate RUNS (default: every trained run), OIDN and the input per case
+	$(PY) -m pipeline dataset --config configs/hard-cases.yaml --out data/hard-cases.zarr
+	$(PY) -m training hard-cases --store data/hard-cases.zarr --runs $(or $(RUNS),$(dir $(HARD_RUNS))) \
+	  --out $(or $(REPORT),data/report-hard-cases)
 
 preview: setup   ## render a preview of one scene: SEED, KIND
 	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr
