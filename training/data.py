@@ -7,6 +7,10 @@ is asked for as ``(index, epoch)`` so each worker's copy of the dataset draws th
 augmentation (a function of (seed, epoch, frame), see ``stores.datasets``). A run resumed at step k
 starts the same sequence at batch k, so it sees exactly the batches an uninterrupted run would,
 whatever the number of workers.
+
+Under ``torchrun`` (:mod:`training.distributed`) ``batch`` is the global batch: every rank walks the
+same sequence and keeps its ``rank``-th contiguous share of ``batch // world`` items of each step, so
+the ranks' crops in a step together are exactly the one-process batch, whatever the number of ranks.
 """
 from __future__ import annotations
 
@@ -104,11 +108,17 @@ def batches_per_epoch(n: int, batch: int) -> int:
 
 
 class EpochBatches(Sampler):
-    """Batches ``start .. stop - 1`` of a run as lists of ``(item, epoch)``."""
+    """Batches ``start .. stop - 1`` of a run as lists of ``(item, epoch)``; with ``world`` > 1 only
+    rank ``rank``'s share (items ``rank * b .. (rank + 1) * b - 1``, ``b = batch // world``) of each
+    global batch."""
 
-    def __init__(self, n: int, batch: int, seed: int, start: int, stop: int):
+    def __init__(self, n: int, batch: int, seed: int, start: int, stop: int, rank: int = 0, world: int = 1):
         self.n, self.batch, self.seed, self.start, self.stop = n, batch, seed, start, stop
         self.per_epoch = batches_per_epoch(n, batch)
+        if world < 1 or not 0 <= rank < world or batch % world:
+            raise DataError(f"--batch {batch} (the global batch) must divide evenly over the {world} ranks; "
+                            f"use a multiple of {world}")
+        self.rank, self.world = rank, world
 
     def __len__(self) -> int:
         return max(0, self.stop - self.start)
@@ -119,7 +129,9 @@ class EpochBatches(Sampler):
             epoch, pos = divmod(step, self.per_epoch)
             if epoch != have:
                 order, have = epoch_order(self.n, self.seed, epoch), epoch
-            yield [(int(i), epoch) for i in order[pos * self.batch:(pos + 1) * self.batch]]
+            keys = order[pos * self.batch:(pos + 1) * self.batch]
+            b = self.batch // self.world
+            yield [(int(i), epoch) for i in keys[self.rank * b:(self.rank + 1) * b]]
 
 
 class _ByEpoch(Dataset):
@@ -142,17 +154,20 @@ def _worker_init(_):
     torch.set_num_threads(1)          # the training process owns the cores' math libraries
 
 
-def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers: int = 0) -> DataLoader:
-    """DataLoader over batches ``start .. stop - 1`` (see the module docstring)."""
-    return DataLoader(_ByEpoch(dataset), batch_sampler=EpochBatches(len(dataset), batch, seed, start, stop),
+def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers: int = 0, rank: int = 0,
+                 world: int = 1) -> DataLoader:
+    """DataLoader over batches ``start .. stop - 1`` (see the module docstring): with ``world`` > 1,
+    rank ``rank``'s share of each global batch of ``batch`` items."""
+    sampler = EpochBatches(len(dataset), batch, seed, start, stop, rank, world)
+    return DataLoader(_ByEpoch(dataset), batch_sampler=sampler,
                       num_workers=workers, collate_fn=default_collate, worker_init_fn=_worker_init if workers else None,
                       persistent_workers=False, prefetch_factor=2 if workers else None)
 
 
-def get_batch(dataset, seed: int, step: int, batch: int) -> tuple[dict, int]:
-    """Batch number ``step`` of the run, built in this process, and its epoch (the same batches as
-    :func:`batch_loader`)."""
-    keys = next(iter(EpochBatches(len(dataset), batch, seed, step, step + 1)))
+def get_batch(dataset, seed: int, step: int, batch: int, rank: int = 0, world: int = 1) -> tuple[dict, int]:
+    """Batch number ``step`` of the run (rank ``rank``'s share of it), built in this process, and its
+    epoch (the same batches as :func:`batch_loader`)."""
+    keys = next(iter(EpochBatches(len(dataset), batch, seed, step, step + 1, rank, world)))
     return default_collate([_ByEpoch(dataset)[k] for k in keys]), keys[0][1]
 
 

@@ -7,6 +7,17 @@ writes ``out/checkpoint.pt`` (every ``checkpoint_every`` steps and at the end) a
 ``out/checkpoint.pt`` exists the run resumes from it and continues exactly as an uninterrupted run
 would (same batches, same optimiser state); a checkpoint from different settings or a store of
 another schema version is refused.
+
+Under ``torchrun --nproc_per_node N -m training train ...`` the same function trains with
+DistributedDataParallel (:mod:`training.distributed`: gloo on CPU, nccl on CUDA). ``batch`` is the
+global batch, split evenly over the ranks, and the ranks' crops in a step are exactly the
+one-process batch, so a run gives the weights of a one-process run with that batch (within float
+rounding). The logged training loss is the global batch's (averaged over the ranks); validation is
+split over the ranks (frame i on rank i mod N) and gathered, so its figures are the one-process
+ones. Rank 0 alone writes ``checkpoint.pt`` and ``metrics.csv`` and shows the progress bar; every
+rank loads the checkpoint to resume. The RNG state saved is rank 0's, which is every rank's: all
+seed alike and no training step draws from the global RNGs (crops and augmentation are functions of
+(seed, epoch, frame)), so resuming is exact under any number of ranks.
 """
 from __future__ import annotations
 
@@ -22,7 +33,7 @@ import torch
 from stores.errors import SplitError
 
 from . import checkpoint as ckpt
-from . import metrics
+from . import distributed, metrics
 from .config import TrainConfig
 from .data import batch_loader, batches_per_epoch, model_dataset, open_store, to_device
 from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
@@ -47,11 +58,14 @@ def warmup_lr(lr: float, warmup: int, step: int) -> float:
 
 
 def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
-               lr: float | None = None, target=None) -> float:
+               lr: float | None = None, target=None, dist: distributed.Dist = distributed.SINGLE) -> float:
     """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
     Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise.
     ``lr``: this step's learning rate (None: leave the optimiser's). ``target``: the reference the
-    output is compared with (default ``batch["reference"]``; the input kind's ``target``)."""
+    output is compared with (default ``batch["reference"]``; the input kind's ``target``).
+    ``dist``: under torchrun ``model`` is DDP-wrapped and ``batch`` this rank's share; the returned
+    loss is the global batch's (the ranks' means averaged), and every rank raises on a non-finite one,
+    so none is left waiting in the gradient all-reduce."""
     if lr is not None:
         for group in optimizer.param_groups:
             group["lr"] = lr
@@ -59,25 +73,29 @@ def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, c
     optimizer.zero_grad(set_to_none=True)
     out = model(batch)
     loss = loss_fn(out, batch["reference"] if target is None else target)
-    if not torch.isfinite(loss):
-        raise NonFiniteError(f"loss is {loss.item()} (non-finite)")
+    value = dist.mean(loss.detach())
+    if not torch.isfinite(value):
+        raise NonFiniteError(f"loss is {value.item()} (non-finite)")
     loss.backward()
     if clip_norm:
         torch.nn.utils.clip_grad_norm_(model.parameters(), clip_norm)
     if clip_value:
         torch.nn.utils.clip_grad_value_(model.parameters(), clip_value)
     optimizer.step()
-    return float(loss.detach())
+    return float(value)
 
 
 @torch.no_grad()
-def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None) -> dict:
+def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
+             dist: distributed.Dist = distributed.SINGLE) -> dict:
     """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, fp32. ``kind``:
-    the model's input kind (its ``target``); default: the item's ``reference``."""
+    the model's input kind (its ``target``); default: the item's ``reference``. ``dist``: under
+    torchrun item i is judged on rank ``i mod N`` and the rows gathered in item order, so every rank
+    returns the one-process figures (``model``: the unwrapped module)."""
     model.eval()
     n = len(dataset) if not max_frames else min(max_frames, len(dataset))
     rows = []
-    for i in range(n):
+    for i in range(dist.rank, n, dist.world):
         item = to_device({k: v.unsqueeze(0) for k, v in dataset[i].items()}, device)
         out = model(item).float()
         ref = (item["reference"] if kind is None else kind.target(item)).float()
@@ -85,8 +103,11 @@ def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None) ->
             out, ref = out[:, -1], ref[:, -1]
         d = out[0].permute(1, 2, 0).cpu().numpy()
         r = ref[0].permute(1, 2, 0).cpu().numpy()
-        rows.append({"loss": float(loss_fn(out, ref)), "relmse": metrics.relmse(d, r),
+        rows.append({"i": i, "loss": float(loss_fn(out, ref)), "relmse": metrics.relmse(d, r),
                      "smape": metrics.smape(d, r), "psnr": metrics.psnr(d, r)})
+    if dist.enabled:
+        rows = sorted((r for part in dist.gather(rows) for r in part), key=lambda r: r["i"])
+    rows = [{k: v for k, v in r.items() if k != "i"} for r in rows]
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
 
 
@@ -128,13 +149,13 @@ class _Log:
             csv.DictWriter(f, CSV_FIELDS).writerow({k: row.get(k, "") for k in CSV_FIELDS})
 
 
-def _prepare_out(out) -> Path:
+def _prepare_out(out, rank: int = 0) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file; it must be a run folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
+        probe = out / (f".write-test-{rank}" if rank else ".write-test")
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:
@@ -149,10 +170,17 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     The model's input declaration (``model.input_spec()``) chooses the dataset and the target.
     ``stop_after``: return after this many steps of THIS call (to test and demonstrate resuming).
     Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint"}`` (checkpoint None if no step ran
-    and none existed).
+    and none existed); under torchrun (module docstring) every rank returns it, with ``rank`` and
+    ``world`` added.
     """
-    out = _prepare_out(out)
-    device = pick_device(cfg.device)
+    with distributed.session(cfg.device) as (dist, device_name):
+        return _train(cfg, store, out, dist, device_name, progress, stop_after)
+
+
+def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: str, progress: bool,
+           stop_after: int | None) -> dict:
+    out = _prepare_out(out, dist.rank)
+    device = pick_device(device_name)
     flush_denormals()
     store = open_store(store)
     if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
@@ -164,6 +192,9 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     model = build(cfg.model, **cfg.model_cfg).to(device)
     spec = model.input_spec()
     kind = spec.input_kind
+    if dist.enabled and cfg.batch % dist.world:
+        raise ConfigError(f'"batch" {cfg.batch} is the global batch and must divide evenly over the '
+                          f"{dist.world} ranks; use a multiple of {dist.world}")
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step = 0
     ck_path = out / "checkpoint.pt"
@@ -179,6 +210,7 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
         optimizer.load_state_dict(ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])
         step = int(ck["step"])
+    module, model = model, distributed.wrap(model, dist, device)   # DDP under torchrun, else the model
 
     train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed,
                              skip_bad_frames=cfg.skip_bad_frames)
@@ -193,34 +225,37 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
         warnings.warn(f"training without validation: {e.__cause__} (--val-split chooses another split)",
                       stacklevel=2)
         val_ds = None
-    log = _Log(out / "metrics.csv", step)
+    log = _Log(out / "metrics.csv", step) if dist.is_main else None
 
     def save():
-        ckpt.save(ck_path, model=model, optimizer=optimizer, step=step, cfg=cfg, store_info=store_info)
+        if dist.is_main:
+            ckpt.save(ck_path, model=module, optimizer=optimizer, step=step, cfg=cfg, store_info=store_info)
 
     t0 = time.perf_counter()
     loss, val = float("nan"), {}
     todo = max(cfg.steps - step, 0) if stop_after is None else max(min(cfg.steps - step, stop_after), 0)
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
     bar = None
-    if progress:
+    if progress and dist.is_main:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
-        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, step, step + todo, cfg.workers):
+        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, step, step + todo, cfg.workers,
+                                  dist.rank, dist.world):
             epoch = step // per_epoch
             batch = to_device(batch, device)
             loss = train_step(model, optimizer, loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
-                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch))
+                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch), dist=dist)
             step += 1
             if bar:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4f}")
-            if step % cfg.log_every == 0 or step == cfg.steps:
+            if log and (step % cfg.log_every == 0 or step == cfg.steps):
                 log.write(step=step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
             if val_ds is not None and ((cfg.val_every and step % cfg.val_every == 0) or step == cfg.steps):
-                val = validate(model, val_ds, loss_fn, device, cfg.val_frames, kind)
-                log.write(step=step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
+                val = validate(module, val_ds, loss_fn, device, cfg.val_frames, kind, dist)
+                if log:
+                    log.write(step=step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 save()
         if todo > 0 and step % cfg.checkpoint_every and step != cfg.steps:
@@ -228,5 +263,7 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     finally:
         if bar:
             bar.close()
-    return {"step": step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
-            "checkpoint": str(ck_path) if ck_path.exists() else None}
+    dist.barrier()                              # rank 0's checkpoint is written before any rank returns
+    res = {"step": step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
+           "checkpoint": str(ck_path) if ck_path.exists() else None}
+    return {**res, "rank": dist.rank, "world": dist.world} if dist.enabled else res
