@@ -272,6 +272,7 @@ class SceneSpec(_Spec):
     shutter: float = 0.5              # exposure as a fraction of the frame interval
     max_depth: int = 5                # path bounces (the layer paper: five)
     version: int = SPEC_VERSION
+    case: str = ""                    # hard cases applied (scene_gen.cases), comma-separated; '' = none
 
     def __post_init__(self):
         _check(self.kind in SCENE_KINDS, f"scene.kind must be one of {SCENE_KINDS}, got {self.kind!r}")
@@ -280,6 +281,7 @@ class SceneSpec(_Spec):
         _check(0.0 <= self.shutter <= 1.0, f"scene.shutter must lie in [0, 1], got {self.shutter}")
         _check(isinstance(self.max_depth, int) and self.max_depth >= 1, f"scene.max_depth must be >= 1, got {self.max_depth}")
         _check(self.version == SPEC_VERSION, f"SceneSpec version {self.version} is not supported (expected {SPEC_VERSION})")
+        _check(isinstance(self.case, str), f"scene.case must be a string of hard-case names, got {self.case!r}")
         names = [o.name for o in self.objects]
         _check(len(set(names)) == len(names), "object names must be unique")
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -298,6 +300,13 @@ class SceneSpec(_Spec):
     @property
     def has_defocus(self) -> bool:
         return any(c.defocus for c in self.cameras)
+
+    def to_dict(self) -> dict:
+        """Plain data; ``case`` only when set, so specs (and stores) made before it existed are unchanged."""
+        d = super().to_dict()
+        if not d["case"]:
+            del d["case"]
+        return d
 
     def camera(self, frame: int) -> CameraSpec:
         if not 0 <= frame < self.num_frames:
