@@ -94,10 +94,12 @@ def scene_seed(root_seed: int, index: int) -> int:
 
 @dataclass(frozen=True)
 class SceneGroup:
-    """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip)."""
+    """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip), with the
+    hard case(s) ``case`` applied (``scene_gen.cases``: a name, or names joined by commas; None: none)."""
     kind: str
     count: int
     frames: int = 1
+    case: str | None = None
 
     def validate(self, where: str) -> None:
         _need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind)
@@ -105,6 +107,19 @@ class SceneGroup:
               "an integer in [1, 10000000]", self.count)
         _need(_is_int(self.frames) and 1 <= self.frames <= 10_000, f"{where}.frames",
               "an integer in [1, 10000]", self.frames)
+        if self.case is not None:
+            from scene_gen.cases import check_kind
+            from scene_gen.errors import SceneGenError
+            try:
+                check_kind(self.case, self.kind)
+            except SceneGenError as e:
+                raise ConfigError(f"{where}.case: {e}") from e
+
+    @property
+    def case_tag(self) -> str:
+        """The case names as ``SceneSpec.case`` records them ('' for none)."""
+        from scene_gen.cases import case_tag
+        return case_tag(self.case)
 
 
 @dataclass(frozen=True)
@@ -241,6 +256,7 @@ class FrameRef:
     frame: int
     num_frames: int
     clip_id: int | None = None
+    case: str = ""                  # hard cases of the scene's group (scene_gen.cases), '' for none
 
     @property
     def key(self) -> str:
@@ -394,7 +410,7 @@ class DatasetConfig:
             for _ in range(g.count):
                 seed = scene_seed(self.seed, s)
                 for f in range(g.frames):
-                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s]))
+                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s], g.case_tag))
                 s += 1
         return out
 
@@ -428,8 +444,8 @@ class DatasetConfig:
     # -- (de)serialisation -------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """Plain data (lists, dicts, scalars) that :meth:`from_dict` turns back into an equal config."""
-        def group(g):
-            return {"kind": g.kind, "count": g.count, "frames": g.frames}
+        def group(g):   # `case` only when set, so stores made before it existed still resume
+            return {"kind": g.kind, "count": g.count, "frames": g.frames, **({"case": g.case} if g.case else {})}
         return {
             "name": self.name, "seed": int(self.seed), "out": self.out, "resolution": list(self.resolution),
             "scenes": [group(g) for g in self.scenes],

@@ -149,8 +149,8 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
     for ref in sorted(frames, key=lambda r: r.index):
         sk = spec_key(ref.scene, token)
         if sk not in g.nodes:
-            g.add(Node(sk, fn.make_spec, (ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), scene_gen),
-                       "spec"))
+            g.add(Node(sk, fn.make_spec, (ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), scene_gen)
+                       + ((ref.case,) if ref.case else ()), "spec"))      # a hard case (scene_gen.cases)
         spec = Ref(sk)
         if cfg.tasks.split_streams:
             parts = (

@@ -225,6 +225,11 @@ class FrameScene:
         self.prev_cam = spec.camera(frame - 1) if frame > 0 else self.cam
         self.scene = to_mitsuba.load(spec, frame, cfg.res, merge=merge)
         self.merged = bool(merge)
+        if spec.case:                       # a hard case that edits the loaded scene (the nan case)
+            from scene_gen.cases import scene_hook
+            hook = scene_hook(spec)
+            if hook is not None:
+                hook(self.scene)
         if on_scene_loaded is not None:
             on_scene_loaded(self.scene)
         self.sensor = self.scene.sensors()[0]
@@ -601,6 +606,8 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "reference_rel_stderr": float(reference["reference_rel_stderr"]),
         "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
     }
+    if "case" in FRAME_META:            # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
+        out["meta"]["case"] = spec.case
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")
     return out

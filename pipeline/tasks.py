@@ -99,13 +99,16 @@ def clear_scene_cache() -> None:
         _scenes.clear()
 
 
-def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene_gen: dict) -> str:
-    """The SceneSpec JSON of one scene (``scene_gen.sampling.sample_scene``; ``res`` = (W, H))."""
+def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene_gen: dict, case: str = "") -> str:
+    """The SceneSpec JSON of one scene (``scene_gen.sampling.sample_scene``; ``res`` = (W, H)), with the
+    hard cases ``case`` applied (``scene_gen.cases``: their settings, then their edits)."""
+    from scene_gen.cases import apply_cases, case_config
     from scene_gen.config import SceneGenConfig
     from scene_gen.sampling import sample_scene
+    cfg = SceneGenConfig.from_dict(dict(scene_gen))
     spec = sample_scene(int(seed), kind, num_frames=int(num_frames), res=int(max(res)),
-                        config=SceneGenConfig.from_dict(dict(scene_gen)))
-    return spec.to_json()
+                        config=case_config(cfg, case) if case else cfg)
+    return (apply_cases(spec, case, int(max(res))) if case else spec).to_json()
 
 
 def _part(fn, spec_json: str, frame: int, render: dict) -> dict:
