@@ -1,0 +1,268 @@
+"""The hard-case table: every trained run, OIDN and the noisy input on every frame of a hard-case store.
+
+``python -m training hard-cases --store data/hard-cases.zarr --runs RUN... --out DIR`` (``make
+hard-cases``) evaluates each run with :func:`training.evaluate.evaluate` (its input declaration, its
+training spp, recurrent models clip by clip) on every split of the store, and the baselines (``input``:
+the noisy per-pixel mean; ``oidn``) at each (spp, input kind) the runs use, as the comparison report
+does. It writes ``DIR/hard-cases.md`` and ``DIR/hard-cases.json``: per case (``scene_gen.cases``; a
+frame's case comes from ``frames/case`` where set, else from the ``case`` of its SceneSpec in
+``frames/scene_json``, '' for ordinary frames) and method, the mean relMSE and PSNR over the case's
+frames and whether every output was finite.
+
+Flags (the ``flags`` list; each names the stage, the method and the frame):
+
+- **store** stages, per frame, whatever the method: ``inputs``, ``layers`` or ``reference`` when the
+  renderer produced NaN/Inf that the pipeline's rule replaced (``frames/nonfinite_*`` > 0), or when a
+  stored array of that stage holds a non-finite value (which the rule forbids);
+- **model output**: a method's output holds NaN/Inf on a frame;
+- **error**: a method's relMSE on a case is more than :data:`OUTLIER_FACTOR` (10) times the median of
+  that method's relMSE over the cases (an error far above its neighbours); the worst frame is named.
+- **not evaluated**: frames that ``evaluate`` refuses (those ``validate`` flags, e.g. the ``nan`` case's
+  frame, whose renderer NaNs were replaced) are left out of the methods' numbers and listed here.
+
+PSNR is ``inf`` where a method reproduces the reference exactly (the ``black`` case's input): a perfect
+score, not a non-finite output.
+"""
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError, DataError
+
+OUTLIER_FACTOR = 10.0
+SPLITS = ("train", "val", "test")
+NO_CASE = "(none)"
+# arrays of each store stage checked for finiteness
+STAGE_ARRAYS = {"inputs": ("inputs/radiance", "inputs/features", "guides/albedo", "guides/normal", "guides/depth",
+                           "guides/motion"),
+                "layers": ("layers/radiance",),
+                "reference": ("reference/radiance", "reference/stderr")}
+
+
+def frame_cases(store) -> list[str]:
+    """The hard-case tag of every frame of ``store`` ('' for ordinary frames): ``frames/case`` when the
+    store has that column, else the ``case`` of the frame's SceneSpec (stores made before ``frames/case``
+    existed, or before cases existed at all, read as '')."""
+    from .data import open_store
+    st = open_store(store)
+    try:
+        column = [str(c) for c in st.meta_column("case")]
+    except KeyError:                            # stores.contract.FRAME_META without "case"
+        column = [""] * st.num_frames
+    out = []
+    for tag, text in zip(column, st.meta_column("scene_json")):
+        if not tag:
+            try:
+                d = json.loads(str(text) or "{}")
+            except ValueError:                 # a synthetic store's placeholder
+                d = {}
+            tag = str(d.get("case", "")) if isinstance(d, dict) else ""
+        out.append(tag)
+    return out
+
+
+def store_flags(store) -> list[dict]:
+    """Store-stage problems of every complete frame: the renderer's replaced NaN/Inf (``frames/nonfinite_*``)
+    and non-finite values in a stage's stored arrays. Each: ``{stage, method: 'store', frame, case, detail}``."""
+    from .data import open_store
+    st = open_store(store)
+    cases = frame_cases(st)
+    out = []
+    for i in st.complete_frames():
+        for stage, arrays in STAGE_ARRAYS.items():
+            n = int(st.meta_column(f"nonfinite_{stage}")[i])
+            if n:
+                out.append({"stage": stage, "method": "store", "frame": i, "case": cases[i] or NO_CASE,
+                            "kind": "renderer",
+                            "detail": f"the renderer gave {n} NaN/Inf values, replaced by the NaN/Inf rule "
+                                      f"(frames/nonfinite_{stage})"})
+            for path in arrays:
+                a = np.asarray(st.read_array(path, i))
+                bad = int(a.size - np.isfinite(a).sum())
+                if bad:
+                    out.append({"stage": stage, "method": "store", "frame": i, "case": cases[i] or NO_CASE,
+                                "kind": "non-finite", "detail": f"{path} holds {bad} NaN/Inf values"})
+    return out
+
+
+def _splits_with_frames(st) -> list[str]:
+    fr = st.split_fractions
+    return [s for s in SPLITS if s in fr and st.frames_in_split(s)]
+
+
+def evaluate_frames(method, store, *, label: str, spp=None, baseline_input: str = "pixels", max_frames: int = 0,
+                    with_flip: bool = False, progress: bool = True) -> dict:
+    """``training.evaluate.evaluate`` of ``method`` on every split of ``store`` (all frames), with each
+    frame's output finiteness: ``{label, method, spp, input_kind, frames: [row + finite + split]}``.
+    Frames ``evaluate`` refuses are left out (with a warning); :func:`hard_case_report` lists them."""
+    from .data import open_store
+    from .evaluate import evaluate
+    st = open_store(store)
+    rows, info = [], {}
+    for split in _splits_with_frames(st):
+        if progress:
+            print(f"hard cases: {label} on {split} of {st.path} ...", flush=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = evaluate(method, st, split=split, spp=spp, max_frames=max_frames, with_flip=with_flip,
+                         keep=tuple(range(st.num_frames)), skip_bad_frames=True, baseline_input=baseline_input)
+        images = r.get("images", {})
+        for pos, row in enumerate(r["frames"]):
+            img = images.get(pos)
+            finite = bool(img is not None and np.isfinite(img).all())
+            rows.append({**{k: v for k, v in row.items() if not isinstance(v, (list, dict))},
+                         "split": split, "finite": finite})
+        info = {k: r.get(k) for k in ("method", "spp", "input_kind", "params")}
+    return {"label": label, **info, "frames": rows}
+
+
+def _mean(vals) -> float:
+    vals = [float(v) for v in vals]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str = "") -> dict:
+    """The hard-case results: per case and method the mean relMSE and PSNR over the case's frames and
+    finiteness, plus the flags (store flags given, model-output and outlier flags added)."""
+    case_names = []
+    for c in cases:
+        c = c or NO_CASE
+        if c not in case_names:
+            case_names.append(c)
+    flags = list(flags)
+    table: dict = {c: {} for c in case_names}
+    evaluated = set()
+    for ev in evals:
+        m = ev["label"]
+        by_case: dict = {}
+        for row in ev["frames"]:
+            i = int(row["index"])
+            evaluated.add(i)
+            c = cases[i] or NO_CASE
+            by_case.setdefault(c, []).append(row)
+            if not row["finite"] or not math.isfinite(row["relmse"]):
+                flags.append({"stage": "model output", "method": m, "frame": i, "case": c, "kind": "non-finite",
+                              "detail": "the output holds NaN/Inf" if not row["finite"]
+                              else f"relMSE is {row['relmse']}"})
+        for c, rows in by_case.items():
+            table[c][m] = {"relmse": _mean(r["relmse"] for r in rows), "psnr": _mean(r["psnr"] for r in rows),
+                           "finite": all(r["finite"] and math.isfinite(r["relmse"]) for r in rows),
+                           "frames": [int(r["index"]) for r in rows],
+                           "worst_frame": int(max(rows, key=lambda r: r["relmse"] if math.isfinite(r["relmse"])
+                                                  else math.inf)["index"])}
+        errs = [v["relmse"] for c, row in table.items() for k, v in row.items() if k == m and math.isfinite(v["relmse"])]
+        med = float(np.median(errs)) if errs else float("nan")
+        for c, row in table.items():
+            v = row.get(m)
+            if v and math.isfinite(v["relmse"]) and len(errs) >= 3 and v["relmse"] > OUTLIER_FACTOR * med:
+                flags.append({"stage": "model output", "method": m, "frame": v["worst_frame"], "case": c,
+                              "kind": "error", "detail": f"relMSE {v['relmse']:.4g} is "
+                              f"{v['relmse'] / med:.0f}x the median {med:.4g} of {m} over the cases"})
+    for i, c in enumerate(cases):
+        if evals and i not in evaluated:
+            flags.append({"stage": "evaluate", "method": "all", "frame": i, "case": c or NO_CASE,
+                          "kind": "not evaluated", "detail": "refused by evaluate (validate flags the frame)"})
+    return {"store": str(store), "methods": [e["label"] for e in evals], "cases": table, "flags": flags,
+            "outlier_factor": OUTLIER_FACTOR,
+            "methods_info": {e["label"]: {k: e.get(k) for k in ("method", "spp", "input_kind", "params")} for e in evals}}
+
+
+def _cell(v: dict | None) -> str:
+    if not v:
+        return "–"
+    if not v["finite"]:
+        return "**non-finite**"
+    p = v["psnr"]
+    ps = "inf" if math.isinf(p) else f"{p:.1f}"
+    return f"{v['relmse']:.3g} / {ps}"
+
+
+def hard_case_table(results: dict) -> str:
+    """Markdown: one row per case, one column per method (``relMSE / PSNR dB``, ``**non-finite**`` where an
+    output held NaN/Inf), a store column (``finite``, or the stages whose NaN/Inf the renderer gave or the
+    store holds), then the flags, each naming stage, method and frame."""
+    methods = results["methods"]
+    flags = results["flags"]
+    head = "| case | store | " + " | ".join(methods) + " |"
+    lines = [head, "|---|---|" + "---|" * len(methods)]
+    for c, row in results["cases"].items():
+        st = sorted({f["stage"] for f in flags if f["method"] == "store" and f["case"] == c})
+        cells = [_cell(row.get(m)) for m in methods]
+        lines.append(f"| {c} | {'NaN/Inf in ' + ', '.join(st) if st else 'finite'} | " + " | ".join(cells) + " |")
+    lines += ["", f"Cells: mean relMSE / PSNR (dB, tone-mapped) over the case's frames. Flags (error: relMSE "
+              f"> {results.get('outlier_factor', OUTLIER_FACTOR):g}x the method's median over the cases):", ""]
+    if not flags:
+        lines.append("- none")
+    for f in flags:
+        lines.append(f"- **{f['case']}**, frame {f['frame']}: stage *{f['stage']}*, method `{f['method']}` "
+                     f"({f['kind']}): {f['detail']}")
+    return "\n".join(lines)
+
+
+def _find_runs(runs) -> list[Path]:
+    found = []
+    for r in runs:
+        p = Path(r)
+        if (p / "checkpoint.pt").is_file():
+            found.append(p)
+        elif p.is_file() and p.suffix == ".pt":
+            found.append(p.parent)
+    return found
+
+
+def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: bool = True, oidn: bool = True,
+                     max_frames: int = 0) -> dict:
+    """Evaluate the runs (folders holding ``checkpoint.pt``), the noisy input and OIDN (at each spp and
+    input kind the runs use; the store's spp without runs) on every frame of ``store``; write
+    ``out/hard-cases.md`` and ``out/hard-cases.json``. Returns :func:`summarize`'s dict plus ``markdown``."""
+    from .data import open_store
+    st = open_store(store)
+    run_dirs = _find_runs(runs)
+    if runs and not run_dirs:
+        raise ConfigError(f"none of the runs {list(map(str, runs))} holds a checkpoint.pt")
+    cases = frame_cases(st)
+    evals = [evaluate_frames(d / "checkpoint.pt", st, label=d.name, max_frames=max_frames, with_flip=with_flip,
+                             progress=progress) for d in run_dirs]
+    base_of = lambda e: "sampled-layers" if e.get("input_kind") == "sampled-layers" else "pixels"   # noqa: E731
+    groups = sorted({(int(e["spp"]), base_of(e)) for e in evals}) or [(int(st.layout.spp), "pixels")]
+    several = len(groups) > 1
+    for name in ("input",) + (("oidn",) if oidn else ()):
+        for n, b in groups:
+            tag = f" @{n}spp" + (" layers" if b == "sampled-layers" else "") if several else ""
+            evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
+                                         with_flip=with_flip, progress=progress))
+    res = summarize(evals, cases, store_flags(st), str(st.path))
+    res["runs"] = [str(d) for d in run_dirs]
+    res["markdown"] = hard_case_table(res)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "hard-cases.md").write_text(f"# Hard cases: `{st.path}`\n\n{res['markdown']}\n")
+    clean = {k: v for k, v in res.items() if k != "markdown"}
+    clean["frames"] = {e["label"]: e["frames"] for e in evals}
+    (out / "hard-cases.json").write_text(json.dumps(clean, indent=2, default=_json_default))
+    return res
+
+
+def _json_default(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return str(v)
+
+
+def hard_cases_cli(a) -> int:
+    """``python -m training hard-cases`` (arguments from ``training.__main__``)."""
+    if a.frames is not None and a.frames < 0:
+        raise ConfigError(f"--frames must be >= 0, got {a.frames}")
+    try:
+        res = hard_case_report(a.runs or [], a.store, a.out, with_flip=False, progress=True, oidn=not a.no_oidn,
+                               max_frames=a.frames or 0)
+    except DataError:
+        raise
+    print(res["markdown"])
+    print(f"wrote {a.out}/hard-cases.md and {a.out}/hard-cases.json")
+    return 0
