@@ -9,8 +9,17 @@
   logarithmically, so the relative error is at most ``LOG16_MAX_REL_ERROR`` (3.4e-4) inside the range.
   Values below the range round to its lower end, values above clamp to the upper end (never Inf);
   negative values are stored as 0. Decoding is a 65536-entry float32 lookup table.
+* ``ENCODINGS``: the codec chains of the image arrays, a store-wide choice recorded in the layout
+  (``StoreLayout.encoding``). ``lz4`` is every store written before issue 13 (lossless float32
+  radiance, Blosc LZ4 + byte shuffle); ``compact`` (the default for new stores) is built from zarr's
+  own codecs only (:func:`image_chain`): channel-major inner chunks (``TransposeCodec``, samples
+  innermost), mantissa rounding (``numcodecs.bitround``, ``KEEPBITS`` = 9 mantissa bits, relative
+  error <= ``COMPACT_MAX_REL_ERROR`` = 2**-10) of input radiance, features, sample layers and guides,
+  and Blosc zstd with bit shuffle; references stay lossless (zstd + byte shuffle). Figures: SCHEMA.md.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,11 +49,87 @@ def decode_log16(code: np.ndarray) -> np.ndarray:
 
 BLOSC = {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}     # the image arrays' compressor (SCHEMA.md)
 
+ENCODINGS = ("lz4", "compact")
+LEGACY_ENCODING = "lz4"          # what a store whose layout records no ``encoding`` was written with
+DEFAULT_ENCODING = "compact"     # what create_store uses when the layout leaves it open (None)
+KEEPBITS = 9                     # mantissa bits kept by ``compact``'s bit rounding (float32 and float16)
+COMPACT_MAX_REL_ERROR = 2.0 ** -(KEEPBITS + 1)     # 9.77e-4: round to nearest of a 9-bit mantissa
+# the largest float16 with a 9-bit mantissa: zarr's BitRound rounds 65473..65504 up to 65536 = Inf
+FLOAT16_MAX_COMPACT = float(np.float16(2.0 ** 15 * (2 - 2.0 ** -KEEPBITS)))
+ZSTD_LEVEL = 5                   # Blosc zstd level of ``compact`` (SCHEMA.md: 3 is 4% larger, 7 2.5x slower to write)
+
+
+@dataclass(frozen=True)
+class Chain:
+    """The inner-chunk codecs of one image array: ``sample_last`` (a ``TransposeCodec`` moving the
+    sample axis innermost, so the 8 samples of a pixel lie together), ``keepbits`` (``BitRound``;
+    None: lossless) and the Blosc compressor (``cname``, ``clevel``, ``shuffle``)."""
+
+    cname: str
+    clevel: int
+    shuffle: str
+    keepbits: int | None = None
+    sample_last: bool = False
+
+    def order(self, dims: tuple[str, ...]) -> tuple[int, ...] | None:
+        """The ``TransposeCodec`` order over ``dims`` (frame first), None when nothing moves."""
+        if not self.sample_last or "sample" not in dims:
+            return None
+        s = dims.index("sample")
+        return tuple(i for i in range(len(dims)) if i != s) + (s,)
+
+
+_LOSSY = Chain("zstd", ZSTD_LEVEL, "bitshuffle", KEEPBITS)
+_COMPACT = {        # measured on real frames (SCHEMA.md "Compact encoding")
+    "inputs/radiance": replace(_LOSSY, sample_last=True),
+    "inputs/features": replace(_LOSSY, sample_last=True),
+    "layers/radiance": _LOSSY,                                   # level-last was 1% smaller: not worth a transpose
+    "reference/radiance": Chain("zstd", ZSTD_LEVEL, "shuffle"),  # lossless: byte shuffle beats bit shuffle here
+    "reference/stderr": Chain("zstd", ZSTD_LEVEL, "shuffle"),
+}
+
+
+def image_chain(path: str, encoding: str, dtype: str) -> Chain:
+    """The codecs of image array ``path`` under ``encoding`` for storage ``dtype`` (integer codes,
+    i.e. log16 radiance, are never bit-rounded)."""
+    if encoding == "lz4":
+        return Chain(BLOSC["cname"], BLOSC["clevel"], BLOSC["shuffle"])
+    if encoding != "compact":
+        raise ValueError(f"unknown encoding {encoding!r}; known: {ENCODINGS}")
+    c = _COMPACT.get(path, _LOSSY)                               # guides: lossy like the features
+    if c.keepbits is not None and not np.dtype(dtype).kind == "f":
+        c = replace(c, keepbits=None)
+    return c
+
+
+def bitround(x: np.ndarray, keepbits: int) -> np.ndarray:
+    """``x`` (float32 or float16) with its mantissa rounded to nearest, ties to even, at ``keepbits``
+    bits: exactly what zarr's ``numcodecs.bitround`` codec stores (the same implementation)."""
+    from numcodecs import BitRound
+    x = np.ascontiguousarray(x)
+    return BitRound(keepbits).encode(x).view(x.dtype).reshape(x.shape)
+
 
 def compressor(name: str = BLOSC["cname"], level: int = BLOSC["clevel"], shuffle: str = BLOSC["shuffle"]):
     """The zarr v3 Blosc codec used for every image array (``name``: lz4, lz4hc, zstd, zlib, blosclz)."""
     from zarr.codecs import BloscCodec
     return BloscCodec(cname=name, clevel=level, shuffle=shuffle)
+
+
+def zarr_filters(chain: Chain, dims: tuple[str, ...]) -> list:
+    """zarr array -> array codecs of ``chain`` (``TransposeCodec``, then ``BitRound``)."""
+    import warnings
+
+    from zarr.codecs import BitRound, TransposeCodec
+    out = []
+    order = chain.order(dims)
+    if order is not None:
+        out.append(TransposeCodec(order=order))
+    if chain.keepbits is not None:
+        with warnings.catch_warnings():     # "numcodecs codecs are not in the Zarr v3 specification"
+            warnings.simplefilter("ignore")
+            out.append(BitRound(keepbits=chain.keepbits))
+    return out
 
 
 def checksum():
@@ -58,3 +143,15 @@ def crc32c(data) -> int:
     """CRC-32C (Castagnoli) of ``data`` (bytes-like), as the ``crc32c`` codec and the shard index use it."""
     import google_crc32c
     return int(google_crc32c.value(np.frombuffer(data, np.uint8)))     # it takes no memoryview
+
+
+def _quiet_numcodecs_warning() -> None:
+    """zarr warns, on every array it opens, that ``numcodecs.bitround`` is not in the Zarr v3 spec.
+    We know (SCHEMA.md names the codec; zarr-python and numcodecs read it); the warning would
+    otherwise print once per array and process."""
+    import warnings
+    warnings.filterwarnings("ignore", message="Numcodecs codecs are not in the Zarr version 3 specification",
+                            category=UserWarning)
+
+
+_quiet_numcodecs_warning()

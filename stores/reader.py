@@ -73,6 +73,12 @@ class _ShardReader:
         names = [c["name"] for c in shard["codecs"]]
         self.blosc = "blosc" in names
         self.crc = names[-1] == "crc32c"
+        # compact encoding: inner chunks stored transposed (samples innermost); bit rounding decodes as is
+        self.order = None
+        if names[0] == "transpose":
+            self.order = tuple(int(o) for o in shard["codecs"][0]["configuration"]["order"])
+        self.stored = tuple(self.inner[o] for o in self.order)[1:] if self.order else None
+        self.back = tuple(int(i) - 1 for i in np.argsort(self.order))[1:] if self.order else None
         self.chunk_nbytes = int(np.prod(self.inner[1:])) * self.dtype.itemsize
         self.sep = meta["chunk_key_encoding"].get("configuration", {}).get("separator", "/")
 
@@ -84,8 +90,16 @@ class _ShardReader:
                 return False
             conf = codecs[0]["configuration"]
             names = [c["name"] for c in conf["codecs"]]
-            inner_ok = names in (["bytes"], ["bytes", "blosc"], ["bytes", "crc32c"], ["bytes", "blosc", "crc32c"])
-            endian = conf["codecs"][0].get("configuration", {}).get("endian", "little") == "little"
+            pre = 0
+            if names and names[0] == "transpose":
+                if list(conf["codecs"][0]["configuration"]["order"])[0] != 0:    # the frame axis stays first
+                    return False
+                pre = 1
+            if names[pre:pre + 1] == ["numcodecs.bitround"]:   # decoding is the identity
+                pre += 1
+            inner_ok = names[pre:] in (["bytes"], ["bytes", "blosc"], ["bytes", "crc32c"],
+                                       ["bytes", "blosc", "crc32c"])
+            endian = conf["codecs"][pre].get("configuration", {}).get("endian", "little") == "little"
             index_ok = [c["name"] for c in conf["index_codecs"]] == ["bytes", "crc32c"]
             key_ok = meta["chunk_key_encoding"]["name"] == "default"
             return inner_ok and endian and index_ok and key_ok and conf.get("index_location", "end") == "end"
@@ -177,7 +191,10 @@ class _ShardReader:
                 if len(buf) != self.chunk_nbytes:
                     raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
                                                      f"not {self.chunk_nbytes}")
-                chunk = np.frombuffer(buf, self.dtype).reshape(inner)
+                if self.order is None:
+                    chunk = np.frombuffer(buf, self.dtype).reshape(inner)
+                else:
+                    chunk = np.frombuffer(buf, self.dtype).reshape(self.stored).transpose(self.back)
                 src = list(keep)
                 src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
                 out[tuple(dst)] = chunk[tuple(src)]
@@ -207,6 +224,7 @@ class Store:
         self.root, self.layout = schema.open_group(path, mode="r", check=check)
         self.version = schema.version_of(self.root)
         self._specs = {s.path: s for s in schema.arrays(self.version)}
+        self._absent = schema.absent_arrays(self.root, self.version)   # frames/* newer than the store
         self._init_local()
 
     def _init_local(self):
@@ -257,6 +275,7 @@ class Store:
     def refresh(self) -> None:
         """Forget cached per-frame metadata (after frames were written by another process)."""
         self.root, self.layout = schema.open_group(self.path, mode="r")
+        self._absent = schema.absent_arrays(self.root, self.version)
         self._fast_readers = {}
         self._meta_cache = None
 
@@ -303,6 +322,10 @@ class Store:
             table: dict = {}
             damage: dict[int, list[StoreCorruptionError]] = {}
             for key, path in self._meta_columns():
+                if path in self._absent:       # a FRAME_META key newer than the store: its fill value
+                    spec = self._specs[path]
+                    table[key] = np.full(self.num_frames, spec.fill)
+                    continue
                 try:
                     table[key] = self._zarr_read(path, slice(None))
                 except CorruptChunkError:
@@ -311,7 +334,7 @@ class Store:
             table["complete"] = np.asarray(table["complete"], bool)
             done = [int(i) for i in np.nonzero(table["complete"])[0]]
             if self.version >= 2 and done:
-                paths = [p for _, p in self._meta_columns()]
+                paths = [p for _, p in self._meta_columns() if p not in self._absent]
                 for i, lost in schema.missing_chunks(self.root, done, self.version, paths=paths).items():
                     damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
             self._meta_cache = (table, {i: damage[i] for i in sorted(damage)})

@@ -51,8 +51,14 @@ class StoreLayout:
     samples and one sample layer per entry of ``layer_spp`` (each the mean of that many samples).
 
     ``tile`` is the inner chunk edge in pixels (clamped to the frame). ``radiance_encoding`` is
-    ``float32`` (lossless, default) or ``log16`` (uint16 log code, rel. error <= 3.4e-4).
+    ``float32`` (default) or ``log16`` (uint16 log code, rel. error <= 3.4e-4).
     ``feature_dtype`` is ``float16`` (default; values must stay within +-65504) or ``float32``.
+    ``encoding`` is the image arrays' codec chains (``stores.codecs.ENCODINGS``): ``compact``
+    (bit-rounded inputs, layers and guides, rel. error <= 2**-10; lossless references; zstd) or
+    ``lz4`` (everything lossless, LZ4). None leaves it open: ``create_store`` makes a new store
+    ``compact`` and an existing store keeps its own, so a config that does not name it resumes
+    stores of either. A stored layout without the key is a store written before the field existed
+    (``lz4``); ``to_dict`` omits None, so configs that leave it open keep their old form.
     """
 
     num_frames: int
@@ -63,6 +69,7 @@ class StoreLayout:
     tile: int = 32
     radiance_encoding: str = "float32"
     feature_dtype: str = "float16"
+    encoding: str | None = None
 
     def __post_init__(self):
         for name in ("num_frames", "height", "width", "spp", "tile"):
@@ -77,6 +84,22 @@ class StoreLayout:
             raise StoreLayoutError(f'"radiance_encoding" must be one of {RADIANCE_ENCODINGS}, got {self.radiance_encoding!r}')
         if self.feature_dtype not in FEATURE_DTYPES:
             raise StoreLayoutError(f'"feature_dtype" must be one of {FEATURE_DTYPES}, got {self.feature_dtype!r}')
+        if self.encoding is not None and self.encoding not in codecs.ENCODINGS:
+            raise StoreLayoutError(f'"encoding" must be one of {codecs.ENCODINGS} (or left out), got {self.encoding!r}')
+
+    @property
+    def codec_set(self) -> str:
+        """The encoding in force: ``encoding``, or the default for new stores when it is left open."""
+        return self.encoding or codecs.DEFAULT_ENCODING
+
+    def resolved(self) -> "StoreLayout":
+        """This layout with ``encoding`` decided (what ``create_store`` records)."""
+        return self if self.encoding else replace(self, encoding=self.codec_set)
+
+    @property
+    def feature_max(self) -> float:
+        """The largest |feature| a float16 store takes (``compact`` rounds 65473..65504 up to Inf)."""
+        return codecs.FLOAT16_MAX_COMPACT if self.codec_set == "compact" else FLOAT16_MAX
 
     @property
     def num_layers(self) -> int:
@@ -99,20 +122,33 @@ class StoreLayout:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["layer_spp"] = list(self.layer_spp)
+        if d["encoding"] is None:          # left open: no key (the form of every layout before the field)
+            del d["encoding"]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "StoreLayout":
+        """A layout from ``to_dict`` form. For a store's recorded layout (``open_group``) a missing
+        ``encoding`` means the store predates the field: :data:`stores.codecs.LEGACY_ENCODING`."""
         d = dict(d)
         d["layer_spp"] = tuple(d.get("layer_spp", LAYER_SPP))
         return cls(**d)
 
+    @classmethod
+    def of_store(cls, d: dict) -> "StoreLayout":
+        """The layout recorded in a store's root attributes (``encoding`` always decided)."""
+        return cls.from_dict({"encoding": codecs.LEGACY_ENCODING, **d})
+
     def with_frames(self, num_frames: int) -> "StoreLayout":
-        return StoreLayout(**{**self.to_dict(), "num_frames": num_frames, "layer_spp": self.layer_spp})
+        return replace(self, num_frames=num_frames)
 
     def frame_shape_compatible(self, other: "StoreLayout") -> bool:
+        """Same frames and encodings, ``num_frames`` aside; an ``encoding`` left open (None) on either
+        side matches any."""
         a, b = self.to_dict(), other.to_dict()
         a.pop("num_frames"), b.pop("num_frames")
+        if "encoding" not in a or "encoding" not in b:
+            a.pop("encoding", None), b.pop("encoding", None)
         return a == b
 
 
@@ -150,7 +186,18 @@ class ArraySpec:
             a = a.transpose(self.perm)
         if self.path == "inputs/radiance" and layout.radiance_encoding == "log16":
             return codecs.encode_log16(a)
-        return np.ascontiguousarray(a, dtype=self.storage_dtype(layout))
+        dtype = self.storage_dtype(layout)
+        if self.image:
+            keep = self.chain(layout).keepbits
+            if keep is not None and dtype == "float16" and a.dtype != np.float16:
+                # round once, in float32, to the bits kept: the float16 cast is then exact (for
+                # |x| >= 2**-14) and the codec's BitRound a no-op; f32 -> f16 -> 9 bits would round twice
+                a = codecs.bitround(np.asarray(a, np.float32), keep)
+        return np.ascontiguousarray(a, dtype=dtype)
+
+    def chain(self, layout: StoreLayout) -> "codecs.Chain":
+        """This image array's inner-chunk codecs under the layout's encoding."""
+        return codecs.image_chain(self.path, layout.codec_set, self.storage_dtype(layout))
 
     def from_store(self, a: np.ndarray, layout: StoreLayout) -> np.ndarray:
         """Storage layout (any leading frame axis kept; log16 radiance already decoded, as
@@ -238,6 +285,12 @@ _STATUS_SPECS = (
               "True once every array of the frame is written; written last", image=False, fill=False),
 )
 GROUPS = ("inputs", "layers", "reference", "guides", "frames", "status")
+# The FRAME_META keys every v1/v2 store has had since the start. A ``frames/*`` array of a key added
+# since (``stores.contract.FRAME_META`` grows, e.g. ``case``) is missing from stores made before it:
+# not damage (:func:`absent_arrays`); readers give its fill value, ``open_or_create`` adds it.
+BASE_META_KEYS = ("scene_json", "scene_seed", "frame", "num_frames", "has_motion", "has_defocus",
+                  "nonfinite_inputs", "nonfinite_layers", "nonfinite_reference", "reference_spp",
+                  "reference_rel_stderr", "render_seconds")
 ARRAYS_V1: tuple[ArraySpec, ...] = _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS + _STATUS_SPECS
 
 
@@ -289,6 +342,24 @@ def meta_path(key: str, version: int = SCHEMA_VERSION) -> str:
     raise KeyError(key)
 
 
+def later_meta_paths(version: int = SCHEMA_VERSION) -> tuple[str, ...]:
+    """Paths of the ``frames/*`` arrays of FRAME_META keys added after :data:`BASE_META_KEYS`."""
+    return tuple(meta_path(k, version) for k in FRAME_META if k not in BASE_META_KEYS)
+
+
+def absent_arrays(root, version: int | None = None) -> frozenset[str]:
+    """The arrays of :func:`later_meta_paths` that the store at ``root`` lacks (it was made before
+    their key existed). Every other array must be there (:func:`array_problems`)."""
+    version = version_of(root) if version is None else version
+    out = []
+    for path in later_meta_paths(version):
+        try:
+            root[path]
+        except KeyError:
+            out.append(path)
+    return frozenset(out)
+
+
 def version_of(root) -> int:
     return int(dict(root.attrs)["schema_version"])
 
@@ -318,7 +389,9 @@ def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VE
     kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype, chunks=spec.chunks(layout),
               dimension_names=spec.dims, fill_value=spec.fill, attributes=attrs)
     if spec.image:
-        kw.update(shards=spec.shards(layout), compressors=[codecs.compressor()] + crc)
+        ch = spec.chain(layout)
+        kw.update(shards=spec.shards(layout), filters=codecs.zarr_filters(ch, spec.dims) or None,
+                  compressors=[codecs.compressor(ch.cname, ch.clevel, ch.shuffle)] + crc)
     else:
         kw.update(compressors=crc or None)
     return kw
@@ -329,8 +402,11 @@ def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple
     crc = (("crc32c",),) if version >= 2 else ()
     ser = ("vlen-utf8",) if spec.storage_dtype(layout) == "str" else ("bytes", "little")
     if spec.image:
-        b = codecs.BLOSC
-        inner = (("bytes", "little"), ("blosc", b["cname"], b["clevel"], b["shuffle"])) + crc
+        ch = spec.chain(layout)
+        order = ch.order(spec.dims)
+        pre = ((("transpose", ("order", json.dumps(list(order)))),) if order is not None else ()) + \
+              ((("numcodecs.bitround", ("keepbits", json.dumps(ch.keepbits))),) if ch.keepbits is not None else ())
+        inner = pre + (("bytes", "little"), ("blosc", ch.cname, ch.clevel, ch.shuffle)) + crc
         return (("sharding_indexed", spec.chunks(layout), inner, (("bytes", "little"), ("crc32c",)), "end"),)
     return (ser,) + crc
 
@@ -362,12 +438,14 @@ def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: boo
     dimension names. ``frames_exact=False`` accepts a frame axis longer than ``layout.num_frames``
     (a writer re-opening a store whose growth was cut short; ``grow`` finishes it)."""
     out = []
+    later = set(later_meta_paths(version))
     for spec in arrays(version):
         try:
             arr = root[spec.path]
             meta = arr.metadata.to_dict()
         except KeyError:
-            out.append(f"{spec.path}: missing")
+            if spec.path not in later:      # a key newer than the store: read as its fill value
+                out.append(f"{spec.path}: missing")
             continue
         except Exception as e:    # noqa: BLE001 - zarr raises many types for an unparsable zarr.json
             out.append(f"{spec.path}: unreadable zarr.json ({type(e).__name__}: {e})")
@@ -431,7 +509,9 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
     version = version_of(root) if version is None else version
     if version < 2:
         return {}
-    specs = [s for s in arrays(version) if s.per_frame and (paths is None or s.path in paths)]
+    absent = absent_arrays(root, version)
+    specs = [s for s in arrays(version) if s.per_frame and (paths is None or s.path in paths)
+             and s.path not in absent]
     frames = [int(i) for i in frames]
     out: dict[int, list[tuple[str, str]]] = {}
     for spec in specs:
@@ -593,6 +673,7 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     :func:`open_group`) and ``stores.writer.open_or_create`` makes it again."""
     import zarr
     p = _zarr_store(path_or_url)
+    layout = layout.resolved()               # an encoding left open is the default for new stores
     try:
         json.dumps(config or {})
     except TypeError as e:
@@ -641,6 +722,11 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
                                 chunks=(layout.num_layers,), dimension_names=("level",))
         spp[:] = np.array(layout.layer_spp, np.int32)
     root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
+    if layout.codec_set == "compact":        # say what the lossy codecs cost (xarray shows the attrs)
+        for spec in table:
+            ch = spec.chain(layout) if spec.image else None
+            if ch is not None and ch.keepbits is not None:
+                root[spec.path].attrs["max_rel_error"] = 2.0 ** -(ch.keepbits + 1)
     if layout.radiance_encoding == "log16":
         root["inputs/radiance"].attrs["log16"] = {
             "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,
@@ -687,7 +773,7 @@ def open_group(path_or_url, mode: str = "r", *, check: bool = True):
         raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads versions "
                                  f"{', '.join(map(str, READABLE_VERSIONS))} and writes {SCHEMA_VERSION} "
                                  f"(re-create the store or use a matching release)")
-    layout = StoreLayout.from_dict(attrs["layout"])
+    layout = StoreLayout.of_store(attrs["layout"])
     if check:
         bad = array_problems(root, layout, version, frames_exact=(mode == "r"))
         if bad:
@@ -704,8 +790,9 @@ def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
         return layout
     version = version_of(root)
     new = layout.with_frames(num_frames)
+    absent = absent_arrays(root, version)
     for spec in arrays(version):
-        if spec.dims[0] != "frame":
+        if spec.dims[0] != "frame" or spec.path in absent:
             continue
         arr = root[spec.path]
         arr.resize((num_frames,) + tuple(arr.shape[1:]))
@@ -717,8 +804,25 @@ def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
     return new
 
 
+def add_absent_arrays(root, layout: StoreLayout) -> list[str]:
+    """Create the :func:`absent_arrays` of an existing store (opened ``r+``; one process, before
+    tasks write), every existing frame's chunk written with the fill value, so complete frames keep
+    one file per array (schema v2: a missing file is damage). Returns the paths created."""
+    version = version_of(root)
+    made = []
+    for path in sorted(absent_arrays(root, version)):
+        spec = next(s for s in arrays(version) if s.path == path)
+        arr = root.create_array(path, **create_kwargs(spec, layout, version))
+        if version >= 2 and arr.shape[0]:
+            arr.with_config({"write_empty_chunks": True})[:] = spec.fill
+        made.append(path)
+    if made and version >= 2:
+        consolidate(root.store)
+    return made
+
+
 def layout_of(root) -> StoreLayout:
-    return StoreLayout.from_dict(dict(root.attrs)["layout"])
+    return StoreLayout.of_store(dict(root.attrs)["layout"])
 
 
 __all__ = ["SCHEMA_VERSION", "READABLE_VERSIONS", "STORE_KIND", "arrays", "meta_path", "version_of",

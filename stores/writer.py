@@ -52,11 +52,13 @@ def check_frame(arrays: dict, layout: StoreLayout) -> None:
     if layout.feature_dtype == "float16":
         feats = np.asarray(arrays["features"])
         finite = np.isfinite(feats)
-        big = finite & (np.abs(feats) > schema.FLOAT16_MAX)
+        top = layout.feature_max
+        big = finite & (np.abs(feats) > top)
         if big.any():
             bad = sorted({FEATURE_NAMES[c] for c in np.nonzero(big)[-1]})
-            raise StoreValueError(f"features {bad} exceed float16's range (|x| <= 65504); rescale them in the "
-                                  f"renderer or create the store with feature_dtype='float32'")
+            raise StoreValueError(f"features {bad} exceed float16's range (|x| <= {top:g} in the store's "
+                                  f"{layout.codec_set!r} encoding); rescale them in the renderer or create "
+                                  f"the store with feature_dtype='float32'")
 
 
 class StoreWriter:
@@ -70,6 +72,9 @@ class StoreWriter:
         self.path = path
         self.root, self.layout = schema.open_group(path, mode="r+")
         self.version = schema.version_of(self.root)
+        # frames/* arrays of FRAME_META keys newer than the store: open_or_create adds them (one
+        # process); a writer opened without it skips them, and readers give their fill value
+        self.absent = schema.absent_arrays(self.root, self.version)
 
     def _array(self, path: str):
         """``path`` for writing: every chunk is written, all-zero ones too (zarr skips chunks equal to
@@ -101,7 +106,10 @@ class StoreWriter:
         meta.setdefault("clip_id", meta["scene_seed"])
         for key in list(FRAME_META) + ["clip_id"]:
             value = meta[key]
-            arr(schema.meta_path(key, self.version))[index] = str(value) if FRAME_META.get(key) is str else value
+            path = schema.meta_path(key, self.version)
+            if path in self.absent:
+                continue
+            arr(path)[index] = str(value) if FRAME_META.get(key) is str else value
         if on_progress:
             on_progress("frames")
         arr("status/complete")[index] = True
@@ -178,6 +186,8 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
     if overwrite or not schema._exists(path):
         schema.create_store(path, layout, config, overwrite=overwrite)
         return StoreWriter(path)
+    # The store keeps its own encoding: ``layout.encoding`` None (a config that does not name it)
+    # matches the store's, whatever it is (lz4 for stores made before the field, compact since).
     try:
         root, have = schema.open_group(path, mode="r+")
     except IncompleteStoreError as e:
@@ -192,9 +202,10 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
         return StoreWriter(path)
     if not have.frame_shape_compatible(layout):
         a, b = have.to_dict(), layout.to_dict()
-        diff = {k: (a[k], b[k]) for k in a if k != "num_frames" and a[k] != b[k]}
+        diff = {k: (a[k], b.get(k)) for k in a if k != "num_frames" and a[k] != b.get(k)}
         raise StoreLayoutError(f"store at {os.fspath(path)!s} has a different frame layout "
                                f"(field: (store, requested)): {diff}")
+    schema.add_absent_arrays(root, have)     # frames/* of FRAME_META keys newer than the store
     schema.grow(root, have, layout.num_frames)
     if config is not None:
         attrs = dict(root.attrs)

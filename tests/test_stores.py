@@ -17,16 +17,18 @@ from stores.errors import (CropSizeError, ForeignStoreError, FrameIndexError, In
 from stores.reader import open_store, split_of_clip
 from stores.schema import StoreLayout
 from stores.writer import StoreWriter, open_or_create
-from test_stores_synthetic import synthetic_frame
+from test_stores_synthetic import stored, synthetic_frame
 
 H, W, S = 20, 24, 4
 LAYOUT = StoreLayout(num_frames=3, height=H, width=W, spp=S, tile=16)   # 16 does not divide 20 or 24
 
 
-@pytest.fixture()
-def store3(tmp_path):
+@pytest.fixture(params=["compact", "lz4"])
+def store3(tmp_path, request):
+    """Three frames, in a store of each encoding (``compact`` is what a layout that leaves it open gets)."""
     path = tmp_path / "s.zarr"
-    w = open_or_create(path, LAYOUT, {"seed": 1, "split": {"train": 0.5, "val": 0.25, "test": 0.25}})
+    lay = LAYOUT if request.param == "compact" else StoreLayout(**{**LAYOUT.to_dict(), "encoding": "lz4"})
+    w = open_or_create(path, lay, {"seed": 1, "split": {"train": 0.5, "val": 0.25, "test": 0.25}})
     frames = [synthetic_frame(10 + i, H, W, S, sun=True) for i in range(3)]
     for i, fr in enumerate(frames):
         w.write_frame(i, fr)
@@ -42,14 +44,17 @@ def test_round_trip_every_array(store3):
     path, frames = store3
     s = open_store(path)
     assert s.num_frames == 3 and s.complete_frames() == [0, 1, 2]
+    lossless = {"compact": {"reference", "reference_stderr", "camera_to_world", "world_to_clip"},
+                "lz4": set(FRAME_ARRAYS) - {"features"}}[s.layout.encoding]
     for i, fr in enumerate(frames):
         out = s.read_frame(i)
         for name in FRAME_ARRAYS:
             assert out[name].shape == fr[name].shape, name
-            if name == "features":                # float16: rel. precision 2**-11
-                np.testing.assert_allclose(out[name], fr[name], rtol=2 ** -11, atol=1e-7)
-            else:                                   # lossless
+            np.testing.assert_array_equal(out[name], stored(name, fr[name], s.layout), err_msg=name)
+            if name in lossless:
                 np.testing.assert_array_equal(out[name], fr[name], err_msg=name)
+            else:      # float16 features 2**-11, compact 2**-10; float16 subnormals (< 2**-14) 1e-7 absolute
+                np.testing.assert_allclose(out[name], fr[name], rtol=2 ** -10, atol=1e-7, err_msg=name)
         meta = out["meta"]
         for k in FRAME_META:
             assert meta[k] == fr["meta"][k], k
@@ -66,8 +71,9 @@ def test_crop_and_spp_match_full_frame_and_zarr_path(store3):
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
         np.testing.assert_array_equal(a[k], c[k])
-    np.testing.assert_array_equal(a["radiance"], frames[1]["radiance"][3:18, 5:22, :2])
-    np.testing.assert_array_equal(a["layers"], frames[1]["layers"][:, 3:18, 5:22])
+    lay = fast.layout
+    np.testing.assert_array_equal(a["radiance"], stored("radiance", frames[1]["radiance"], lay)[3:18, 5:22, :2])
+    np.testing.assert_array_equal(a["layers"], stored("layers", frames[1]["layers"], lay)[:, 3:18, 5:22])
 
 
 def test_root_attributes_record_provenance(store3):
@@ -75,7 +81,8 @@ def test_root_attributes_record_provenance(store3):
     attrs = dict(zarr.open_group(str(path), mode="r").attrs)
     assert attrs["schema_version"] == schema.SCHEMA_VERSION
     assert attrs["config"]["seed"] == 1
-    assert StoreLayout.from_dict(attrs["layout"]) == LAYOUT
+    assert StoreLayout.from_dict(attrs["layout"]) == LAYOUT.resolved() or attrs["layout"]["encoding"] == "lz4"
+    assert attrs["layout"]["encoding"] in ("compact", "lz4")          # recorded, decided
     assert "zarr" in attrs["package_versions"] and "numpy" in attrs["package_versions"]
     assert len(attrs["feature_names"]) == 17
 
@@ -89,16 +96,19 @@ def test_xarray_opens_every_group_with_named_dims(store3):
     ds = xr.open_zarr(str(path), group="inputs", consolidated=False)
     assert ds["radiance"].dims == ("frame", "sample", "rgb", "y", "x")
     assert list(ds["feature"].values[:4]) == ["normal_x", "normal_y", "normal_z", "depth"]
-    np.testing.assert_array_equal(ds["radiance"].isel(frame=2).values, frames[2]["radiance"].transpose(2, 3, 0, 1))
+    # xarray (zarr-python) decodes the compact codecs too: float32 values, not codes
+    np.testing.assert_array_equal(ds["radiance"].isel(frame=2).values,
+                                  stored("radiance", frames[2]["radiance"], open_store(path).layout).transpose(2, 3, 0, 1))
     depth = xr.open_zarr(str(path), group="guides", consolidated=False)["depth"]
     assert depth.dims == ("frame", "y", "x")
     meta = xr.open_zarr(str(path), group="frames", consolidated=False)
     assert json.loads(str(meta["scene_json"].values[1]))["seed"] == 11
 
 
-@pytest.mark.parametrize("encoding", ["float32", "log16"])
-def test_hdr_extremes_round_trip_without_inf(tmp_path, encoding):
-    lay = StoreLayout(num_frames=1, height=8, width=8, spp=4, tile=8, radiance_encoding=encoding)
+@pytest.mark.parametrize("encoding,codec_set", [("float32", "lz4"), ("float32", "compact"), ("log16", "lz4"),
+                                                ("log16", "compact")])
+def test_hdr_extremes_round_trip_without_inf(tmp_path, encoding, codec_set):
+    lay = StoreLayout(num_frames=1, height=8, width=8, spp=4, tile=8, radiance_encoding=encoding, encoding=codec_set)
     w = open_or_create(tmp_path / "x.zarr", lay)
     fr = synthetic_frame(1, 8, 8, 4)
     vals = np.array([0.0, 1e-8, 1e5, 1e8], np.float32)
@@ -110,11 +120,12 @@ def test_hdr_extremes_round_trip_without_inf(tmp_path, encoding):
     for k in ("radiance", "layers", "reference"):
         assert np.isfinite(out[k]).all(), k
     assert (out["radiance"][fr["radiance"] == 0] == 0).all()
-    tol = 0.0 if encoding == "float32" else 1e-3
+    tol = {("float32", "lz4"): 0.0, ("float32", "compact"): 2 ** -10}.get((encoding, codec_set), 1e-3)
     nz = fr["radiance"] > 0
     assert _rel_err(fr["radiance"][nz], out["radiance"][nz]) <= tol
     assert out["radiance"].max() == pytest.approx(1e8, rel=tol)
-    np.testing.assert_array_equal(out["layers"], fr["layers"])
+    np.testing.assert_array_equal(out["layers"], stored("layers", fr["layers"], lay.resolved()))
+    np.testing.assert_array_equal(out["reference"], fr["reference"])        # lossless in every encoding
 
 
 @settings(max_examples=60, deadline=None)
@@ -140,11 +151,12 @@ def test_rewrite_overwrites_cleanly(store3):
     w = StoreWriter(path)
     new = synthetic_frame(99, H, W, S, sun=False)
     w.write_frame(1, new)
-    out = open_store(path).read_frame(1)
-    np.testing.assert_array_equal(out["radiance"], new["radiance"])
-    np.testing.assert_array_equal(out["layers"], new["layers"])
+    st_ = open_store(path)
+    out = st_.read_frame(1)
+    np.testing.assert_array_equal(out["radiance"], stored("radiance", new["radiance"], st_.layout))
+    np.testing.assert_array_equal(out["layers"], stored("layers", new["layers"], st_.layout))
     assert out["meta"]["scene_seed"] == 99
-    np.testing.assert_array_equal(open_store(path).read_frame(0)["radiance"], frames[0]["radiance"])
+    np.testing.assert_array_equal(st_.read_frame(0)["radiance"], stored("radiance", frames[0]["radiance"], st_.layout))
 
 
 def test_append_grows_the_store(store3):
@@ -154,7 +166,7 @@ def test_append_grows_the_store(store3):
     w.write_frame(4, synthetic_frame(50, H, W, S))
     s = open_store(path)
     assert s.num_frames == 5 and s.complete_frames() == [0, 1, 2, 4]
-    np.testing.assert_array_equal(s.read_frame(2)["radiance"], frames[2]["radiance"])
+    np.testing.assert_array_equal(s.read_frame(2)["radiance"], stored("radiance", frames[2]["radiance"], s.layout))
     assert s.attrs["config"] == {"seed": 2} and s.attrs["config_history"][0]["seed"] == 1
     # never shrinks
     assert open_or_create(path, LAYOUT.with_frames(2)).num_frames == 5
@@ -259,25 +271,36 @@ def test_black_frame_overwrites_stale_data(store3):
         out = open_store(path, fast=fast).read_frame(0)
         for k in ("radiance", "layers", "reference", "features", "guides_depth"):
             assert not out[k].any(), (k, fast)
-    np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"], frames[1]["radiance"])
+    st_ = open_store(path)
+    np.testing.assert_array_equal(st_.read_frame(1)["radiance"], stored("radiance", frames[1]["radiance"], st_.layout))
 
 
 @settings(max_examples=25, deadline=None)
 @given(h=st.integers(1, 40), w=st.integers(1, 40), tile=st.sampled_from([3, 8, 16, 32]), s=st.integers(1, 3),
+       chain=st.sampled_from(["plain", "lz4", "compact"]),
+       array=st.sampled_from(["inputs/radiance", "inputs/features", "layers/radiance", "guides/depth"]),
        data=st.data())
-def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, s, data):
-    """The direct shard reader returns exactly numpy's slice for any frame size, tile and crop."""
+def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, s, chain, array, data):
+    """The direct shard reader returns exactly zarr's values for any frame size, tile, crop and codec
+    chain (``plain``: LZ4 without a checksum; ``lz4``, ``compact``: the schema v2 chains, compact
+    with its transposed, bit-rounded inner chunks)."""
     from stores.reader import _ShardReader
-    lay = StoreLayout(num_frames=2, height=h, width=w, spp=s, tile=tile)
-    spec = schema.ARRAY_BY_PATH["inputs/radiance"]
+    lay = StoreLayout(num_frames=2, height=h, width=w, spp=s, tile=tile,
+                      encoding=None if chain == "plain" else chain).resolved()
+    spec = schema.ARRAY_BY_PATH[array]
     path = tmp_path_factory.mktemp("prop")
     root = zarr.open_group(str(path), mode="w")
-    arr = root.create_array("a", shape=spec.shape(lay), dtype="float32", chunks=spec.chunks(lay),
-                            shards=spec.shards(lay), compressors=codecs.compressor(), fill_value=0,
-                            dimension_names=spec.dims)
+    if chain == "plain":
+        arr = root.create_array("a", shape=spec.shape(lay), dtype="float32", chunks=spec.chunks(lay),
+                                shards=spec.shards(lay), compressors=codecs.compressor(), fill_value=0,
+                                dimension_names=spec.dims)
+    else:
+        arr = root.create_array("a", **schema.create_kwargs(spec, lay))
+    assert _ShardReader.applicable(arr.metadata.to_dict())
     full = np.random.default_rng(h * 100 + w).random(spec.shape(lay), dtype=np.float32)
-    full[1, :, :, : h // 2] = 0                        # some all-fill inner chunks
+    full[1, ..., : h // 2, :] = 0                      # some all-fill inner chunks
     arr[...] = full
+    full = arr[...]                                    # what zarr decodes (bit-rounded in compact)
     r = _ShardReader(str(path / "a"), arr.metadata.to_dict(), spec.dims)
     y0 = data.draw(st.integers(0, h - 1))
     x0 = data.draw(st.integers(0, w - 1))
@@ -285,4 +308,5 @@ def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, 
     x1 = data.draw(st.integers(x0 + 1, w))
     k = data.draw(st.integers(1, s))
     for f in (0, 1):
-        np.testing.assert_array_equal(r.read(f, y0, y1, x0, x1, k), full[f, :k, :, y0:y1, x0:x1])
+        want = full[f, :k, :, y0:y1, x0:x1] if "sample" in spec.dims else full[f, ..., y0:y1, x0:x1]
+        np.testing.assert_array_equal(r.read(f, y0, y1, x0, x1, k), want)

@@ -9,6 +9,7 @@ from stores.datasets import PixelDataset, SampleDataset
 from stores.reader import open_store
 from stores.schema import StoreLayout
 from stores.writer import open_or_create
+from test_stores_synthetic import stored
 
 
 @pytest.fixture(scope="module")
@@ -25,15 +26,19 @@ def test_real_frame_round_trip(rendered, tmp_path):
     open_or_create(tmp_path / "r.zarr", lay, {"real": True}).write_frame(0, fr)
     rep = validate.validate_store(tmp_path / "r.zarr")
     assert rep.ok, rep.format()
-    out = open_store(tmp_path / "r.zarr").read_frame(0)
-    np.testing.assert_array_equal(out["radiance"], fr["radiance"])
-    np.testing.assert_array_equal(out["layers"], fr["layers"])
+    st_ = open_store(tmp_path / "r.zarr")
+    out = st_.read_frame(0)
+    assert st_.layout.encoding == "compact"        # the default of new stores: 9-bit inputs, exact references
+    for k in ("radiance", "layers", "features", "guides_albedo", "guides_normal", "guides_depth", "guides_motion"):
+        np.testing.assert_array_equal(out[k], stored(k, fr[k], st_.layout), err_msg=k)
+        np.testing.assert_allclose(out[k], fr[k], rtol=2 ** -10, atol=1e-7, err_msg=k)
     np.testing.assert_array_equal(out["reference"], fr["reference"])
-    np.testing.assert_allclose(out["features"], fr["features"], rtol=2 ** -11, atol=1e-6)
+    np.testing.assert_array_equal(out["reference_stderr"], fr["reference_stderr"])
     assert out["meta"]["scene_json"] == fr["meta"]["scene_json"]
     item = SampleDataset(tmp_path / "r.zarr", split=None, spp=4, crop=8, augment=True)[0]
     assert item["radiance"].shape == (4, 3, 8, 8) and item["features"].shape == (4, 17, 8, 8)
     px = PixelDataset(tmp_path / "r.zarr", split=None, spp=63, crop=None, augment=False)[0]
     # 63 spp composed from all six layers: the mean of their 63 samples
-    expect = sum(s * fr["layers"][n] for n, s in enumerate((1, 2, 4, 8, 16, 32))) / 63
+    layers = stored("layers", fr["layers"], st_.layout)
+    expect = sum(s * layers[n] for n, s in enumerate((1, 2, 4, 8, 16, 32))) / 63
     np.testing.assert_allclose(px["radiance"].numpy(), expect.transpose(2, 0, 1), rtol=1e-5, atol=1e-7)

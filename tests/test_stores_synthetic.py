@@ -116,6 +116,8 @@ def synthetic_frame(seed: int = 0, h: int = 32, w: int = 32, spp: int = 8, *, fr
         scene_seed=int(scene_seed), frame=int(frame), num_frames=int(num_frames), has_motion=motion,
         has_defocus=defocus, nonfinite_inputs=0, nonfinite_layers=0, nonfinite_reference=0,
         reference_spp=ref_spp, reference_rel_stderr=0.01, render_seconds=float(rng.uniform(0.5, 2.0)))
+    for k, t in FRAME_META.items():          # keys added to the contract since (e.g. ``case``): '' / 0 / False
+        meta.setdefault(k, t())
     return dict(
         radiance=radiance, features=f, layers=layers, reference=reference, reference_stderr=stderr,
         guides_albedo=f[..., 4:7].mean(axis=2), guides_normal=f[..., 0:3].mean(axis=2),
@@ -140,3 +142,26 @@ def test_synthetic_frame_is_deterministic_and_hdr():
     np.testing.assert_array_equal(a["radiance"], b["radiance"])
     assert a["radiance"].max() > 1e5            # sun disc and fireflies
     assert (a["radiance"] == 0).any()           # absorbed paths
+
+
+def stored(name: str, a, layout) -> np.ndarray:
+    """What a store of ``layout`` returns (``read_frame``) for contract array ``name`` written as
+    ``a``: exact for lossless arrays; the encoding's rounding for lossy ones (``compact``: the
+    mantissa rounded to 9 bits, as numcodecs' BitRound does; float16 features; log16 codes)."""
+    from stores import codecs
+    from stores.schema import ARRAY_BY_SOURCE
+    spec = ARRAY_BY_SOURCE[name]
+    if not spec.image:
+        return np.asarray(a)
+    a = np.asarray(a, np.float32)
+    if name == "radiance" and layout.radiance_encoding == "log16":
+        return codecs.decode_log16(codecs.encode_log16(a))
+    keep = spec.chain(layout).keepbits
+    if keep is not None:
+        a = codecs.bitround(a, keep)
+    if spec.storage_dtype(layout) == "float16":
+        a = a.astype(np.float16)
+        if keep is not None:     # the codec's own BitRound, a no-op but for float16 subnormals (|x| < 2**-14)
+            a = codecs.bitround(a, keep)
+        a = a.astype(np.float32)
+    return a

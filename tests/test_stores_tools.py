@@ -16,7 +16,7 @@ from stores.errors import ExportError
 from stores.reader import open_store
 from stores.schema import StoreLayout
 from stores.writer import StoreWriter, open_or_create
-from test_stores_synthetic import synthetic_frame
+from test_stores_synthetic import stored, synthetic_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W, S = 12, 16, 4
@@ -72,7 +72,8 @@ def test_writer_killed_mid_frame_is_flagged_and_rerun_completes(store2, tmp_path
     for i in StoreWriter(path).incomplete_frames():
         StoreWriter(path).write_frame(i, synthetic_frame(77, H, W, S))
     assert validate.main([str(path)]) == 0
-    np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"], synthetic_frame(77, H, W, S)["radiance"])
+    np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"],
+                                  stored("radiance", synthetic_frame(77, H, W, S)["radiance"], open_store(path).layout))
 
 
 def test_validator_finds_bad_values(store2):
@@ -109,13 +110,15 @@ def test_export_exr(store2, tmp_path):
     path, frames = store2
     assert export.main([str(path), "--frames", "1", "--format", "exr", "--out", str(tmp_path / "e")]) == 0
     d = tmp_path / "e" / "frame_000001"
+    lay = open_store(path).layout
+    fr = {k: stored(k, v, lay) for k, v in frames[1].items() if k != "meta"}   # what the store holds
     mean = export.read_exr(str(d / "input_mean.exr"))["RGB"]
-    np.testing.assert_allclose(mean, frames[1]["radiance"].mean(axis=2), rtol=1e-6)
-    np.testing.assert_array_equal(export.read_exr(str(d / "layer_0004spp.exr"))["RGB"], frames[1]["layers"][2])
+    np.testing.assert_allclose(mean, fr["radiance"].mean(axis=2), rtol=1e-6)
+    np.testing.assert_array_equal(export.read_exr(str(d / "layer_0004spp.exr"))["RGB"], fr["layers"][2])
     np.testing.assert_array_equal(export.read_exr(str(d / "reference.exr"))["RGB"], frames[1]["reference"])
-    np.testing.assert_array_equal(export.read_exr(str(d / "depth.exr"))["Y"], frames[1]["guides_depth"][..., 0])
+    np.testing.assert_array_equal(export.read_exr(str(d / "depth.exr"))["Y"], fr["guides_depth"][..., 0])
     mo = export.read_exr(str(d / "motion.exr"))
-    np.testing.assert_array_equal(mo["R"], frames[1]["guides_motion"][..., 0])
+    np.testing.assert_array_equal(mo["R"], fr["guides_motion"][..., 0])
     from PIL import Image
     png = Image.open(d / "reference.png")
     assert png.size == (W, H) and png.mode == "RGB"
@@ -144,7 +147,7 @@ def test_export_oidn_naming(store2, tmp_path):
     ref = export.read_exr(str(tmp_path / "o" / "f000001_ref.hdr.exr"))["RGB"]
     np.testing.assert_array_equal(ref, frames[1]["reference"])
     l8 = export.read_exr(str(tmp_path / "o" / "f000001_0008spp.hdr.exr"))["RGB"]
-    np.testing.assert_array_equal(l8, frames[1]["layers"][3])
+    np.testing.assert_array_equal(l8, stored("layers", frames[1]["layers"], open_store(path).layout)[3])
 
 
 def test_export_layerdenoise_matches_its_loader(store2, tmp_path):
