@@ -212,5 +212,5 @@ def test_scene_kinds_and_store_keys_have_one_source():
     from scene_gen import spec
     from stores.schema import SHAPE_FIELDS, StoreLayout
     assert C.SCENE_KINDS is spec.SCENE_KINDS
-    assert C.STORE_KEYS == {"tile", "radiance_encoding", "feature_dtype"}
+    assert C.STORE_KEYS == {"tile", "radiance_encoding", "feature_dtype", "encoding"}
     assert C.STORE_KEYS | set(SHAPE_FIELDS) == set(StoreLayout.__dataclass_fields__)
