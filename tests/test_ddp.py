@@ -1,8 +1,9 @@
 """Data-parallel training (``torchrun``, :mod:`training.distributed`) on tiny real stores: 2 CPU ranks
 (gloo) give the weights of one process with the same global batch, for a per-sample layer model
 (through the CLI, ``python -m training train``), a recurrent temporal model over clip windows and a
-per-pixel model; a run interrupted and resumed under 2 ranks equals the uninterrupted one; only rank 0
-writes; and each rank's share of a step is its slice of the one-process batch.
+per-pixel model; a run interrupted and resumed under 2 ranks equals the uninterrupted one, and a
+one-process run resumes under 2 ranks; only rank 0 writes; and each rank's crops in a step are its
+slice of the one-process batch.
 
 One ``torchrun --standalone --nproc_per_node 2`` launch runs every distributed case (this file is its
 script: see ``_worker``); the one-process runs it is compared with run in the test process."""
@@ -74,6 +75,7 @@ def _worker(spec_path: str) -> None:
         c = layer_cfg()                                          # interrupted after 2 steps, then resumed
         train(c, spec["store"], spec["out"] + "/resumed", progress=False, stop_after=2)
         train(c, spec["store"], spec["out"] + "/resumed", progress=False)
+        train(c, spec["store"], spec["out"] + "/from-one", progress=False)   # one process's 2 steps, resumed
         train(temporal_cfg(), spec["clip_store"], spec["out"] + "/temporal", progress=False)
         import training.loop as loop                             # record the crops each rank trains on
         seen, step = [], loop.train_step
@@ -102,7 +104,9 @@ def stores(tmp_path_factory):
 @pytest.fixture(scope="module")
 def ddp_runs(stores, tmp_path_factory):
     """Folder of the 2-rank runs (one torchrun launch)."""
+    from training.loop import train
     out = tmp_path_factory.mktemp("ddp-runs")
+    train(layer_cfg(), stores[0], out / "from-one", progress=False, stop_after=2)   # resumed under 2 ranks
     spec = out / "spec.json"
     spec.write_text(json.dumps({"store": stores[0], "clip_store": stores[1], "out": str(out)}))
     env = {**os.environ, "OMP_NUM_THREADS": "1",
@@ -160,6 +164,14 @@ def test_two_ranks_give_the_one_process_weights(stores, ddp_runs, tmp_path):
     assert not list(out.glob("*/.write-test*"))
     printed = [json.loads(ln) for ln in stdout.splitlines() if ln.startswith("{")]
     assert sorted(r["rank"] for r in printed) == [0, 1] and all(r["step"] == 4 for r in printed)
+
+
+def test_a_one_process_run_resumes_under_two_ranks(stores, ddp_runs, tmp_path):
+    from training.loop import train
+    out, _ = ddp_runs
+    train(layer_cfg(), stores[0], tmp_path / "one", progress=False)
+    _close(_weights(tmp_path / "one" / "checkpoint.pt"), _weights(out / "from-one" / "checkpoint.pt"))
+    assert [int(r["step"]) for r in _rows(out / "from-one" / "metrics.csv") if r["kind"] == "val"] == [2, 4]
 
 
 def test_the_ranks_crops_in_a_step_are_the_one_process_batch(stores, ddp_runs):

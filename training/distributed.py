@@ -116,7 +116,8 @@ def session(device: str = "cpu"):
 
     The group it makes lives until the process exits (destroyed then, ``atexit``), so a process that
     trains several times (a script calling ``train`` in turn) reuses it: destroying and re-creating
-    the default group under one torchrun rendezvous reuses its store keys and hung (measured)."""
+    the default group under one torchrun rendezvous meets the first group's keys in torchrun's store,
+    and it hung here (1 launch in 2)."""
     import torch.distributed as td
     if td.is_available() and td.is_initialized():
         dist = Dist(td.get_rank(), td.get_world_size(), from_env().local_rank)
