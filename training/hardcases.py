@@ -14,9 +14,10 @@ Flags (the ``flags`` list; each names the stage, the method and the frame):
 - **store** stages, per frame, whatever the method: ``inputs``, ``layers`` or ``reference`` when the
   renderer produced NaN/Inf that the pipeline's rule replaced (``frames/nonfinite_*`` > 0), or when a
   stored array of that stage holds a non-finite value (which the rule forbids);
-- **model output**: a method's output holds NaN/Inf on a frame;
-- **error**: a method's relMSE on a case is more than :data:`OUTLIER_FACTOR` (10) times the median of
-  that method's relMSE over the cases (an error far above its neighbours); the worst frame is named.
+- **model output** (**noisy input** for the ``input`` baseline, which has no model): a method's output
+  holds NaN/Inf on a frame (kind ``non-finite``), or its relMSE on a case is more than
+  :data:`OUTLIER_FACTOR` (10) times the median of that method's relMSE over the cases (kind ``error``,
+  an error far above its neighbours; the case's worst frame is named);
 - **not evaluated**: frames that ``evaluate`` refuses (those ``validate`` flags, e.g. the ``nan`` case's
   frame, whose renderer NaNs were replaced) are left out of the methods' numbers and listed here.
 
@@ -139,6 +140,7 @@ def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str
     evaluated = set()
     for ev in evals:
         m = ev["label"]
+        stage = "noisy input" if ev.get("method") == "input" else "model output"     # the input baseline has no model
         by_case: dict = {}
         for row in ev["frames"]:
             i = int(row["index"])
@@ -146,7 +148,7 @@ def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str
             c = cases[i] or NO_CASE
             by_case.setdefault(c, []).append(row)
             if not row["finite"] or not math.isfinite(row["relmse"]):
-                flags.append({"stage": "model output", "method": m, "frame": i, "case": c, "kind": "non-finite",
+                flags.append({"stage": stage, "method": m, "frame": i, "case": c, "kind": "non-finite",
                               "detail": "the output holds NaN/Inf" if not row["finite"]
                               else f"relMSE is {row['relmse']}"})
         for c, rows in by_case.items():
@@ -160,7 +162,7 @@ def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str
         for c, row in table.items():
             v = row.get(m)
             if v and math.isfinite(v["relmse"]) and len(errs) >= 3 and v["relmse"] > OUTLIER_FACTOR * med:
-                flags.append({"stage": "model output", "method": m, "frame": v["worst_frame"], "case": c,
+                flags.append({"stage": stage, "method": m, "frame": v["worst_frame"], "case": c,
                               "kind": "error", "detail": f"relMSE {v['relmse']:.4g} is "
                               f"{v['relmse'] / med:.0f}x the median {med:.4g} of {m} over the cases"})
     for i, c in enumerate(cases):
