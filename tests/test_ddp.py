@@ -163,7 +163,7 @@ def test_two_ranks_give_the_one_process_weights(stores, ddp_runs, tmp_path):
                     assert float(x[k]) == pytest.approx(float(y[k]), rel=1e-4, abs=1e-5), (name, k, x, y)
     assert not list(out.glob("*/.write-test*"))
     printed = [json.loads(ln) for ln in stdout.splitlines() if ln.startswith("{")]
-    assert sorted(r["rank"] for r in printed) == [0, 1] and all(r["step"] == 4 for r in printed)
+    assert [r["rank"] for r in printed] == [0] and printed[0]["step"] == 4     # rank 0 speaks for the run
 
 
 def test_a_one_process_run_resumes_under_two_ranks(stores, ddp_runs, tmp_path):

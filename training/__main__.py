@@ -26,6 +26,8 @@ def _train(a) -> int:
                       device=a.device, workers=a.workers, skip_bad_frames=a.skip_bad_frames)
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress)
+    if res.get("rank", 0) != 0:          # under torchrun: rank 0 speaks for the run
+        return 0
     if res["checkpoint"] is None:
         print(f"no step to run (--steps {cfg.steps}); no checkpoint written to {out}", file=sys.stderr)
     print(json.dumps(res, default=float))
