@@ -14,7 +14,14 @@
   path, which verifies every inner chunk's crc32c in v2), zarr-python crop reads, stored bytes.
 
 Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
-(``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first.
+(``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first, in the
+default (``compact``) encoding.
+
+``reencode(paths)`` (``--reencode STORE ...``): a few complete frames of each real store written again
+into a ``compact`` and an ``lz4`` store: stored bytes / float32 bytes per array group and in total,
+the radiance error of ``compact`` (max and 99.9th percentile of ``|x' - x| / |x|`` over non-zero
+samples; zeros must stay zero), write (encode) ms per frame, and the crop read of the compact store
+against the ``np.load`` ceiling (:func:`run` on it).
 """
 from __future__ import annotations
 
@@ -74,9 +81,17 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
         ("float32, lz4-5 + shuffle", lz4, ident, np.float32, "sm"),
         ("float32 + f16 features, zstd-3 + bitshuffle", zstd, ident, np.float16, "sm"),
         ("float32 + f16 features, lz4-5 + bitshuffle", lz4b, ident, np.float16, "sm"),
-        ("float32 + f16 features, lz4-5 + shuffle (chosen)", lz4, ident, np.float16, "sm"),
+        ("float32 + f16 features, lz4-5 + shuffle (the lz4 encoding)", lz4, ident, np.float16, "sm"),
         ("  the same, channel-major (C,H,W,S)", lz4, ident, np.float16, "cm"),
         ("log16 radiance + f16 features, lz4-5 + shuffle", lz4, encode_log16, np.float16, "sm"),
+    ]
+    from stores.codecs import KEEPBITS, bitround
+    br = lambda r: bitround(r, KEEPBITS)  # noqa: E731
+    lz4hc = Blosc("lz4hc", 9, Blosc.BITSHUFFLE)
+    cases += [
+        ("compact: 9-bit radiance + features, lz4hc-9 + bitshuffle, (C,H,W,S) (chosen)", lz4hc, br, "br16", "cm"),
+        ("  the same, sample-major (S,C,H,W)", lz4hc, br, "br16", "sm"),
+        ("  the same (C,H,W,S), zstd-5 + bitshuffle", Blosc("zstd", 5, Blosc.BITSHUFFLE), br, "br16", "cm"),
     ]
     rows = []
     for name, codec, enc_r, fdt, lay in cases:
@@ -84,7 +99,11 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
         overflow = 0
         for r, f in zip(rad_l[lay], feat_l[lay]):
             with np.errstate(over="ignore"):
-                er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
+                if fdt == "br16":                 # compact's features: rounded once in float32, then float16
+                    ef = np.ascontiguousarray(bitround(f, KEEPBITS).astype(np.float16))
+                    er = np.ascontiguousarray(enc_r(r))
+                else:
+                    er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
             overflow += int(np.isinf(er.astype(np.float32)).sum()) if er.dtype == np.float16 else 0
             if codec is None:
                 nbytes += er.nbytes + ef.nbytes
@@ -169,8 +188,9 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
 
 
 def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: int = 4, size: int = 256,
-        compare: bool = True, checksums: bool = True, verbose: bool = True) -> dict:
-    """Run the benchmark (module docstring) and return its figures."""
+        compare: bool = True, checksums: bool = True, verbose: bool = True, encoding: str | None = None) -> dict:
+    """Run the benchmark (module docstring) and return its figures (``encoding``: of the synthetic
+    store; None is the default of new stores)."""
     tmp = tempfile.mkdtemp(prefix="stores-bench-")
     out: dict = {}
     try:
@@ -178,8 +198,8 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         if store is None:
             synth = _synthetic()
             store = os.path.join(tmp, "bench.zarr")
-            w = open_or_create(store, StoreLayout(num_frames=frames, height=size, width=size, spp=spp),
-                               {"bench": True})
+            w = open_or_create(store, StoreLayout(num_frames=frames, height=size, width=size, spp=spp,
+                                                  encoding=encoding), {"bench": True})
             t_write = 0.0
             for i in range(frames):
                 fr = synth(1000 + i, size, size, spp, sun=(i == 0))
@@ -225,7 +245,7 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
                 times[k].append(time.perf_counter() - t)
         med = {k: float(np.median(v)) for k, v in times.items()}
         out.update({
-            "crop": crop, "spp": spp, "crops": crops, "mb_per_crop": mb,
+            "encoding": lay.encoding, "crop": crop, "spp": spp, "crops": crops, "mb_per_crop": mb,
             "crops_per_s": 1 / med["fast"], "mb_per_s": mb / med["fast"],
             "zarr_crops_per_s": 1 / med["zarr"], "zarr_mb_per_s": mb / med["zarr"],
             "tensor_crops_per_s": 1 / med["tensors"], "tensor_mb_per_s": mb / med["tensors"],
@@ -257,7 +277,7 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
 
 def format_report(r: dict) -> str:
     lines = [f"stores bench: {r['crops']} random {r['crop']}x{r['crop']} crops x {r['spp']} samples "
-             f"(radiance + 17 features, {r['mb_per_crop']:.1f} MB float32 each)",
+             f"(radiance + 17 features, {r['mb_per_crop']:.1f} MB float32 each), {r['encoding']} store",
              f"  store (fast path) {r['crops_per_s']:8.1f} crops/s {r['mb_per_s']:8.0f} MB/s",
              f"  store, 2 read threads {r['threads2_crops_per_s']:4.1f} crops/s {r['threads2_mb_per_s']:8.0f} MB/s",
              f"  store (zarr-python) {r['zarr_crops_per_s']:6.1f} crops/s {r['zarr_mb_per_s']:8.0f} MB/s",
@@ -288,8 +308,105 @@ def format_report(r: dict) -> str:
         lines.append(f"    CRC-32C alone over one frame's {ck['frame_shard_bytes'] / 1e6:.1f} MB of image shards: "
                      f"{ck['crc_ms_per_frame']:.2f} ms ({ck['crc_gb_per_s']:.1f} GB/s)")
     for row in r.get("codecs", []):
-        lines.append(f"    {row['encoding']:52s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"
+        lines.append(f"    {row['encoding']:80s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"
                      + (f"  Inf: {row['inf_after_encoding']}" if row["inf_after_encoding"] else ""))
+    return "\n".join(lines)
+
+
+GROUP_OF = {"inputs/radiance": "inputs/radiance", "inputs/features": "inputs/features",
+            "layers/radiance": "layers", "reference/radiance": "reference", "reference/stderr": "reference"}
+
+
+def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True) -> dict:
+    """Write ``frames`` complete frames (evenly spaced) of each store in ``paths`` into a new ``compact``
+    and a new ``lz4`` store and report, per store and over all: stored/float32 bytes per group
+    (``inputs/radiance``, ``inputs/features``, ``layers``, ``reference`` (+ stderr), ``guides``) and in
+    total, write ms per frame, the compact radiance error, and the crop read of the compact store."""
+    tmp = tempfile.mkdtemp(prefix="stores-reencode-")
+    out: dict = {"stores": {}}
+    tot = {e: {} for e in ("compact", "lz4")}
+    raw_tot: dict = {}
+    errs = []
+    try:
+        for path in paths:
+            src = open_store(path)
+            done = src.complete_frames()
+            pick = sorted({done[int(k)] for k in np.linspace(0, len(done) - 1, min(frames, len(done)))})
+            data = [src.read_frame(i) for i in pick]
+            lay0 = src.layout
+            row: dict = {"frames": pick, "source_encoding": lay0.encoding}
+            for enc in ("compact", "lz4"):
+                lay = StoreLayout(**{**lay0.to_dict(), "num_frames": len(pick), "encoding": enc})
+                dst = os.path.join(tmp, f"{os.path.basename(os.fspath(path).rstrip('/'))}-{enc}.zarr")
+                w = open_or_create(dst, lay, {"reencoded_from": os.fspath(path)})
+                t_write = []
+                for j, fr in enumerate(data):
+                    t = time.perf_counter()
+                    w.write_frame(j, fr)
+                    t_write.append(time.perf_counter() - t)
+                sizes, raw = {}, {}
+                for spec in ARRAYS:
+                    if spec.image:
+                        g = GROUP_OF.get(spec.path, "guides")
+                        sizes[g] = sizes.get(g, 0) + _dir_bytes(os.path.join(dst, *spec.path.split("/")))
+                        raw[g] = raw.get(g, 0) + int(np.prod(spec.shape(lay)[1:])) * 4 * len(pick)
+                for g in sizes:
+                    tot[enc][g] = tot[enc].get(g, 0) + sizes[g]
+                    if enc == "compact":
+                        raw_tot[g] = raw_tot.get(g, 0) + raw[g]
+                row[enc] = {"ratio": {g: sizes[g] / raw[g] for g in sizes},
+                            "total": sum(sizes.values()) / sum(raw.values()),
+                            "write_ms_per_frame": 1e3 * float(np.median(t_write)),
+                            "crop_read": run(dst, crops=crops, compare=False, checksums=False, verbose=False)}
+                if enc == "compact":
+                    back = open_store(dst)
+                    for j, fr in enumerate(data):
+                        got = back.read_frame(j, ["radiance", "reference", "reference_stderr"])
+                        x, y = fr["radiance"].astype(np.float64), got["radiance"].astype(np.float64)
+                        nz = x != 0
+                        errs.append(np.abs(y[nz] - x[nz]) / np.abs(x[nz]))
+                        row.setdefault("zeros_changed", 0)
+                        row["zeros_changed"] += int((y[~nz] != 0).sum())
+                        row.setdefault("reference_bit_exact", True)
+                        row["reference_bit_exact"] &= bool(np.array_equal(got["reference"], fr["reference"])
+                                                           and np.array_equal(got["reference_stderr"],
+                                                                              fr["reference_stderr"]))
+
+            out["stores"][os.fspath(path)] = row
+        e = np.concatenate(errs)
+        out["radiance_rel_error"] = {"max": float(e.max()), "p99.9": float(np.percentile(e, 99.9)),
+                                     "mean": float(e.mean()), "samples": int(e.size)}
+        out["all"] = {enc: {"ratio": {g: tot[enc][g] / raw_tot[g] for g in raw_tot},
+                            "total": sum(tot[enc].values()) / sum(raw_tot.values())} for enc in tot}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    if verbose:
+        print(format_reencode(out))
+    return out
+
+
+def format_reencode(r: dict) -> str:
+    groups = list(r["all"]["compact"]["ratio"])
+    lines = ["stores bench --reencode: stored / float32 bytes, compact (lz4)",
+             f"  {'store':34s} " + " ".join(f"{g:>16s}" for g in groups) + f" {'total':>14s}  write ms/frame"]
+    for path, row in list(r["stores"].items()) + [("all", r["all"])]:
+        c, l4 = row["compact"], row["lz4"]
+        cells = " ".join(f"{c['ratio'][g]:7.3f} ({l4['ratio'][g]:5.3f})" for g in groups)
+        wr = (f"  {c['write_ms_per_frame']:6.1f} ({l4['write_ms_per_frame']:.1f})"
+              if "write_ms_per_frame" in c else "")
+        lines.append(f"  {os.path.basename(path):34s} {cells} {c['total']:6.3f} ({l4['total']:5.3f}){wr}")
+    e = r["radiance_rel_error"]
+    lines.append(f"  compact radiance |x'-x|/|x| over {e['samples']} non-zero samples: max {e['max']:.3e}, "
+                 f"99.9% {e['p99.9']:.3e}, mean {e['mean']:.3e}; zeros changed: "
+                 f"{sum(row.get('zeros_changed', 0) for row in r['stores'].values())}; references bit-exact: "
+                 f"{all(row.get('reference_bit_exact') for row in r['stores'].values())}")
+    for path, row in r["stores"].items():
+        for enc in ("compact", "lz4"):
+            c = row[enc]["crop_read"]
+            lines.append(f"  crop read {os.path.basename(path)} ({enc}, {c['crop']}x{c['crop']} x {c['spp']} spp): "
+                         f"{c['crops_per_s']:.1f} crops/s vs np.load {c['ceiling_crops_per_s']:.1f}: "
+                         f"{c['fraction_of_ceiling']:.2f} of the ceiling (as tensors "
+                         f"{c['tensor_fraction_of_ceiling']:.2f})")
     return "\n".join(lines)
 
 
@@ -298,8 +415,18 @@ def main(argv=None) -> int:
     ap.add_argument("--store", default=None, help="benchmark this store instead of synthetic frames")
     ap.add_argument("--crops", type=int, default=40)
     ap.add_argument("--size", type=int, default=256, help="synthetic frame size")
+    ap.add_argument("--reencode", nargs="+", default=None, metavar="STORE",
+                    help="re-encode a few frames of these real stores in compact and lz4 and compare")
+    ap.add_argument("--frames", type=int, default=4, help="frames per store for --reencode")
+    ap.add_argument("--encoding", default=None, choices=["compact", "lz4"],
+                    help="encoding of the synthetic store (default: that of new stores, compact)")
+    ap.add_argument("--quick", action="store_true", help="crop reads and sizes only (no codec table, no v1/v2 checksums)")
     args = ap.parse_args(argv)
-    run(args.store, crops=args.crops, size=args.size)
+    if args.reencode:
+        reencode(args.reencode, frames=args.frames, crops=args.crops)
+        return 0
+    run(args.store, crops=args.crops, size=args.size, encoding=args.encoding,
+        compare=not args.quick, checksums=not args.quick)
     return 0
 
 

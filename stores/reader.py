@@ -225,6 +225,7 @@ class Store:
         self.version = schema.version_of(self.root)
         self._specs = {s.path: s for s in schema.arrays(self.version)}
         self._absent = schema.absent_arrays(self.root, self.version)   # frames/* newer than the store
+        self._num_frames = None
         self._init_local()
 
     def _init_local(self):
@@ -252,7 +253,10 @@ class Store:
     # ---------------------------------------------------------------- metadata
     @property
     def num_frames(self) -> int:
-        return int(self.root["status/complete"].shape[0])
+        # cached: every read checks its index, and a zarr group lookup re-reads zarr.json (0.3 ms)
+        if self._num_frames is None:
+            self._num_frames = int(self.root["status/complete"].shape[0])
+        return self._num_frames
 
     @property
     def attrs(self) -> dict:
@@ -276,6 +280,7 @@ class Store:
         """Forget cached per-frame metadata (after frames were written by another process)."""
         self.root, self.layout = schema.open_group(self.path, mode="r")
         self._absent = schema.absent_arrays(self.root, self.version)
+        self._num_frames = None
         self._fast_readers = {}
         self._meta_cache = None
 

@@ -232,9 +232,28 @@ def test_bench_smoke():
         assert r[k] > 0, k
     assert r["stored_over_raw"] < 1.0
     chosen = [row for row in r["codecs"] if "chosen" in row["encoding"]][0]
+    lz4 = [row for row in r["codecs"] if "the lz4 encoding" in row["encoding"]][0]
     f16 = [row for row in r["codecs"] if row["encoding"].startswith("float16")][0]
     assert chosen["inf_after_encoding"] == 0 and f16["inf_after_encoding"] > 0   # sun disc overflows float16
-    assert "crops/s" in bench.format_report(r)
+    assert chosen["ratio"] < 0.8 * lz4["ratio"]
+    assert r["encoding"] == "compact" and "crops/s" in bench.format_report(r)
+
+
+def test_bench_reencode_smoke(tmp_path):
+    """``python -m stores bench --reencode``: per-group ratios of both encodings, compact's radiance error
+    (measured from a lossless lz4 store: re-encoding a compact store is exact, its values have 9 bits)."""
+    path = tmp_path / "l.zarr"
+    w = open_or_create(path, StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=8, encoding="lz4"))
+    for i in range(2):
+        w.write_frame(i, synthetic_frame(20 + i, H, W, S, motion=True, defocus=True))
+    r = bench.reencode([str(path)], frames=2, crops=2, verbose=False)
+    row = r["stores"][str(path)]
+    assert set(row["compact"]["ratio"]) == {"inputs/radiance", "inputs/features", "layers", "reference", "guides"}
+    assert r["all"]["compact"]["total"] < 0.8 * r["all"]["lz4"]["total"]
+    assert r["all"]["compact"]["ratio"]["inputs/radiance"] < 0.8 * r["all"]["lz4"]["ratio"]["inputs/radiance"]
+    assert 2 ** -12 < r["radiance_rel_error"]["max"] <= 2 ** -10
+    assert row["zeros_changed"] == 0 and row["reference_bit_exact"] and row["compact"]["write_ms_per_frame"] > 0
+    assert "of the ceiling" in bench.format_reencode(r)
 
 
 def test_pipeline_cli_dispatches_to_stores(store2, tmp_path, capsys):
