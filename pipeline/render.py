@@ -605,9 +605,8 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "reference_spp": int(reference["reference_spp"]),
         "reference_rel_stderr": float(reference["reference_rel_stderr"]),
         "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
+        "case": spec.case,              # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
     }
-    if "case" in FRAME_META:            # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
-        out["meta"]["case"] = spec.case
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")
     return out

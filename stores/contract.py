@@ -54,4 +54,5 @@ FRAME_META = {
     "reference_spp": int,       # samples actually taken for the reference (early stop may cut it)
     "reference_rel_stderr": float,  # achieved mean relative standard error of the reference
     "render_seconds": float,
+    "case": str,                # hard cases of the scene (scene_gen.cases), comma-separated; '' for ordinary frames
 }

@@ -149,6 +149,7 @@ def test_zero_albedo_surfaces():
 def test_nan_from_the_renderer_is_counted_and_replaced():
     spec, out = rendered("nan")
     m = out["meta"]
+    assert m["case"] == "nan" == spec.case
     assert m["nonfinite_inputs"] > 0 and m["nonfinite_layers"] > 0 and m["nonfinite_reference"] > 0
     for k in ("radiance", "features", "layers", "reference", "reference_stderr", "guides_albedo", "guides_normal",
               "guides_depth", "guides_motion"):
@@ -192,9 +193,17 @@ def case_store(tmp_path_factory):
     return str(path)
 
 
-def test_frames_case_written_and_read_back(case_store):
+def test_frames_case_written_and_read_back(case_store, tmp_path):
+    import shutil
+    from stores.reader import open_store
     from training.hardcases import frame_cases
+    assert list(open_store(case_store).meta_column("case")) == ["black", "thin", "nan", ""]    # frames/case
     assert frame_cases(case_store) == ["black", "thin", "nan", ""]
+    old = tmp_path / "old.zarr"                      # a store made before frames/case existed
+    shutil.copytree(case_store, old)
+    shutil.rmtree(old / "frames" / "case")
+    assert list(open_store(str(old)).meta_column("case")) == [""] * 4
+    assert frame_cases(str(old)) == ["black", "thin", "nan", ""]       # from the SceneSpec JSON
 
 
 @pytest.fixture(scope="module")
