@@ -16,7 +16,7 @@
   innermost), mantissa rounding (``numcodecs.bitround``, ``KEEPBITS`` = 9 mantissa bits, relative
   error <= ``COMPACT_MAX_REL_ERROR`` = 2**-10) of input radiance, features, sample layers and guides,
   and Blosc LZ4HC-9 with bit shuffle; references stay lossless (zstd-5 + byte shuffle). Figures:
-  SCHEMA.md ("Compact encoding"). Our own code adds nothing to the chains: every codec is zarr's or
+  SCHEMA.md ("Image encodings"). Our own code adds nothing to the chains: every codec is zarr's or
   numcodecs' (``decode`` of ``bitround`` is the identity, so any zarr v3 reader with numcodecs reads
   floats; xarray shows values, not codes).
 """
@@ -61,7 +61,7 @@ COMPACT_MAX_REL_ERROR = 2.0 ** -(KEEPBITS + 1)     # 9.77e-4: round to nearest o
 FLOAT16_MAX_COMPACT = float(np.float16(2.0 ** 15 * (2 - 2.0 ** -KEEPBITS)))
 ZSTD_LEVEL = 5                   # Blosc zstd level of ``compact``'s lossless references
 # Lossy arrays: LZ4HC-9 + bit shuffle. On real frames zstd-5 + bit shuffle is 5% smaller in total
-# (features 0.080 vs 0.091 of float32) but its crops read 1.4x slower (SCHEMA.md "Compact encoding").
+# (features 0.080 vs 0.091 of float32) but its crops read 1.4x slower (SCHEMA.md "Image encodings").
 LOSSY_BLOSC = ("lz4hc", 9, "bitshuffle")
 
 
@@ -86,7 +86,10 @@ class Chain:
 
 
 _LOSSY = Chain(*LOSSY_BLOSC, KEEPBITS)
-_COMPACT = {        # measured on real frames (SCHEMA.md "Compact encoding")
+# The chains are part of the schema: open_group compares every array's zarr.json with them, so a
+# change here would make the compact stores already written fail (ArrayMetadataError). Another chain
+# is another ENCODINGS name, with image_chain giving both.
+_COMPACT = {        # measured on real frames (SCHEMA.md "Image encodings")
     "inputs/radiance": replace(_LOSSY, sample_last=True),
     "inputs/features": replace(_LOSSY, sample_last=True),
     "layers/radiance": _LOSSY,                                   # level-last was 1% smaller: not worth a transpose
