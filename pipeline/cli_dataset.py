@@ -73,7 +73,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     StoreMismatchError for a store made from another config (both unless ``overwrite``; a file is
     refused even then)."""
     from stores import schema
-    from stores.errors import ForeignStoreError, IncompleteStoreError
+    from stores.errors import ForeignStoreError, IncompleteStoreError, StoreCorruptionError
     if "://" not in store and os.path.lexists(store) and not os.path.isdir(store):
         raise ForeignStoreError(f"--out {store} is a file, not a folder; choose another --out")
     found = schema.foreign_entries(store)
@@ -90,7 +90,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         root, layout = schema.open_group(store, mode="r")
     except IncompleteStoreError:
         return cfg                              # made again by open_or_create
-    except ForeignStoreError:
+    except (ForeignStoreError, StoreCorruptionError):     # not ours, or damaged metadata: --overwrite replaces it
         if overwrite:
             return cfg
         raise

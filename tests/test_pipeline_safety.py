@@ -433,3 +433,23 @@ def test_store_made_before_clip_ids_resumes_with_its_old_split(tmp_path):
     run_cfg = check_existing_store(cfg, store)
     assert run_cfg.clip_ids == "scene_seed"
     assert [f.clip_id for f in run_cfg.frames()] == [f.seed for f in cfg.frames()]
+
+
+def test_a_store_with_damaged_array_metadata_is_refused_and_overwrite_replaces_it(tmp_path):
+    """Array metadata that disagrees with the schema (e.g. a store written with another codec chain) is
+    damage: the run stops naming it, and ``--overwrite`` (which deletes whatever is there) rebuilds."""
+    from pipeline.cli_dataset import check_existing_store
+    from stores.errors import StoreCorruptionError
+    cfg = load_config(SMOKE)
+    store = tmp_path / "s.zarr"
+    open_or_create(str(store), cfg.store_layout(), cfg.content_dict())
+    meta = store / "reference" / "radiance" / "zarr.json"
+    m = json.loads(meta.read_text())
+    m["fill_value"] = 1.0                                     # no longer what the schema writes
+    meta.write_text(json.dumps(m))
+    with pytest.raises(StoreCorruptionError, match="disagrees with schema"):
+        check_existing_store(cfg, str(store))
+    assert check_existing_store(cfg, str(store), overwrite=True) is cfg
+    w = open_or_create(str(store), cfg.store_layout(), cfg.content_dict(), overwrite=True)
+    assert w.num_frames == cfg.num_frames
+    check_existing_store(cfg, str(store))                     # made again: nothing to refuse
