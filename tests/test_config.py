@@ -51,6 +51,8 @@ def test_shipped_configs_keep_the_papers_numbers():
     assert kinds == {"indoor": 2176, "outdoor": 2176}                      # half indoor, half outdoor
     tp = load_config(ROOT / "configs/temporal-paper.yaml")
     assert {g.frames for g in tp.scenes} == {8} and 2 ** (tp.render_config().layer_levels - 1) == 32
+    for c in (d, lp, tp):                       # references stop once converged to 3% (docs/training.md)
+        assert c.render_config().ref_target_rel_stderr == 0.03 and c.render_config().ref_min_passes == 16
 
 
 @pytest.mark.parametrize("edit, needle", [
