@@ -1,4 +1,4 @@
-"""``python -m training train|evaluate|report|bench|denoise|fma`` (see ``--help`` of each)."""
+"""``python -m training train|evaluate|report|bench|denoise|hard-cases|fma`` (see ``--help`` of each)."""
 from __future__ import annotations
 
 import argparse

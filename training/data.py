@@ -38,10 +38,11 @@ def open_store(store):
 
 
 def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True,
-                  skip_bad_frames: bool = False):
+                  skip_bad_frames: bool = False, screen: bool = True):
     """The dataset of input declaration ``spec`` (:class:`training.inputs.InputSpec`) on ``store``'s
     ``split``: checks that the store holds every array the kind needs and the sample count, refuses
-    frames that ``validate`` would flag (see :func:`screen_frames`), and turns store errors into
+    frames that ``validate`` would flag (see :func:`screen_frames`; ``screen=False`` keeps them, for
+    the hard-case set, whose ``nan`` frame is such a frame on purpose), and turns store errors into
     :class:`DataError`."""
     from stores.errors import StoreError
     st = open_store(store)
@@ -50,7 +51,8 @@ def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: 
     kind.check_spp(st, spp)
     try:
         ds = kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
-        screen_frames(ds, st, split, skip_bad_frames)
+        if screen:
+            screen_frames(ds, st, split, skip_bad_frames)
     except StoreError as e:
         raise DataError(f"{split!r} data from {st.path!s}: {e}") from e
     return ds

@@ -102,13 +102,15 @@ def frame_tags(store, idx: int) -> dict:
 
 def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
              with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
-             threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels") -> dict:
+             threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels",
+             screen: bool = True) -> dict:
     """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
 
     The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
     ``spp``, windows of a clip ending on each frame). ``spp`` None: the checkpoint's training spp, the
     model's declared default, or for a baseline the store's full sample count; a count the store does
-    not hold is refused, and so are frames ``validate`` would flag (``skip_bad_frames`` leaves them out,
+    not hold is refused, and so are frames ``validate`` would flag (``screen=False`` keeps them: the
+    hard-case set evaluates its ``nan`` frame, whose renderer NaNs the store replaced; ``skip_bad_frames`` leaves them out,
     with a warning naming them). Models run in their inference form (``for_inference``). ``keep``: positions
     (in the split) of frames whose output images (float32 HW3) are returned under ``"images"`` (not
     written to JSON). Times are wall-clock per frame after one warm-up frame."""
@@ -146,7 +148,7 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         from .inputs import InputSpec
         spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
     ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False,
-                       skip_bad_frames=skip_bad_frames)
+                       skip_bad_frames=skip_bad_frames, screen=screen)
     kind = spec.input_kind
     n = len(ds) if not max_frames else min(int(max_frames), len(ds))
     info["spp"] = spp

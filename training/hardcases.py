@@ -18,8 +18,9 @@ Flags (the ``flags`` list; each names the stage, the method and the frame):
   holds NaN/Inf on a frame (kind ``non-finite``), or its relMSE on a case is more than
   :data:`OUTLIER_FACTOR` (10) times the median of that method's relMSE over the cases (kind ``error``,
   an error far above its neighbours; the case's worst frame is named);
-- **not evaluated**: frames that ``evaluate`` refuses (those ``validate`` flags, e.g. the ``nan`` case's
-  frame, whose renderer NaNs were replaced) are left out of the methods' numbers and listed here.
+- **not evaluated**: frames ``evaluate`` could not read are left out of the methods' numbers and listed
+  here. Frames ``validate`` flags are evaluated (``screen=False``): the ``nan`` case's frame, whose renderer
+  NaNs the store replaced, is the point of that case.
 
 PSNR is ``inf`` where a method reproduces the reference exactly (the ``black`` case's input): a perfect
 score, not a non-finite output.
@@ -111,7 +112,8 @@ def evaluate_frames(method, store, *, label: str, spp=None, baseline_input: str 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             r = evaluate(method, st, split=split, spp=spp, max_frames=max_frames, with_flip=with_flip,
-                         keep=tuple(range(st.num_frames)), skip_bad_frames=True, baseline_input=baseline_input)
+                         keep=tuple(range(st.num_frames)), skip_bad_frames=True, baseline_input=baseline_input,
+                         screen=False)     # every case, the nan frame too: its stored arrays are finite
         images = r.get("images", {})
         for pos, row in enumerate(r["frames"]):
             img = images.get(pos)
