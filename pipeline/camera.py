@@ -62,7 +62,9 @@ def project_pixels(world_to_clip_m: np.ndarray, pts: np.ndarray, res: tuple[int,
                    ) -> np.ndarray:
     """Pixel coordinates (float64, N×2) of world points (N×3; ``w = 0`` rows: directions at infinity).
 
-    Points behind the camera get NaN (callers decide what to do with them).
+    Points behind the camera, or in front of it but nearer than the near plane (which the camera
+    clips: no pixel saw them, and their projection grows without bound), get NaN (callers decide what
+    to do with them).
     """
     W, H = res
     pts = np.asarray(pts, np.float64)
@@ -72,7 +74,7 @@ def project_pixels(world_to_clip_m: np.ndarray, pts: np.ndarray, res: tuple[int,
     # row by row instead of a matmul: no BLAS thread pool for an N×4 @ 4×4 product
     cx, cy, cw = (m[i, 0] * x + m[i, 1] * y + m[i, 2] * z + m[i, 3] * w for i in (0, 1, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
-        ok = cw > 1e-12
+        ok = cw > np.where(w > 0, NEAR, 1e-12)
         nx = np.where(ok, cx / np.where(ok, cw, 1.0), np.nan)
         ny = np.where(ok, cy / np.where(ok, cw, 1.0), np.nan)
     return np.stack([(nx + 1.0) * 0.5 * W, (1.0 - ny) * 0.5 * H], axis=-1)

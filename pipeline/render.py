@@ -52,7 +52,8 @@ the projection of the same surface point one frame earlier (``x - velocity`` of 
 velocity in world units per frame) with the previous frame's camera. Rule for the first frame of a
 clip and for stills: the previous camera is the frame's own camera (the camera is taken to be at
 rest before the clip) and objects still move back by one frame. Environment hits project the ray
-direction (a point at infinity). Points behind the previous camera get motion 0. Motion vectors do
+direction (a point at infinity). Points behind the previous camera, or nearer than its near plane, get
+motion 0, and vectors are capped at ``MOTION_LIMIT`` (16) image sizes (so they fit float16). Motion vectors do
 not follow reflections or refraction (they describe the primary hit). They are computed for every
 scene (cheap); without moving objects or cameras they are exactly 0.
 
@@ -352,6 +353,9 @@ def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float
     return res
 
 
+MOTION_LIMIT = 16     # motion vectors are capped at this many image sizes (see _features)
+
+
 def _features(fs: FrameScene, tr: dict, t: float) -> np.ndarray:
     """The 17 features (float64, N×17) of traced lanes at shutter time ``t``."""
     cfg = fs.cfg
@@ -376,7 +380,11 @@ def _features(fs: FrameScene, tr: dict, t: float) -> np.ndarray:
     prev_pts = pts - fs.velocity[idx] * w[:, None]       # one frame earlier (velocity per frame)
     prev = cam_geom.project_pixels(fs.prev_world_to_clip, prev_pts, cfg.res, w)
     mv = prev - cur
-    f[:, g["motion"]] = np.where(np.isfinite(mv), mv, 0.0)
+    # no previous position (behind or inside the previous camera's near plane): 0. Vectors are capped at
+    # MOTION_LIMIT image sizes: beyond that the previous position is far off-screen anyway, and an
+    # uncapped one near the camera plane can exceed float16's range (the store's features).
+    lim = MOTION_LIMIT * max(W, H)
+    f[:, g["motion"]] = np.clip(np.where(np.isfinite(mv), mv, 0.0), -lim, lim)
     if fs.has_defocus:
         z = np.where(hit, cam_geom.camera_depth(fs.cam, tr["p"]), np.inf)
         f[:, g["coc"]] = cam_geom.coc_pixels(fs.cam, z, W)[:, None]

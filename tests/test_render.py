@@ -535,3 +535,19 @@ def test_bad_frame_and_config_type():
         render_frame(ball_scene(), 1, cfg())
     with pytest.raises(ConfigError, match="RenderConfig"):
         render_frame(ball_scene(), 0, {"spp": 8})
+
+
+def test_points_inside_the_near_plane_have_no_projection():
+    """A point in front of the camera but nearer than the near plane (which the sensor clips) projects to
+    NaN, so its motion is 0 rather than a vector beyond float16 (found by the hard-case ``motion``)."""
+    from pipeline import camera as cam_geom
+    from scene_gen.spec import CameraSpec
+    cam = CameraSpec(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0), fov=45.0)
+    m = cam_geom.world_to_clip(cam, (64, 64))
+    near = cam_geom.NEAR
+    pts = np.array([[1.0, 0.5, 0.5 * near], [1.0, 0.5, 2.0 * near], [0.0, 0.0, -1.0], [0.1, 0.0, 3.0]])
+    px = cam_geom.project_pixels(m, pts, (64, 64))
+    assert np.isnan(px[0]).all() and np.isnan(px[2]).all()
+    assert np.isfinite(px[1]).all() and np.isfinite(px[3]).all() and np.abs(px[1]).max() > 1000
+    d = cam_geom.project_pixels(m, np.array([[0.0, 0.0, 1.0]]), (64, 64), w=0.0)    # a direction: the centre
+    np.testing.assert_allclose(d, [[32.0, 32.0]])
