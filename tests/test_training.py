@@ -273,3 +273,18 @@ def test_default_crop_is_128_or_the_whole_smaller_frame(store, tmp_path):
     from training.errors import DataError
     with pytest.raises(DataError, match="does not fit"):
         train(cfg(crop=64), store, tmp_path / "big", progress=False)
+
+
+def test_resume_takes_a_layout_recorded_before_the_encoding_field_as_lz4():
+    """A checkpoint whose store layout predates ``encoding`` resumes on that store once a re-run of the
+    dataset has recorded ``encoding: lz4`` in it; another encoding is another store."""
+    from training.errors import CheckpointError
+    from training.loop import check_same_store
+    layout = {"num_frames": 28, "height": 64, "width": 64, "spp": 8, "layer_spp": [1, 2, 4, 8, 16, 32], "tile": 32,
+              "radiance_encoding": "float32", "feature_dtype": "float16"}
+    old = {"store": {"path": "/s.zarr", "layout": layout}}
+    check_same_store(old, {"path": "/s.zarr", "layout": {**layout, "encoding": "lz4"}}, "ck.pt")
+    with pytest.raises(CheckpointError, match="another store"):
+        check_same_store(old, {"path": "/s.zarr", "layout": {**layout, "encoding": "compact"}}, "ck.pt")
+    with pytest.raises(CheckpointError, match="another store"):
+        check_same_store(old, {"path": "/s.zarr", "layout": {**layout, "height": 32, "encoding": "lz4"}}, "ck.pt")

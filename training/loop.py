@@ -123,8 +123,17 @@ def store_identity(store) -> dict:
 
 def check_same_store(ck: dict, now: dict, path) -> None:
     """Refuse to resume checkpoint ``ck`` on another store, naming the differing fields."""
+    from stores.schema import StoreLayout
     was = ck.get("store", {})
-    diff = {k: (was[k], now[k]) for k in now if k in was and was[k] != now[k]}
+
+    def same(k):
+        if k == "layout":          # a store's layout as recorded (a layout from before ``encoding`` is lz4's)
+            try:
+                return StoreLayout.of_store(was[k]) == StoreLayout.of_store(now[k])
+            except Exception:  # noqa: BLE001 - an unreadable old layout is simply different
+                return was[k] == now[k]
+        return was[k] == now[k]
+    diff = {k: (was[k], now[k]) for k in now if k in was and not same(k)}
     if diff:
         raise CheckpointError(f"{path} was trained on another store (field: (checkpoint, now)): {diff}; "
                               "resume on the same store, or train into a new --out")
