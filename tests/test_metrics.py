@@ -73,3 +73,15 @@ def test_flip_orders_errors(images):
     small = metrics.flip(lin_ref * 1.05, lin_ref)
     big = metrics.flip(np.expm1(noisy) * 2.0, lin_ref)
     assert 0.0 < small < big < 1.0
+
+
+def test_flip_of_a_black_reference_does_not_end_the_process():
+    """flip-evaluator takes HDR exposures from the reference and exits the process on a black one (the
+    hard-case ``black``): black against black is 0, anything else a large error."""
+    import numpy as np
+    from training.metrics import flip
+    black = np.zeros((16, 16, 3), np.float32)
+    assert flip(black, black) == 0.0
+    grey = np.full((16, 16, 3), 0.5, np.float32)
+    assert 0.5 < flip(grey, black) <= 1.0
+    assert flip(grey * 0.01, black) < flip(grey, black)

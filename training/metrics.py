@@ -108,8 +108,18 @@ def flip(denoised, reference) -> float:
     import flip_evaluator
 
     d, r = _pair(denoised, reference)
-    d = np.ascontiguousarray(np.maximum(d, 0.0), dtype=np.float32)
+    d = np.ascontiguousarray(np.maximum(np.nan_to_num(d, nan=0.0, posinf=0.0), 0.0), dtype=np.float32)
     r = np.ascontiguousarray(np.maximum(r, 0.0), dtype=np.float32)
+    if not r.any():
+        # HDR-FLIP takes its exposure range from the reference; a black one has none and flip-evaluator
+        # ends the process ("Start exposure must be smaller than stop exposure!"). Black against black
+        # is no error; otherwise the range comes from the test image.
+        if not d.any():
+            return 0.0
+        _, _, params = flip_evaluator.evaluate(d, d, "HDR", inputsRGB=False, applyMagma=False)
+        keep = {k: params[k] for k in ("startExposure", "stopExposure", "numExposures") if k in params}
+        _, mean_error, _ = flip_evaluator.evaluate(r, d, "HDR", inputsRGB=False, applyMagma=False, parameters=keep)
+        return float(mean_error)
     _, mean_error, _ = flip_evaluator.evaluate(r, d, "HDR", inputsRGB=False, applyMagma=False)
     return float(mean_error)
 
