@@ -30,3 +30,15 @@ def mi():
     thread pool left at its default."""
     from pipeline.variant import mitsuba
     return mitsuba()
+
+
+@pytest.fixture(autouse=True)
+def _flush_denormals_stays_in_its_test():
+    """``training`` flushes float32 denormals to zero for speed (``torch.set_flush_denormal``), a
+    process-wide setting; undo it after each test so later ones (hypothesis' subnormal floats) see IEEE
+    arithmetic whatever ran before."""
+    yield
+    import sys
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_flush_denormal(False)
