@@ -101,7 +101,7 @@ def test_store_frames_for_per_sample_recurrent_and_oidn(store, clips, tmp_path):
     assert np.isfinite(read_exr(tmp_path / "o.exr")[0]).all()
 
 
-def test_render_frame_npz(mi, tmp_path):
+def test_render_frame_npz(mi, tmp_path, capsys):
     """The .npz of `python -m pipeline render-frame` (a real Mitsuba render) for a per-pixel, a per-sample
     and a sampler model."""
     from pipeline.__main__ import main as pipeline_main
@@ -116,9 +116,15 @@ def test_render_frame_npz(mi, tmp_path):
         assert _run("--checkpoint", ck, "--input", npz, "--spp", 2, "--out", out) == 0
         img = read_exr(out)[0]
         assert img.shape == (16, 16, 3) and np.isfinite(img).all()
-    # per-pixel input from the .npz is the mean of its samples: the same as EXRs of that mean
-    mean = z["radiance"][:, :, :2].mean(axis=2)
-    assert np.abs(mean).sum() > 0
+    # an edited .npz with NaN samples is refused, naming the array and the count
+    bad = {k: z[k] for k in z.files}
+    bad["radiance"] = bad["radiance"].copy()
+    bad["radiance"][2, 3, 0, :] = np.nan
+    np.savez(tmp_path / "bad.npz", **bad)
+    ck = str(tmp_path / "nbg.pt")
+    assert _run("--checkpoint", ck, "--input", tmp_path / "bad.npz", "--spp", 2, "--out", tmp_path / "b.exr") == 2
+    assert not (tmp_path / "b.exr").exists()
+    assert "radiance of" in capsys.readouterr().err
 
 
 def test_clear_errors(store, tmp_path, capsys):

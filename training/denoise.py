@@ -174,9 +174,10 @@ def items_from_npz(spec, path: str, spp: int) -> list[dict]:
             item = _npz_item(spec, {k: z[k] for k in z.files}, spp)
     except (ValueError, OSError) as e:
         raise DataError(f"--input {path} is not a readable .npz: {e}") from e
-    for k, v in item.items():
-        if v.is_floating_point() and k not in ("radiance", "layers", "features"):
-            _finite(f"{k} of {path}", np.moveaxis(v.numpy(), 0, -1) if v.dim() == 3 else v.numpy())
+    for k, v in item.items():              # render-frame writes finite arrays (the NaN/Inf rule); an edited file may not
+        bad = int((~torch.isfinite(v)).sum()) if v.is_floating_point() else 0
+        if bad:
+            raise DataError(f"{k} of {path} has {bad} NaN or Inf value(s); replace them (e.g. by 0) before denoising")
     return [item]
 
 

@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stores.validate import reference_limits
+
 from . import checkpoint as ckpt
 from . import metrics
 from .data import model_dataset, open_store
@@ -198,7 +200,6 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
                **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
         se = item.get("stderr")
         if se is not None:                        # what the reference's own noise lets a metric resolve
-            from stores.validate import reference_limits
             ceiling, floor = reference_limits(ref, _hwc(se[-1] if se.dim() == 4 else se))
             row.update(ref_psnr_ceiling=ceiling, ref_relmse_floor=floor)
         frames.append(row)

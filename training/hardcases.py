@@ -208,17 +208,6 @@ def hard_case_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def _find_runs(runs) -> list[Path]:
-    found = []
-    for r in runs:
-        p = Path(r)
-        if (p / "checkpoint.pt").is_file():
-            found.append(p)
-        elif p.is_file() and p.suffix == ".pt":
-            found.append(p.parent)
-    return found
-
-
 def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: bool = True, oidn: bool = True,
                      max_frames: int = 0) -> dict:
     """Evaluate the runs (folders holding ``checkpoint.pt``), the noisy input and OIDN (at each spp and
@@ -226,7 +215,8 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
     ``out/hard-cases.md`` and ``out/hard-cases.json``. Returns :func:`summarize`'s dict plus ``markdown``."""
     from .data import open_store
     st = open_store(store)
-    run_dirs = _find_runs(runs)
+    from .report import find_runs
+    run_dirs = find_runs(runs)
     if runs and not run_dirs:
         raise ConfigError(f"none of the runs {list(map(str, runs))} holds a checkpoint.pt")
     cases = frame_cases(st)
