@@ -325,8 +325,8 @@ def test_lens_uniform_and_coc(mi):
     # by exactly -coc * lens (the thin-lens geometry, checked against Mitsuba's own rays)
     spec = top_down_scene(4.0, aperture=0.3, focus=2.5)
     fs = R.FrameScene(spec, 0, c)
-    tr = R._trace(fs, 1234, 0, 12, 4, 0.0)
-    feats = R._features(fs, tr, 0.0)
+    tr = R._trace(fs, 1234, 0, 12, 4, 0.0, debug=True)
+    feats = tr["F"]
     coc = feats[:, 13]
     z = 4.0
     expect = 0.3 * (z - 2.5) / z * 16 / (2 * 2.5 * math.tan(math.radians(25)))
@@ -336,7 +336,7 @@ def test_lens_uniform_and_coc(mi):
     np.testing.assert_allclose(film_px - pin_px, -coc[:, None] * feats[:, 14:16], atol=2e-3)
     # in front of the focus plane: negative
     fs2 = R.FrameScene(top_down_scene(2.0, aperture=0.3, focus=2.5), 0, c)
-    feats2 = R._features(fs2, R._trace(fs2, 99, 0, 12, 4, 0.0), 0.0)
+    feats2 = R._trace(fs2, 99, 0, 12, 4, 0.0)["F"]
     assert np.all(feats2[:, 13] < 0)
 
 
@@ -350,8 +350,8 @@ def test_motion_vectors_reproject(mi):
     fs = R.FrameScene(spec, 1, c)
     t = 0.4
     fs.set_time(t)
-    tr = R._trace(fs, 4321, 0, RES[1], 4, t)
-    feats = R._features(fs, tr, t)
+    tr = R._trace(fs, 4321, 0, RES[1], 4, t, debug=True)
+    feats = tr["F"].astype(np.float64)
     hit = tr["hit"].astype(bool)
     cur = R.cam_geom.project_pixels(fs.world_to_clip, tr["p"], RES)
     prev_px = cur + feats[:, 11:13]
@@ -374,6 +374,65 @@ def test_motion_vectors_reproject(mi):
     assert np.all((occluded | (err < 0.1))[inside & ~ok])
     moving = inside & (idx == idx[inside][np.argmax(np.linalg.norm(fs.velocity[idx[inside]], axis=1))])
     assert moving.sum() > 20 and np.abs(feats[moving, 11]).mean() > 0.5
+
+
+def _features_oracle(fs, tr: dict, t: float) -> np.ndarray:
+    """The 17 features (float64, N×17) from a debug trace's raw fields, in numpy float64 with
+    ``pipeline.camera``'s projection and circle of confusion: an independent form of the renderer's
+    drjit feature kernel (which computes them in float32, in the trace's own kernel)."""
+    from pipeline import camera as C
+    from pipeline.render import MOTION_LIMIT
+    W, H = fs.cfg.res
+    hit = tr["hit"].astype(bool)
+    f = np.zeros((len(hit), 17))
+    f[:, G["normal"]] = np.where(hit[:, None], tr["n"], 0.0)
+    cos_view = np.abs(tr["d"].astype(np.float64) @ fs.view_axis)
+    f[:, G["depth"]] = np.where(hit, tr["t"] + C.NEAR / np.maximum(cos_view, 1e-6), 0.0)[:, None]
+    f[:, G["albedo"]] = np.clip(np.where(hit[:, None], tr["albedo"], 0.0), 0.0, 1.0)
+    idx = np.where(hit, fs.shape_index(tr["sid"]), 0)
+    f[:, G["specular"]] = fs.specular[idx]
+    f[:, G["roughness"]] = fs.roughness[idx][:, None]
+    pts = np.where(hit[:, None], tr["p"], tr["d"]).astype(np.float64)
+    w = hit.astype(np.float64)
+    cur = C.project_pixels(fs.world_to_clip, pts, fs.cfg.res, w)
+    prev = C.project_pixels(fs.prev_world_to_clip, pts - fs.velocity[idx] * w[:, None], fs.cfg.res, w)
+    mv = prev - cur
+    lim = MOTION_LIMIT * max(W, H)
+    f[:, G["motion"]] = np.clip(np.where(np.isfinite(mv), mv, 0.0), -lim, lim)
+    if fs.has_defocus:
+        z = np.where(hit, C.camera_depth(fs.cam, tr["p"]), np.inf)
+        f[:, G["coc"]] = C.coc_pixels(fs.cam, z, W)[:, None]
+        f[:, G["lens"]] = tr["lens"]
+    f[:, G["time"]] = t if fs.has_motion else 0.0
+    return f
+
+
+@pytest.mark.parametrize("kind", ["motion+defocus", "static"])
+def test_feature_kernel_matches_numpy_oracle(mi, kind):
+    """The features computed inside the drjit trace kernel (float32) equal the float64 numpy form of
+    every rule, per sample, on a moving camera and moving ball seen through a thin lens (frame 1 of a
+    clip) and on a still; stills without motion get exactly zero motion vectors."""
+    from pipeline import render as R
+    if kind == "static":
+        spec, frame, t = merged_ball_scene(), 0, 0.0
+    else:
+        spec, frame, t = ball_scene(motion=True, defocus=True, frames=2, cam_step=(0.3, 0.1, -0.2)), 1, 0.6
+    fs = R.FrameScene(spec, frame, cfg(spp=4, ref_spp=0, layer_levels=0, time_slices=1))
+    fs.set_time(t)
+    tr = R._trace(fs, 777, 0, RES[1], 4, t, debug=True)
+    got, want = tr["F"].astype(np.float64), _features_oracle(fs, tr, t)
+    assert got.shape == want.shape == (RES[0] * RES[1] * 4, 17) and tr["F"].dtype == np.float32
+    hit = tr["hit"].astype(bool)
+    assert 0.2 < hit.mean() < 1.0
+    for name, sl in G.items():
+        scale = max(1.0, np.abs(want[:, sl]).max())
+        np.testing.assert_allclose(got[:, sl], want[:, sl], rtol=0, atol=2e-5 * scale if name != "motion" else 2e-3,
+                                   err_msg=name)
+    if kind == "static":
+        assert np.all(got[:, G["motion"]] == 0) and np.all(got[:, G["time"]] == 0) and np.all(got[:, G["coc"]] == 0)
+    else:
+        assert np.abs(got[:, G["motion"]]).max() > 1.0 and np.abs(got[:, G["coc"]]).max() > 0.1
+        assert np.all(got[:, G["time"]] == np.float32(t))
 
 
 def _warp(img0, m, alpha=1.0):
