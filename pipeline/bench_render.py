@@ -18,9 +18,9 @@ the dataset, in the same run), since the machine may be shared:
   CPU-second (the run's and its workers' CPU time against ``mi.render``'s), the figure to read when
   other work shares the machine;
 - **frames per hour at 256x256** for the default scene mix: ``pipeline.estimate.calibrate`` of the
-  first indoor and outdoor scene of ``configs/default.yaml`` at 256x256 (one thread a worker), their
-  frame times weighted by the mix's frames of each kind, for one worker and for this machine's
-  workers;
+  first indoor and outdoor scene of ``configs/default.yaml`` at 256x256 (one thread a worker, as many
+  side by side as this machine has workers; the references' early stop predicted), their frame times
+  weighted by the mix's frames of each kind, for one worker and for this machine's workers;
 - peak resident memory of a child process that renders one whole 256x256x8 frame (inputs, layers,
   a small reference) with ``render_frame`` (target < 4 GiB).
 
@@ -122,13 +122,14 @@ def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: s
 def frames_per_hour(*, res: int, workers: int, scene_gen: dict | None = None) -> dict:
     """Frames per hour at ``res`` for the default config's scene mix (``pipeline.estimate.calibrate``)."""
     from pipeline.config import SceneGroup, load_config
-    from pipeline.estimate import calibrate
+    from pipeline.estimate import calibrate, local_slots
     d = load_config(DEFAULT_CONFIG)
     mix = {k: sum(g.count * g.frames for g in d.scenes if g.kind == k) for k in ("indoor", "outdoor")}
     # the first scene of each kind keeps its seed: groups in the default order, one scene each
     cal_cfg = d.with_overrides(resolution=(res, res), scene_gen={**d.scene_gen, **(scene_gen or {})},
                                scenes=tuple(SceneGroup(k, 1) for k in ("indoor", "outdoor")))
-    cal = calibrate(cal_cfg, per_group=1, ref_passes=2, threads=1, log=lambda *a: None)
+    # the workers render side by side, as in a run (they slow each other down)
+    cal = calibrate(cal_cfg, per_group=1, threads=1, concurrent=min(workers, local_slots(1)), log=lambda *a: None)
     t = {f["kind"]: f["frame_s"] for f in cal["frames"]}
     mean_s = sum(mix[k] * t[k] for k in mix) / sum(mix.values())
     return {"frame_s": t, "mean_frame_s": mean_s, "frames_per_hour_per_worker": 3600.0 / mean_s,

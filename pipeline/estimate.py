@@ -1,7 +1,7 @@
 """``python -m pipeline estimate --config FILE [--workers N]``: what a dataset will cost, before it runs.
 
     python -m pipeline estimate --config configs/layer-paper.yaml --workers 64 [--scenes-per-group 1]
-                                [--threads T] [--json FILE]
+                                [--threads T] [--concurrent C] [--ref-passes P] [--json FILE]
 
 A short calibration renders a few of the config's own frames on this machine, with the config's
 renderer settings and one drjit thread per worker thread (``cluster.threads_per_worker``, as a
@@ -9,17 +9,24 @@ dataset worker runs): frame 0 of the first ``--scenes-per-group`` scenes of ever
 timed as the dataset's tasks spend it (scene load with mesh building and kernel compilation, the
 full per-sample inputs, the full sample layers) and the reference from ``--ref-passes`` passes of
 its production size (the rest of its passes are extrapolated: passes cost alike). Times are the CPU
-seconds of the calibrating process, so other work on the machine does not inflate them. The calibration
-frames are written to a temporary store with the config's layout to measure stored bytes.
+seconds of the calibrating process. The frames render ``--concurrent`` at a time in separate
+processes (default: as many as the workers that share one machine, i.e. this machine's cores /
+threads per worker, at most ``--workers``), because workers side by side slow each other down: on
+this 2-core machine the same frames took 1.1-2.4x the CPU seconds with two workers busy, which a
+one-at-a-time calibration missed (-36% core-hours against a real run). With an early-stopping
+reference (``ref_target_rel_stderr``) each frame's stop is predicted from its first passes
+(:func:`predicted_passes`). The calibration frames are written to a temporary store with the
+config's layout to measure stored bytes.
 
 It prints, for the whole dataset:
 
-- samples: frames x pixels x (spp + layer samples + reference spp), the reference at its cap
-  (``ref_spp``; with ``ref_target_rel_stderr`` frames may stop earlier, so the figure is a ceiling);
+- samples: frames x pixels x (spp + layer samples + reference spp): expected (the predicted reference
+  stops) and at most (every reference at ``ref_spp``);
 - core-hours at this machine's speed (the group's mean calibrated CPU seconds a frame x its frames);
 - store bytes (calibrated bytes per frame x frames) and their share of raw float32;
 - wall time on ``--workers`` N workers of this speed: core time / (N x threads), and never less than
-  the slowest frame; scheduling, write and cluster start-up overheads are not included.
+  the slowest frame; plus the measured start-up of the calibration's worker processes. Scheduling,
+  cluster start and validation are not included.
 
 Error: the figures scale with the calibration frames, which are a handful of random scenes; half
 of the scenes move (time slices cost more), so the mix of a few frames can differ from the whole
@@ -30,6 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import tempfile
 import time
@@ -54,8 +62,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="workers to predict the wall time for (default: the config's, else one per core here)")
     p.add_argument("--scenes-per-group", type=int, default=1,
                    help="calibration scenes from each scene group of the config (default 1)")
-    p.add_argument("--ref-passes", type=int, default=2,
-                   help="reference passes rendered per calibration frame (default 2; the rest are extrapolated)")
+    p.add_argument("--ref-passes", type=int, default=None,
+                   help="reference passes rendered per calibration frame (default 2, or 4 when references stop "
+                        "early: the stop is predicted from them; the rest are extrapolated)")
+    p.add_argument("--concurrent", type=int, default=None,
+                   help="calibration renders side by side, as a machine's workers run (default: as many as the "
+                        "predicted workers, at most this machine's cores / threads per worker)")
     p.add_argument("--threads", type=int, default=None,
                    help="drjit threads while calibrating (default: the config's cluster.threads_per_worker)")
     p.add_argument("--json", help="also write the figures to this JSON file")
@@ -80,19 +92,100 @@ def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def calibrate(cfg, *, per_group: int = 1, ref_passes: int = 2, threads: int | None = None,
-              log=print) -> dict:
-    """Render the calibration frames of ``cfg`` (a :class:`pipeline.config.DatasetConfig`); returns
-    per-frame timings (seconds) and stored bytes, and per-group means."""
+def c4(n: int) -> float:
+    """E[s] / sigma for the sample standard deviation ``s`` of ``n`` normal values (ddof 1)."""
+    return math.sqrt(2.0 / (n - 1)) * math.exp(math.lgamma(n / 2.0) - math.lgamma((n - 1) / 2.0))
+
+
+def predicted_passes(rel: float, done: int, rc) -> int:
+    """Reference passes until the early stop of ``rc`` (``pipeline.render.render_reference``), from the
+    relative standard error ``rel`` measured after ``done`` passes.
+
+    The batch-means error falls as 1/sqrt(passes); the stop compares the *estimated* error, whose
+    mean is ``c4(p)`` times the true one, so ``rel(p) = rel / c4(done) * c4(p) * sqrt(done / p)``.
+    Without a target (or a reference) every pass runs."""
+    if rc.ref_target_rel_stderr is None or rc.ref_spp == 0:
+        return rc.ref_passes
+    sigma = rel / c4(done) * math.sqrt(done)
+    for p in range(rc.ref_min_passes, rc.ref_passes):
+        if sigma * c4(p) / math.sqrt(p) <= rc.ref_target_rel_stderr:
+            return p
+    return rc.ref_passes
+
+
+def _warm_worker(threads: int) -> None:
+    """Process-pool initializer: imports and drjit's thread pool before any task is timed."""
+    from pipeline.variant import mitsuba
+    mitsuba(threads=threads)
+    import pipeline.render  # noqa: F401
+
+
+def _calibrate_frame(cfg, gi: int, ref, rc, cal_rc) -> tuple[dict, dict]:
+    """Render one calibration frame as the dataset's tasks do; (its timings, its frame dict)."""
     from pipeline import render as R
     from pipeline import tasks
     from scene_gen.spec import SceneSpec
+
+    # CPU seconds of this process (all its threads): the work a worker of this speed does; wall seconds
+    # are kept beside them
+    w0, c0 = time.perf_counter(), time.process_time()
+    spec_json = tasks.make_spec(ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), dict(cfg.scene_gen),
+                                ref.case)
+    spec = SceneSpec.from_json(spec_json)
+    fs = R.FrameScene(spec, ref.frame, rc)
+    cpu = {"load_s": time.process_time() - c0}
+    c = time.process_time()
+    inputs = R.inputs_part(fs)
+    cpu["inputs_s"], c = time.process_time() - c, time.process_time()
+    layers = R.layers_part(fs)
+    cpu["layers_s"], c = time.process_time() - c, time.process_time()
+    passes = rc.ref_passes
+    if rc.ref_spp:
+        fs.cfg = cal_rc
+        ref_part = R.reference_part(fs)
+        fs.cfg = rc
+        passes = predicted_passes(ref_part["reference_rel_stderr"], cal_rc.ref_passes, rc)
+        cpu["reference_s"] = (time.process_time() - c) / cal_rc.ref_passes * passes
+    else:
+        ref_part = R.reference_part(fs)
+        cpu["reference_s"] = time.process_time() - c
+    wall = time.perf_counter() - w0
+    ref_part = {**ref_part, "reference_spp": rc.ref_spp}
+    frame = {"group": gi, "kind": ref.kind, "scene": ref.scene, "scene_seed": ref.seed, "objects": len(spec.objects),
+             "has_motion": spec.has_motion, **cpu, "calibration_wall_s": wall,
+             "reference_passes": passes, "reference_spp": passes * (rc.ref_spp // rc.ref_passes) if rc.ref_spp else 0}
+    frame["frame_s"] = sum(cpu.values())
+    return frame, R.assemble(spec_json, ref.frame, inputs, layers, ref_part)
+
+
+def local_slots(threads: int) -> int:
+    """Workers of ``threads`` threads that fill this machine's cores."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores // max(1, threads))
+
+
+def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads: int | None = None,
+              concurrent: int = 1, log=print) -> dict:
+    """Render the calibration frames of ``cfg`` (a :class:`pipeline.config.DatasetConfig`); returns
+    per-frame timings (seconds) and stored bytes, and per-group means.
+
+    ``concurrent`` > 1: the frames render in that many processes side by side, as a machine's workers
+    do in a real run, so the figures include what they cost each other (measured here: the same frames
+    took 1.1-2.4x the CPU seconds with two workers busy than alone). The frame list is padded with
+    repeats to a multiple of ``concurrent`` so that every frame is timed under the same load; a
+    frame's figures are the mean of its runs. ``ref_passes``: reference passes rendered per frame
+    (default 2; 4 with an early stop, whose pass count is predicted from them, :func:`predicted_passes`).
+    """
     from stores.schema import create_store
     from stores.writer import StoreWriter
 
     if per_group < 1:
         raise ConfigError(f"--scenes-per-group must be >= 1, got {per_group}")
+    if concurrent < 1:
+        raise ConfigError(f"--concurrent must be >= 1, got {concurrent}")
     rc = cfg.render_config()
+    if ref_passes is None:
+        ref_passes = min(4 if rc.ref_target_rel_stderr is not None else 2, max(2, rc.ref_passes))
     if ref_passes < 1 or (rc.ref_spp and ref_passes > rc.ref_passes):
         raise ConfigError(f"--ref-passes must be in [1, {rc.ref_passes}] (the config's ref_passes), got {ref_passes}")
     threads = threads or cfg.cluster.threads_per_worker
@@ -101,56 +194,64 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int = 2, threads: int | No
     cal_rc = (dataclasses.replace(rc, ref_passes=max(2, ref_passes), ref_min_passes=2, ref_target_rel_stderr=None,
                                   ref_spp=max(2, ref_passes) * pass_spp) if rc.ref_spp else rc)
     picks = _calibration_frames(cfg, per_group)
-    frames, arrays = [], []
-    render = {**cfg.render, "res": list(cfg.resolution)}
-    for gi, ref in picks:
-        # CPU seconds of this process (all its threads): the work a worker of this speed does,
-        # whatever else runs on the machine; wall seconds are kept beside them
-        w0, c0 = time.perf_counter(), time.process_time()
-        spec_json = tasks.make_spec(ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), dict(cfg.scene_gen))
-        spec = SceneSpec.from_json(spec_json)
-        fs = R.FrameScene(spec, ref.frame, rc)
-        cpu = {"load_s": time.process_time() - c0}
-        c = time.process_time()
-        inputs = R.inputs_part(fs)
-        cpu["inputs_s"], c = time.process_time() - c, time.process_time()
-        layers = R.layers_part(fs)
-        cpu["layers_s"], c = time.process_time() - c, time.process_time()
-        if rc.ref_spp:
-            fs.cfg = cal_rc
-            ref_part = R.reference_part(fs)
-            fs.cfg = rc
-            cpu["reference_s"] = (time.process_time() - c) / cal_rc.ref_passes * rc.ref_passes
-        else:
-            ref_part = R.reference_part(fs)
-            cpu["reference_s"] = time.process_time() - c
-        wall = time.perf_counter() - w0
-        ref_part = {**ref_part, "reference_spp": rc.ref_spp}
-        frame = {"group": gi, "kind": ref.kind, "scene_seed": ref.seed, "objects": len(spec.objects),
-                 "has_motion": spec.has_motion, **cpu, "calibration_wall_s": wall}
-        frame["frame_s"] = sum(cpu.values())
-        frames.append(frame)
-        arrays.append(R.assemble(spec_json, ref.frame, inputs, layers, ref_part))
-        log(f"  calibrated {ref.kind} scene {ref.scene} (seed {ref.seed}, {len(spec.objects)} objects"
-            f"{', motion' if spec.has_motion else ''}): {frame['frame_s']:.1f} CPU-s a frame "
-            f"(load {cpu['load_s']:.1f}, inputs {cpu['inputs_s']:.1f}, layers {cpu['layers_s']:.1f}, "
-            f"reference {cpu['reference_s']:.1f} from {cal_rc.ref_passes if rc.ref_spp else 0} of "
-            f"{rc.ref_passes} passes; calibrating it took {wall:.1f} s)")
+    jobs = list(range(len(picks)))
+    if concurrent > 1:
+        jobs += [i % len(picks) for i in range(-len(jobs) % concurrent)]
+    runs: dict[int, list] = {}
+    arrays: dict[int, dict] = {}
+
+    def done(i, frame, arr):
+        first = i not in runs
+        runs.setdefault(i, []).append(frame)
+        arrays.setdefault(i, arr)
+        if first:
+            log(f"  calibrated {frame['kind']} scene {frame['scene']} (seed {frame['scene_seed']}, {frame['objects']} "
+                f"objects{', motion' if frame['has_motion'] else ''}): {frame['frame_s']:.1f} CPU-s a frame "
+                f"(load {frame['load_s']:.1f}, inputs {frame['inputs_s']:.1f}, layers {frame['layers_s']:.1f}, "
+                f"reference {frame['reference_s']:.1f} for {frame['reference_passes']} of {rc.ref_passes} passes, "
+                f"timed on {cal_rc.ref_passes if rc.ref_spp else 0}; took {frame['calibration_wall_s']:.1f} s)")
+
+    w0 = time.perf_counter()
+    if concurrent == 1:
+        for i in jobs:
+            done(i, *_calibrate_frame(cfg, *picks[i], rc, cal_rc))
+        start_s = 0.0
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        log(f"  {len(jobs)} calibration render(s) in {concurrent} processes side by side "
+            f"({len(jobs) - len(picks)} repeat(s) keep every frame under the same load)")
+        with ProcessPoolExecutor(concurrent, multiprocessing.get_context("spawn"), initializer=_warm_worker,
+                                 initargs=(int(threads),)) as pool:
+            list(pool.map(time.sleep, [0.0] * concurrent))        # start-up: the processes, imports, drjit
+            start_s = time.perf_counter() - w0
+            futs = [(i, pool.submit(_calibrate_frame, cfg, *picks[i], rc, cal_rc)) for i in jobs]
+            for i, f in futs:
+                done(i, *f.result())
+    frames = []
+    for i in range(len(picks)):
+        rs = runs[i]
+        mean = {k: sum(r[k] for r in rs) / len(rs) for k in ("load_s", "inputs_s", "layers_s", "reference_s",
+                                                              "frame_s", "calibration_wall_s")}
+        frames.append({**rs[0], **mean, "runs": len(rs)})
     with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:
         path = Path(tmp) / "calibration.zarr"
-        layout = cfg.store_layout().with_frames(len(arrays))
+        layout = cfg.store_layout().with_frames(len(picks))
         create_store(str(path), layout, {})
         empty = _du(path)
         w = StoreWriter(str(path))
-        for i, a in enumerate(arrays):
-            w.write_frame(i, a)
-        per_frame_bytes = (_du(path) - empty) / len(arrays)
+        for i in range(len(picks)):
+            w.write_frame(i, arrays[i])
+        per_frame_bytes = (_du(path) - empty) / len(picks)
         fixed_bytes = empty
-    raw = sum(int(a[k].nbytes) for a in arrays for k in a if k != "meta") / len(arrays)
-    groups = {}
+    raw = sum(int(a[k].nbytes) for a in arrays.values() for k in a if k != "meta") / len(picks)
+    groups: dict[int, list] = {}
     for f in frames:
-        groups.setdefault(f["group"], []).append(f["frame_s"])
-    return {"frames": frames, "threads": int(threads), "group_frame_s": {g: sum(v) / len(v) for g, v in groups.items()},
+        groups.setdefault(f["group"], []).append(f)
+    mean = lambda fs, k: sum(f[k] for f in fs) / len(fs)      # noqa: E731
+    return {"frames": frames, "threads": int(threads), "concurrent": int(concurrent), "start_s": start_s,
+            "group_frame_s": {g: mean(v, "frame_s") for g, v in groups.items()},
+            "group_reference_spp": {g: mean(v, "reference_spp") for g, v in groups.items()},
             "bytes_per_frame": per_frame_bytes, "store_fixed_bytes": fixed_bytes, "raw_bytes_per_frame": raw}
 
 
@@ -162,28 +263,33 @@ def predict(cfg, cal: dict, workers: int) -> dict:
     per_frame_samples = W * H * (rc.spp + layer_samples + rc.ref_spp)
     frames = cfg.num_frames
     threads = cal["threads"]
-    core_s = sum(g.count * g.frames * cal["group_frame_s"][gi] for gi, g in enumerate(cfg.scenes))
+    groups = list(enumerate(cfg.scenes))
+    frame_s = {int(k): v for k, v in cal["group_frame_s"].items()}       # int keys, also after a JSON round trip
+    ref_spp = {int(k): v for k, v in (cal.get("group_reference_spp") or {gi: rc.ref_spp for gi, _ in groups}).items()}
+    core_s = sum(g.count * g.frames * frame_s[gi] for gi, g in groups)
+    expected = sum(g.count * g.frames * W * H * (rc.spp + layer_samples + ref_spp[gi]) for gi, g in groups)
     worker_s = core_s / threads                       # a worker's threads share a frame's work
     longest = max(f["frame_s"] for f in cal["frames"]) / threads
     wall = max(worker_s / max(1, workers), longest)
     store_bytes = cal["store_fixed_bytes"] + cal["bytes_per_frame"] * frames
     return {
-        "frames": frames, "samples": per_frame_samples * frames,
+        "frames": frames, "samples": per_frame_samples * frames, "samples_expected": int(expected),
         "samples_per_frame": {"inputs": W * H * rc.spp, "layers": W * H * layer_samples,
                               "reference_max": W * H * rc.ref_spp},
         "reference_early_stop": rc.ref_target_rel_stderr is not None,
         "core_hours": core_s / 3600.0, "worker_hours": worker_s / 3600.0,
         "store_bytes": int(store_bytes), "store_share_of_float32": cal["bytes_per_frame"] / cal["raw_bytes_per_frame"],
         "workers": int(workers), "threads_per_worker": threads, "wall_s": wall,
-        "calibrated_samples_per_core_s": per_frame_samples * len(cal["frames"]) / sum(f["frame_s"] for f in cal["frames"]),
+        "start_s": float(cal.get("start_s", 0.0)),
+        "calibrated_samples_per_core_s": sum(W * H * (rc.spp + layer_samples + f.get("reference_spp", rc.ref_spp))
+                                             for f in cal["frames"]) / sum(f["frame_s"] for f in cal["frames"]),
     }
 
 
 def _default_workers(cfg) -> int:
     if cfg.cluster.workers:
         return int(cfg.cluster.workers)
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cores // cfg.cluster.threads_per_worker)
+    return local_slots(cfg.cluster.threads_per_worker)
 
 
 def _hms(s: float) -> str:
@@ -209,28 +315,34 @@ def run(args) -> int:
     workers = args.workers if args.workers is not None else _default_workers(cfg)
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
+    threads = args.threads or cfg.cluster.threads_per_worker
+    concurrent = args.concurrent if args.concurrent is not None else min(workers, local_slots(threads))
     W, H = cfg.resolution
     print(f"estimate for {args.config}: {cfg.num_scenes} scenes, {cfg.num_frames} frames at {W}x{H}", flush=True)
     t0 = time.perf_counter()
-    cal = calibrate(cfg, per_group=args.scenes_per_group, ref_passes=args.ref_passes, threads=args.threads)
+    cal = calibrate(cfg, per_group=args.scenes_per_group, ref_passes=args.ref_passes, threads=threads,
+                    concurrent=concurrent)
     p = predict(cfg, cal, workers)
     p["calibration_s"] = time.perf_counter() - t0
     rc = cfg.render_config()
     spf = p["samples_per_frame"]
-    cap = "at most " if p["reference_early_stop"] else ""
+    early = p["reference_early_stop"]
     print(f"calibration: {len(cal['frames'])} frame(s) in {p['calibration_s']:.0f} s, {cal['threads']} drjit "
-          f"thread(s) ({p['calibrated_samples_per_core_s'] / 1e6:.3f} M samples per core-second, everything included)")
-    print(f"samples:     {cap}{p['samples']:.3g} ({spf['inputs']:.3g} inputs + {spf['layers']:.3g} layers + "
-          f"{cap}{spf['reference_max']:.3g} reference a frame; {rc.spp}, {2 ** rc.layer_levels - 1} and "
-          f"{rc.ref_spp} spp)")
-    print(f"core-hours:  {cap}{p['core_hours']:.3g} at this machine's speed")
+          f"thread(s), {cal['concurrent']} side by side ({p['calibrated_samples_per_core_s'] / 1e6:.3f} M samples "
+          "per core-second, everything included)")
+    print(f"samples:     {p['samples_expected']:.3g}" + (f" expected, at most {p['samples']:.3g}" if early else "")
+          + f" ({spf['inputs']:.3g} inputs + {spf['layers']:.3g} layers + at most {spf['reference_max']:.3g} "
+          f"reference a frame; {rc.spp}, {2 ** rc.layer_levels - 1} and {rc.ref_spp} spp)")
+    print(f"core-hours:  {p['core_hours']:.3g} at this machine's speed")
     print(f"store:       {_bytes(p['store_bytes'])} ({_bytes(cal['bytes_per_frame'])} a frame, "
           f"{p['store_share_of_float32']:.2f} of float32)")
-    print(f"wall time:   {cap}{_hms(p['wall_s'])} on {workers} worker(s) x {cal['threads']} thread(s) of this "
-          f"speed (scheduling and writes not included)")
-    if p["reference_early_stop"]:
-        print(f"             references stop early once their relative stderr is <= {rc.ref_target_rel_stderr}: "
-              "frames that converge cost less")
+    print(f"wall time:   {_hms(p['wall_s'])} on {workers} worker(s) x {cal['threads']} thread(s) of this "
+          f"speed, plus start-up (here {p['start_s']:.0f} s for {cal['concurrent']} worker process(es)); scheduling "
+          "and validation not included")
+    if early:
+        print(f"             references stop once their relative stderr is <= {rc.ref_target_rel_stderr} (at least "
+              f"{rc.ref_min_passes} of {rc.ref_passes} passes): the stop is predicted from each calibration frame's "
+              "first passes")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"prediction": p, "calibration": cal}, f, indent=2, default=str)

@@ -79,3 +79,48 @@ def test_estimate_bad_input_is_exit_2(tmp_path, capsys):
     bad.write_text(CONFIG.replace("spp: 4,", "spp: 0,"))
     assert main(["estimate", "--config", str(bad)]) == 2
     assert "spp" in capsys.readouterr().err
+
+
+def test_calibration_renders_side_by_side(estimated):
+    """The frames were calibrated in as many processes as the workers that share this machine (at most
+    the 3 asked for), every frame timed at least once under that load."""
+    from pipeline.estimate import local_slots
+    _, res = estimated
+    cal = res["calibration"]
+    assert cal["concurrent"] == min(3, local_slots(1))
+    assert all(f["runs"] >= 1 for f in cal["frames"])
+    assert sum(f["runs"] for f in cal["frames"]) % cal["concurrent"] == 0
+
+
+def test_predicted_passes_match_the_stopping_rule():
+    """The early stop predicted from the first 4 passes agrees on average with the renderer's stopping
+    rule (``render_reference``: batch means, the same relative error) run to the end, on simulated
+    passes with per-pixel noise of several levels; no target means every pass."""
+    import dataclasses
+
+    import numpy as np
+
+    from pipeline.estimate import c4, predicted_passes
+    from pipeline.render import RenderConfig, _batch_stats, rel_stderr
+    assert c4(2) == pytest.approx(np.sqrt(2 / np.pi)) and c4(1000) == pytest.approx(1.0, abs=1e-3)
+    rc = RenderConfig(res=(16, 16), ref_spp=4096, ref_passes=32, ref_min_passes=8, ref_target_rel_stderr=0.03)
+    assert predicted_passes(0.5, 4, dataclasses.replace(rc, ref_target_rel_stderr=None)) == 32
+    assert predicted_passes(1e-6, 4, rc) == 8 and predicted_passes(10.0, 4, rc) == 32
+    rng = np.random.default_rng(0)
+    for sigma in (0.06, 0.1, 0.13):                           # stops around pass 4-20
+        actual, predicted = [], []
+        for _ in range(40):
+            mean = rng.uniform(0.2, 1.0, (16, 16, 1)) * np.ones(3)
+            passes = mean + sigma * mean * rng.standard_normal((32, 16, 16, 1)) * np.ones(3)
+            stop = 32
+            for p in range(rc.ref_min_passes, 32):
+                cnt = np.full((16, 16, 1), float(p))
+                m, s = _batch_stats(cnt, passes[:p].sum(0), (passes[:p] ** 2).sum(0))
+                if rel_stderr(m, s) <= rc.ref_target_rel_stderr:
+                    stop = p
+                    break
+            cnt = np.full((16, 16, 1), 4.0)
+            m, s = _batch_stats(cnt, passes[:4].sum(0), (passes[:4] ** 2).sum(0))
+            actual.append(stop)
+            predicted.append(predicted_passes(rel_stderr(m, s), 4, rc))
+        assert abs(np.mean(predicted) - np.mean(actual)) <= 0.05 * np.mean(actual) + 0.5, (sigma, predicted, actual)
