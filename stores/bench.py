@@ -15,13 +15,14 @@
 
 Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
 (``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first, in the
-default (``compact``) encoding.
+default (``compact2``) encoding.
 
 ``reencode(paths)`` (``--reencode STORE ...``): a few complete frames of each real store written again
-into a ``compact`` and an ``lz4`` store: stored bytes / float32 bytes per array group and in total,
-the radiance error of ``compact`` (max and 99.9th percentile of ``|x' - x| / |x|`` over non-zero
-samples; zeros must stay zero), write (encode) ms per frame, and the crop read of the compact store
-against the ``np.load`` ceiling (:func:`run` on it).
+into a ``compact2``, a ``compact`` and an ``lz4`` store: stored bytes / float32 bytes per array group
+and in total, the errors of the lossy encodings (input radiance: max and 99.9th percentile of
+``|x' - x| / |x|`` over non-zero samples; zeros must stay zero; the max per feature group, layers
+and guides), write (encode) ms per frame, and the crop read of each store against the ``np.load``
+ceiling (:func:`run` on it).
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ import time
 import numpy as np
 
 from stores import schema
+from stores.codecs import DEFAULT_ENCODING, ENCODINGS
 from stores.reader import open_store
 from stores.schema import ARRAYS, StoreLayout
 from stores.writer import StoreWriter, open_or_create
@@ -89,10 +91,15 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
     br = lambda r: bitround(r, KEEPBITS)  # noqa: E731
     lz4hc = Blosc("lz4hc", 9, Blosc.BITSHUFFLE)
     cases += [
-        ("compact: 9-bit radiance + features, lz4hc-9 + bitshuffle, (C,H,W,S) (chosen)", lz4hc, br, "br16", "cm"),
+        ("compact2: 9-bit radiance, features per group, lz4hc-9 + bitshuffle, (C,H,W,S) (chosen)",
+         lz4hc, br, "grp16", "cm"),
+        ("  the same, zstd-5 + bitshuffle", Blosc("zstd", 5, Blosc.BITSHUFFLE), br, "grp16", "cm"),
+        ("compact: 9-bit radiance + features, lz4hc-9 + bitshuffle, (C,H,W,S)", lz4hc, br, "br16", "cm"),
         ("  the same, sample-major (S,C,H,W)", lz4hc, br, "br16", "sm"),
         ("  the same (C,H,W,S), zstd-5 + bitshuffle", Blosc("zstd", 5, Blosc.BITSHUFFLE), br, "br16", "cm"),
     ]
+    from stores.codecs import bitround_channels, feature_keepbits
+    feat_axis = {"sm": 1, "cm": 0}
     rows = []
     for name, codec, enc_r, fdt, lay in cases:
         nbytes, dec_s = 0, 0.0
@@ -101,6 +108,10 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
             with np.errstate(over="ignore"):
                 if fdt == "br16":                 # compact's features: rounded once in float32, then float16
                     ef = np.ascontiguousarray(bitround(f, KEEPBITS).astype(np.float16))
+                    er = np.ascontiguousarray(enc_r(r))
+                elif fdt == "grp16":              # compact2's: each feature group to its own bits
+                    ef = bitround_channels(f, feature_keepbits(), feat_axis[lay]).astype(np.float16)
+                    ef = np.ascontiguousarray(ef)
                     er = np.ascontiguousarray(enc_r(r))
                 else:
                     er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
@@ -315,18 +326,32 @@ def format_report(r: dict) -> str:
 
 GROUP_OF = {"inputs/radiance": "inputs/radiance", "inputs/features": "inputs/features",
             "layers/radiance": "layers", "reference/radiance": "reference", "reference/stderr": "reference"}
+REENCODINGS = ("compact2", "compact", "lz4")     # what --reencode writes: the default of new stores first
 
 
-def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True) -> dict:
-    """Write ``frames`` complete frames (evenly spaced) of each store in ``paths`` into a new ``compact``
-    and a new ``lz4`` store and report, per store and over all: stored/float32 bytes per group
+def _rel_error(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``|y - x| / |x|`` (float64) over the non-zero entries of ``x``."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    nz = x != 0
+    return np.abs(y[nz] - x[nz]) / np.abs(x[nz])
+
+
+def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True,
+             encodings: tuple[str, ...] = REENCODINGS) -> dict:
+    """Write ``frames`` complete frames (evenly spaced) of each store in ``paths`` into a new store of
+    each of ``encodings`` and report, per store and over all: stored/float32 bytes per group
     (``inputs/radiance``, ``inputs/features``, ``layers``, ``reference`` (+ stderr), ``guides``) and in
-    total, write ms per frame, the compact radiance error, and the crop read of the compact store."""
+    total, write ms per frame, the crop read of each new store, and for the lossy encodings the
+    errors (``errors[enc]``: max and 99.9th percentile of ``|x' - x| / |x|`` of the input radiance over
+    non-zero samples, max per feature group and per guide; zeros must stay zero, references
+    bit-exact). ``radiance_rel_error`` is that of ``encodings[0]``. Measure from a lossless (``lz4``)
+    store: re-encoding a lossy one measures nothing but the difference."""
+    from stores.contract import FEATURE_GROUPS
     tmp = tempfile.mkdtemp(prefix="stores-reencode-")
-    out: dict = {"stores": {}}
-    tot = {e: {} for e in ("compact", "lz4")}
+    out: dict = {"stores": {}, "encodings": list(encodings)}
+    tot = {e: {} for e in encodings}
     raw_tot: dict = {}
-    errs = []
+    errs: dict = {e: {} for e in encodings}
     try:
         for path in paths:
             src = open_store(path)
@@ -334,8 +359,9 @@ def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True) -
             pick = sorted({done[int(k)] for k in np.linspace(0, len(done) - 1, min(frames, len(done)))})
             data = [src.read_frame(i) for i in pick]
             lay0 = src.layout
-            row: dict = {"frames": pick, "source_encoding": lay0.encoding}
-            for enc in ("compact", "lz4"):
+            row: dict = {"frames": pick, "source_encoding": lay0.encoding, "zeros_changed": 0,
+                         "reference_bit_exact": True}
+            for enc in encodings:
                 lay = StoreLayout(**{**lay0.to_dict(), "num_frames": len(pick), "encoding": enc})
                 dst = os.path.join(tmp, f"{os.path.basename(os.fspath(path).rstrip('/'))}-{enc}.zarr")
                 w = open_or_create(dst, lay, {"reencoded_from": os.fspath(path)})
@@ -352,30 +378,41 @@ def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True) -
                         raw[g] = raw.get(g, 0) + int(np.prod(spec.shape(lay)[1:])) * 4 * len(pick)
                 for g in sizes:
                     tot[enc][g] = tot[enc].get(g, 0) + sizes[g]
-                    if enc == "compact":
+                    if enc == encodings[0]:
                         raw_tot[g] = raw_tot.get(g, 0) + raw[g]
                 row[enc] = {"ratio": {g: sizes[g] / raw[g] for g in sizes},
                             "total": sum(sizes.values()) / sum(raw.values()),
                             "write_ms_per_frame": 1e3 * float(np.median(t_write)),
                             "crop_read": run(dst, crops=crops, compare=False, checksums=False, verbose=False)}
-                if enc == "compact":
-                    back = open_store(dst)
-                    for j, fr in enumerate(data):
-                        got = back.read_frame(j, ["radiance", "reference", "reference_stderr"])
-                        x, y = fr["radiance"].astype(np.float64), got["radiance"].astype(np.float64)
-                        nz = x != 0
-                        errs.append(np.abs(y[nz] - x[nz]) / np.abs(x[nz]))
-                        row.setdefault("zeros_changed", 0)
-                        row["zeros_changed"] += int((y[~nz] != 0).sum())
-                        row.setdefault("reference_bit_exact", True)
-                        row["reference_bit_exact"] &= bool(np.array_equal(got["reference"], fr["reference"])
-                                                           and np.array_equal(got["reference_stderr"],
-                                                                              fr["reference_stderr"]))
-
+                if enc == "lz4":
+                    continue
+                back = open_store(dst)
+                e = errs[enc]
+                for j, fr in enumerate(data):
+                    got = back.read_frame(j)
+                    e.setdefault("radiance", []).append(_rel_error(fr["radiance"], got["radiance"]))
+                    for g, sl in FEATURE_GROUPS.items():
+                        e.setdefault(f"features/{g}", []).append(_rel_error(fr["features"][..., sl],
+                                                                            got["features"][..., sl]))
+                    for k in ("layers", "guides_albedo", "guides_normal", "guides_depth", "guides_motion"):
+                        e.setdefault(k, []).append(_rel_error(fr[k], got[k]))
+                    row["zeros_changed"] += int((got["radiance"][fr["radiance"] == 0] != 0).sum())
+                    row["reference_bit_exact"] &= bool(np.array_equal(got["reference"], fr["reference"])
+                                                       and np.array_equal(got["reference_stderr"],
+                                                                          fr["reference_stderr"]))
             out["stores"][os.fspath(path)] = row
-        e = np.concatenate(errs)
-        out["radiance_rel_error"] = {"max": float(e.max()), "p99.9": float(np.percentile(e, 99.9)),
-                                     "mean": float(e.mean()), "samples": int(e.size)}
+        out["errors"] = {}
+        for enc, e in errs.items():
+            if not e:
+                continue
+            rad = np.concatenate(e.pop("radiance"))
+            out["errors"][enc] = {"radiance": {"max": float(rad.max()), "p99.9": float(np.percentile(rad, 99.9)),
+                                               "mean": float(rad.mean()), "samples": int(rad.size)}}
+            out["errors"][enc].update({k: float(max((a.max() for a in v if a.size), default=0.0))
+                                       for k, v in e.items()})
+        first = next((enc for enc in encodings if enc in out["errors"]), None)
+        if first:
+            out["radiance_rel_error"] = out["errors"][first]["radiance"]
         out["all"] = {enc: {"ratio": {g: tot[enc][g] / raw_tot[g] for g in raw_tot},
                             "total": sum(tot[enc].values()) / sum(raw_tot.values())} for enc in tot}
     finally:
@@ -386,22 +423,26 @@ def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True) -
 
 
 def format_reencode(r: dict) -> str:
-    groups = list(r["all"]["compact"]["ratio"])
-    lines = ["stores bench --reencode: stored / float32 bytes, compact (lz4)",
-             f"  {'store':34s} " + " ".join(f"{g:>16s}" for g in groups) + f" {'total':>14s}  write ms/frame"]
+    encs = r.get("encodings") or list(r["all"])
+    groups = list(r["all"][encs[0]]["ratio"])
+    lines = ["stores bench --reencode: stored / float32 bytes (features counted as float32)",
+             f"  {'store':24s} {'encoding':9s} " + " ".join(f"{g:>15s}" for g in groups)
+             + f" {'total':>7s}  write ms/frame"]
     for path, row in list(r["stores"].items()) + [("all", r["all"])]:
-        c, l4 = row["compact"], row["lz4"]
-        cells = " ".join(f"{c['ratio'][g]:7.3f} ({l4['ratio'][g]:5.3f})" for g in groups)
-        wr = (f"  {c['write_ms_per_frame']:6.1f} ({l4['write_ms_per_frame']:.1f})"
-              if "write_ms_per_frame" in c else "")
-        lines.append(f"  {os.path.basename(path):34s} {cells} {c['total']:6.3f} ({l4['total']:5.3f}){wr}")
-    e = r["radiance_rel_error"]
-    lines.append(f"  compact radiance |x'-x|/|x| over {e['samples']} non-zero samples: max {e['max']:.3e}, "
-                 f"99.9% {e['p99.9']:.3e}, mean {e['mean']:.3e}; zeros changed: "
-                 f"{sum(row.get('zeros_changed', 0) for row in r['stores'].values())}; references bit-exact: "
-                 f"{all(row.get('reference_bit_exact') for row in r['stores'].values())}")
+        for enc in encs:
+            c = row[enc]
+            wr = f"  {c['write_ms_per_frame']:6.1f}" if "write_ms_per_frame" in c else ""
+            lines.append(f"  {os.path.basename(path):24s} {enc:9s} " + " ".join(f"{c['ratio'][g]:15.3f}" for g in groups)
+                         + f" {c['total']:7.3f}{wr}")
+    for enc, e in r.get("errors", {}).items():
+        rad = e["radiance"]
+        lines.append(f"  {enc} radiance |x'-x|/|x| over {rad['samples']} non-zero samples: max {rad['max']:.3e}, "
+                     f"99.9% {rad['p99.9']:.3e}, mean {rad['mean']:.3e}")
+        lines.append(f"  {enc} max |x'-x|/|x|: " + ", ".join(f"{k} {v:.2e}" for k, v in e.items() if k != "radiance"))
+    lines.append(f"  zeros changed: {sum(row.get('zeros_changed', 0) for row in r['stores'].values())}; "
+                 f"references bit-exact: {all(row.get('reference_bit_exact') for row in r['stores'].values())}")
     for path, row in r["stores"].items():
-        for enc in ("compact", "lz4"):
+        for enc in encs:
             c = row[enc]["crop_read"]
             lines.append(f"  crop read {os.path.basename(path)} ({enc}, {c['crop']}x{c['crop']} x {c['spp']} spp): "
                          f"{c['crops_per_s']:.1f} crops/s vs np.load {c['ceiling_crops_per_s']:.1f}: "
@@ -416,10 +457,10 @@ def main(argv=None) -> int:
     ap.add_argument("--crops", type=int, default=40)
     ap.add_argument("--size", type=int, default=256, help="synthetic frame size")
     ap.add_argument("--reencode", nargs="+", default=None, metavar="STORE",
-                    help="re-encode a few frames of these real stores in compact and lz4 and compare")
+                    help="re-encode a few frames of these real stores in compact2, compact and lz4 and compare")
     ap.add_argument("--frames", type=int, default=4, help="frames per store for --reencode")
-    ap.add_argument("--encoding", default=None, choices=["compact", "lz4"],
-                    help="encoding of the synthetic store (default: that of new stores, compact)")
+    ap.add_argument("--encoding", default=None, choices=list(ENCODINGS),
+                    help=f"encoding of the synthetic store (default: that of new stores, {DEFAULT_ENCODING})")
     ap.add_argument("--quick", action="store_true", help="crop reads and sizes only (no codec table, no v1/v2 checksums)")
     args = ap.parse_args(argv)
     if args.reencode:

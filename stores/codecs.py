@@ -19,12 +19,21 @@
   SCHEMA.md ("Image encodings"). Our own code adds nothing to the chains: every codec is zarr's or
   numcodecs' (``decode`` of ``bitround`` is the identity, so any zarr v3 reader with numcodecs reads
   floats; xarray shows values, not codes).
+* ``compact2`` (the default for new stores since issue 13's size target): ``compact`` with each
+  feature group rounded to its own mantissa bits (``FEATURE_KEEPBITS``, chosen by what a denoiser can
+  use; input radiance and sample layers keep 9 bits). The writer rounds the features per group before
+  the float16 cast (``Chain.channel_keepbits``, :func:`bitround_channels`); the chain's ``bitround``
+  holds the largest of them, so it changes nothing more and any zarr reader decodes the values. The
+  guides are rounded in the chain to their group's bits; references stay lossless (zstd-7 + byte
+  shuffle, 1% smaller than ``compact``'s zstd-5).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
+
+from stores.contract import FEATURE_GROUPS, FEATURE_NAMES
 
 LOG16_MIN_EXP = -30.0        # 2**-30 ~ 9.3e-10
 LOG16_MAX_EXP = 34.0         # 2**34 ~ 1.7e10 (>= 1e8 with room for fireflies)
@@ -52,9 +61,9 @@ def decode_log16(code: np.ndarray) -> np.ndarray:
 
 BLOSC = {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}     # the image arrays' compressor (SCHEMA.md)
 
-ENCODINGS = ("lz4", "compact")
+ENCODINGS = ("lz4", "compact", "compact2")
 LEGACY_ENCODING = "lz4"          # what a store whose layout records no ``encoding`` was written with
-DEFAULT_ENCODING = "compact"     # what create_store uses when the layout leaves it open (None)
+DEFAULT_ENCODING = "compact2"    # what create_store uses when the layout leaves it open (None)
 KEEPBITS = 9                     # mantissa bits kept by ``compact``'s bit rounding (float32 and float16)
 COMPACT_MAX_REL_ERROR = 2.0 ** -(KEEPBITS + 1)     # 9.77e-4: round to nearest of a 9-bit mantissa
 # the largest float16 with a 9-bit mantissa: zarr's BitRound rounds 65473..65504 up to 65536 = Inf
@@ -65,17 +74,60 @@ ZSTD_LEVEL = 5                   # Blosc zstd level of ``compact``'s lossless re
 LOSSY_BLOSC = ("lz4hc", 9, "bitshuffle")
 
 
+# compact2: mantissa bits kept per feature group (stores.contract.FEATURE_GROUPS), what a denoiser can
+# use (SCHEMA.md "compact2"); |x' - x| <= 2**-(k + 1) |x| for a group of k bits. Input radiance and the
+# sample layers keep 9 bits (<= 2**-10 < 1e-3); the guides take their feature group's bits.
+FEATURE_KEEPBITS = {
+    "normal": 6,      # <= 2**-8 per unit-vector component (an 8-bit signed G-buffer normal): <= 0.4 degrees
+    "depth": 8,       # <= 2**-9 relative (2 mm at 1 m)
+    "albedo": 7,      # <= 2**-8 relative: below half an 8-bit sRGB step (>= 0.44%) at every level
+    "specular": 7,    # a material colour, like albedo
+    "roughness": 7,   # a material parameter in [0, 1], like albedo
+    "motion": 8,      # <= 2**-9 relative: 1/32 px for motions up to 16 px
+    "coc": 6,         # <= 2**-7 of the blur radius: 1/8 px for circles of confusion up to 16 px
+    "lens": 4,        # <= 2**-6 of the lens radius a coordinate: ~CoC / 64 px on screen (1/4 px at 16 px)
+    "time": 9,        # a few slice times a frame: coarser rounding saves nothing
+}
+GUIDE_GROUPS = {"guides/albedo": "albedo", "guides/normal": "normal", "guides/depth": "depth",
+                "guides/motion": "motion"}
+ZSTD_LEVEL_2 = 7                 # compact2's lossless references: 1% smaller than zstd-5, decode alike
+
+
+def feature_keepbits(groups: dict[str, int] | None = None) -> tuple[int, ...]:
+    """Mantissa bits of each of the 17 features (``FEATURE_NAMES`` order) under ``groups``
+    (default :data:`FEATURE_KEEPBITS`)."""
+    groups = FEATURE_KEEPBITS if groups is None else groups
+    out = [0] * len(FEATURE_NAMES)
+    for g, sl in FEATURE_GROUPS.items():
+        for c in range(len(FEATURE_NAMES))[sl]:
+            out[c] = int(groups[g])
+    return tuple(out)
+
+
+def float16_max(keepbits: int | None) -> float:
+    """The largest |x| a float16 array takes when rounded to ``keepbits`` mantissa bits (None: no
+    rounding, 65504): anything above would round up to 65536 = Inf."""
+    if keepbits is None or keepbits >= 10:
+        return 65504.0
+    return float(2.0 ** 15 * (2 - 2.0 ** -keepbits))
+
+
 @dataclass(frozen=True)
 class Chain:
     """The inner-chunk codecs of one image array: ``sample_last`` (a ``TransposeCodec`` moving the
     sample axis innermost, so the 8 samples of a pixel lie together), ``keepbits`` (``BitRound``;
-    None: lossless) and the Blosc compressor (``cname``, ``clevel``, ``shuffle``)."""
+    None: lossless) and the Blosc compressor (``cname``, ``clevel``, ``shuffle``).
+    ``channel_keepbits`` (not a codec): mantissa bits per entry of the ``channel_dim`` axis that the
+    writer rounds to before the codecs (``ArraySpec.to_store``); ``keepbits`` is then their largest,
+    so the chain's ``BitRound`` changes nothing more."""
 
     cname: str
     clevel: int
     shuffle: str
     keepbits: int | None = None
     sample_last: bool = False
+    channel_keepbits: tuple[int, ...] | None = None
+    channel_dim: str = "feature"
 
     def order(self, dims: tuple[str, ...]) -> tuple[int, ...] | None:
         """The ``TransposeCodec`` order over ``dims`` (frame first), None when nothing moves."""
@@ -83,6 +135,10 @@ class Chain:
             return None
         s = dims.index("sample")
         return tuple(i for i in range(len(dims)) if i != s) + (s,)
+
+    def channel_bits(self, n: int) -> tuple[int | None, ...]:
+        """Mantissa bits kept of each of ``n`` channels (None: lossless)."""
+        return self.channel_keepbits if self.channel_keepbits is not None else (self.keepbits,) * n
 
 
 _LOSSY = Chain(*LOSSY_BLOSC, KEEPBITS)
@@ -98,16 +154,31 @@ _COMPACT = {        # measured on real frames (SCHEMA.md "Image encodings")
 }
 
 
+def _compact2(path: str) -> Chain:
+    """compact2's chain of ``path`` (from :data:`FEATURE_KEEPBITS`; like ``_COMPACT``, schema)."""
+    if path == "inputs/features":
+        bits = feature_keepbits()
+        return replace(_LOSSY, keepbits=max(bits), sample_last=True, channel_keepbits=bits)
+    if path in GUIDE_GROUPS:
+        return replace(_LOSSY, keepbits=FEATURE_KEEPBITS[GUIDE_GROUPS[path]])
+    if path.startswith("reference/"):
+        return Chain("zstd", ZSTD_LEVEL_2, "shuffle")
+    return _COMPACT.get(path, _LOSSY)                            # input radiance, layers: as compact
+
+
 def image_chain(path: str, encoding: str, dtype: str) -> Chain:
     """The codecs of image array ``path`` under ``encoding`` for storage ``dtype`` (integer codes,
     i.e. log16 radiance, are never bit-rounded)."""
     if encoding == "lz4":
         return Chain(BLOSC["cname"], BLOSC["clevel"], BLOSC["shuffle"])
-    if encoding != "compact":
+    if encoding == "compact":
+        c = _COMPACT.get(path, _LOSSY)                           # guides: lossy like the features
+    elif encoding == "compact2":
+        c = _compact2(path)
+    else:
         raise ValueError(f"unknown encoding {encoding!r}; known: {ENCODINGS}")
-    c = _COMPACT.get(path, _LOSSY)                               # guides: lossy like the features
     if c.keepbits is not None and not np.dtype(dtype).kind == "f":
-        c = replace(c, keepbits=None)
+        c = replace(c, keepbits=None, channel_keepbits=None)
     return c
 
 
@@ -117,6 +188,19 @@ def bitround(x: np.ndarray, keepbits: int) -> np.ndarray:
     from numcodecs import BitRound
     x = np.ascontiguousarray(x)
     return BitRound(keepbits).encode(x).view(x.dtype).reshape(x.shape)
+
+
+def bitround_channels(x: np.ndarray, keepbits, axis: int) -> np.ndarray:
+    """``x`` as float32 with entry ``c`` of ``axis`` rounded to ``keepbits[c]`` mantissa bits
+    (:func:`bitround`; None keeps it exact)."""
+    x = np.array(x, np.float32)                      # a copy: the caller's array stays as it is
+    xm = np.moveaxis(x, axis, 0)
+    if xm.shape[0] != len(keepbits):
+        raise ValueError(f"{len(keepbits)} keepbits for an axis of {xm.shape[0]}")
+    for k in sorted({b for b in keepbits if b is not None}):
+        idx = [c for c, b in enumerate(keepbits) if b == k]
+        xm[idx] = bitround(xm[idx], k)
+    return x
 
 
 def compressor(name: str = BLOSC["cname"], level: int = BLOSC["clevel"], shuffle: str = BLOSC["shuffle"]):

@@ -53,12 +53,14 @@ class StoreLayout:
     ``tile`` is the inner chunk edge in pixels (clamped to the frame). ``radiance_encoding`` is
     ``float32`` (default) or ``log16`` (uint16 log code, rel. error <= 3.4e-4).
     ``feature_dtype`` is ``float16`` (default; values must stay within +-65504) or ``float32``.
-    ``encoding`` is the image arrays' codec chains (``stores.codecs.ENCODINGS``): ``compact``
-    (bit-rounded inputs, layers and guides, rel. error <= 2**-10; lossless references; zstd) or
-    ``lz4`` (everything lossless, LZ4). None leaves it open: ``create_store`` makes a new store
-    ``compact`` and an existing store keeps its own, so a config that does not name it resumes
-    stores of either. A stored layout without the key is a store written before the field existed
-    (``lz4``); ``to_dict`` omits None, so configs that leave it open keep their old form.
+    ``encoding`` is the image arrays' codec chains (``stores.codecs.ENCODINGS``): ``compact2``
+    (``compact`` with each feature group and guide rounded to its own mantissa bits,
+    ``codecs.FEATURE_KEEPBITS``), ``compact`` (bit-rounded inputs, layers and guides, rel. error
+    <= 2**-10; lossless references; zstd) or ``lz4`` (everything lossless, LZ4). None leaves it open:
+    ``create_store`` makes a new store ``compact2`` and an existing store keeps its own, so a config
+    that does not name it resumes stores of any. A stored layout without the key is a store written
+    before the field existed (``lz4``); ``to_dict`` omits None, so configs that leave it open keep
+    their old form.
     """
 
     num_frames: int
@@ -97,9 +99,11 @@ class StoreLayout:
         return self if self.encoding else replace(self, encoding=self.codec_set)
 
     @property
-    def feature_max(self) -> float:
-        """The largest |feature| a float16 store takes (``compact`` rounds 65473..65504 up to Inf)."""
-        return codecs.FLOAT16_MAX_COMPACT if self.codec_set == "compact" else FLOAT16_MAX
+    def feature_limits(self) -> tuple[float, ...]:
+        """The largest |x| of each feature a float16 store takes: 65504, less where the encoding rounds
+        the mantissa (9 bits: 65472; bit rounding would turn anything above into Inf)."""
+        spec = ARRAY_BY_PATH["inputs/features"]
+        return tuple(codecs.float16_max(k) for k in spec.chain(self).channel_bits(NUM_FEATURES))
 
     @property
     def num_layers(self) -> int:
@@ -188,11 +192,15 @@ class ArraySpec:
             return codecs.encode_log16(a)
         dtype = self.storage_dtype(layout)
         if self.image:
-            keep = self.chain(layout).keepbits
-            if keep is not None and dtype == "float16" and a.dtype != np.float16:
+            ch = self.chain(layout)
+            if ch.channel_keepbits is not None:
+                # compact2's features: each channel to its own bits, in float32, before the cast (the
+                # codec's BitRound keeps the largest of them, so it changes nothing more)
+                a = codecs.bitround_channels(a, ch.channel_keepbits, self.dims.index(ch.channel_dim) - 1)
+            elif ch.keepbits is not None and dtype == "float16" and a.dtype != np.float16:
                 # round once, in float32, to the bits kept: the float16 cast is then exact (for
                 # |x| >= 2**-14) and the codec's BitRound a no-op; f32 -> f16 -> 9 bits would round twice
-                a = codecs.bitround(np.asarray(a, np.float32), keep)
+                a = codecs.bitround(np.asarray(a, np.float32), ch.keepbits)
         return np.ascontiguousarray(a, dtype=dtype)
 
     def chain(self, layout: StoreLayout) -> "codecs.Chain":
@@ -722,11 +730,15 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
                                 chunks=(layout.num_layers,), dimension_names=("level",))
         spp[:] = np.array(layout.layer_spp, np.int32)
     root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
-    if layout.codec_set == "compact":        # say what the lossy codecs cost (xarray shows the attrs)
-        for spec in table:
-            ch = spec.chain(layout) if spec.image else None
-            if ch is not None and ch.keepbits is not None:
-                root[spec.path].attrs["max_rel_error"] = 2.0 ** -(ch.keepbits + 1)
+    for spec in table:                       # say what the lossy codecs cost (xarray shows the attrs)
+        ch = spec.chain(layout) if spec.image else None
+        if ch is None or ch.keepbits is None:
+            continue
+        if ch.channel_keepbits is not None:      # compact2's features: each its own bits
+            root[spec.path].attrs["feature_precision"] = {
+                name: {"keepbits": k, "max_rel_error": 2.0 ** -(k + 1)}
+                for name, k in zip(FEATURE_NAMES, ch.channel_keepbits)}
+        root[spec.path].attrs["max_rel_error"] = 2.0 ** -(min(ch.channel_keepbits or (ch.keepbits,)) + 1)
     if layout.radiance_encoding == "log16":
         root["inputs/radiance"].attrs["log16"] = {
             "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,

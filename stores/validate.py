@@ -14,7 +14,8 @@ schema table first; if it disagrees no frame is read (its bytes would be misread
 Per complete frame it checks: no NaN/Inf in any array; radiance, layers and reference >= 0;
 reference standard error >= 0; features in range (albedo and roughness in [0, 1], time in [0, 1],
 lens position inside the unit disk, depth >= 0, normals of unit length or 0 on a miss); guides the
-same. It reports each frame's value ranges and the reference's mean relative standard error
+same; bounds of 1 with the slack the store's rounding may add (``compact2``'s 4-bit lens: 2**-5).
+It reports each frame's value ranges and the reference's mean relative standard error
 (``stderr / max(reference, 1e-3)``) with the renderer's own figure (``frames/reference_rel_stderr``).
 Incomplete frames are problems (with their recorded error text). A complete frame whose reference
 is all zero while its input radiance is not is a problem. Schema v1 stores skipped all-zero shards,
@@ -30,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from stores import schema
-from stores.contract import FEATURE_GROUPS
+from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 from stores.errors import MissingShardError, StoreCorruptionError, StoreError
 from stores.reader import open_store
 
@@ -148,8 +149,27 @@ def _range_check(name, a, lo=None, hi=None, problems=None, tol=_TOL):
         problems.append(f"{name} above {hi}: max {fin.max():.4g}")
 
 
-def check_frame_values(fr: dict, report: FrameReport) -> None:
-    """Fill ``report`` from one frame in the contract layout (``Store.read_frame``)."""
+def _rounding_tols(layout) -> dict[str, float]:
+    """The slack the store's encoding needs past a bound of 1 (feature group or guide -> tolerance):
+    ``_TOL``, or the group's rounding bound ``2**-(k + 1)`` where that is larger (``compact2`` keeps
+    a few mantissa bits of some features: a lens point on the unit circle may be stored at radius 1.03)."""
+    if layout is None:
+        return {}
+    bits = schema.ARRAY_BY_PATH["inputs/features"].chain(layout).channel_bits(NUM_FEATURES)
+    out = {}
+    for g, sl in FEATURE_GROUPS.items():
+        ks = [k for k in bits[sl] if k is not None]
+        out[g] = max([_TOL] + [2.0 ** -(k + 1) for k in ks])
+    for key, path in (("guides_albedo", "guides/albedo"), ("guides_normal", "guides/normal")):
+        k = schema.ARRAY_BY_PATH[path].chain(layout).keepbits
+        out[key] = _TOL if k is None else max(_TOL, 2.0 ** -(k + 1))
+    return out
+
+
+def check_frame_values(fr: dict, report: FrameReport, layout=None) -> None:
+    """Fill ``report`` from one frame in the contract layout (``Store.read_frame``); ``layout`` (the
+    store's) widens the range checks by what its encoding's rounding may add."""
+    tol = _rounding_tols(layout)
     p = report.problems
     for key, a in fr.items():
         if key == "meta":
@@ -166,19 +186,19 @@ def check_frame_values(fr: dict, report: FrameReport) -> None:
         _range_check(key, fr[key], lo=0.0, problems=p, tol=0.0)
     f = fr["features"]
     g = FEATURE_GROUPS
-    _range_check("features.albedo", f[..., g["albedo"]], 0.0, 1.0, p)
-    _range_check("features.roughness", f[..., g["roughness"]], 0.0, 1.0, p)
-    _range_check("features.time", f[..., g["time"]], 0.0, 1.0, p)
+    _range_check("features.albedo", f[..., g["albedo"]], 0.0, 1.0, p, tol.get("albedo", _TOL))
+    _range_check("features.roughness", f[..., g["roughness"]], 0.0, 1.0, p, tol.get("roughness", _TOL))
+    _range_check("features.time", f[..., g["time"]], 0.0, 1.0, p, tol.get("time", _TOL))
     _range_check("features.depth", f[..., g["depth"]], 0.0, None, p)
     lens = np.linalg.norm(f[..., g["lens"]], axis=-1)
-    _range_check("features.lens radius", lens, None, 1.0, p)
+    _range_check("features.lens radius", lens, None, 1.0, p, tol.get("lens", _TOL))
     n = np.linalg.norm(f[..., g["normal"]], axis=-1)
-    odd = np.isfinite(n) & (n > 1e-3) & (np.abs(n - 1) > 1e-2)
+    odd = np.isfinite(n) & (n > 1e-3) & (np.abs(n - 1) > max(1e-2, tol.get("normal", 0.0)))
     if odd.any():
         p.append(f"features.normal: {int(odd.sum())} samples neither unit length nor 0")
-    _range_check("guides_albedo", fr["guides_albedo"], 0.0, 1.0, p)
+    _range_check("guides_albedo", fr["guides_albedo"], 0.0, 1.0, p, tol.get("guides_albedo", _TOL))
     _range_check("guides_depth", fr["guides_depth"], 0.0, None, p)
-    _range_check("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=1e-2)
+    _range_check("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=max(1e-2, tol.get("guides_normal", 0.0)))
     if not np.any(fr["reference"]) and np.any(fr["radiance"]):
         p.append(f"reference is all zero while the input radiance is not (max {float(np.nanmax(fr['radiance'])):.4g})")
     ref, se = fr["reference"].astype(np.float64), fr["reference_stderr"].astype(np.float64)
@@ -295,7 +315,7 @@ def validate_store(path, frames=None) -> StoreReport:
             except StoreCorruptionError as e:
                 damage(fr_rep, str(e))
         if not fr_rep.damage:
-            check_frame_values(data, fr_rep)
+            check_frame_values(data, fr_rep, store.layout)
     return rep
 
 

@@ -51,14 +51,14 @@ def check_frame(arrays: dict, layout: StoreLayout) -> None:
         raise StoreLayoutError(f"frame meta lacks: {', '.join(missing)}")
     if layout.feature_dtype == "float16":
         feats = np.asarray(arrays["features"])
-        finite = np.isfinite(feats)
-        top = layout.feature_max
-        big = finite & (np.abs(feats) > top)
+        top = np.asarray(layout.feature_limits)
+        big = np.isfinite(feats) & (np.abs(feats) > top)
         if big.any():
-            bad = sorted({FEATURE_NAMES[c] for c in np.nonzero(big)[-1]})
-            raise StoreValueError(f"features {bad} exceed float16's range (|x| <= {top:g} in the store's "
-                                  f"{layout.codec_set!r} encoding); rescale them in the renderer or create "
-                                  f"the store with feature_dtype='float32'")
+            bad = sorted({int(c) for c in np.nonzero(big)[-1]})
+            limits = ", ".join(f"|{FEATURE_NAMES[c]}| <= {top[c]:g}" for c in bad)
+            raise StoreValueError(f"features {[FEATURE_NAMES[c] for c in bad]} exceed float16's range in the "
+                                  f"store's {layout.codec_set!r} encoding ({limits}); rescale them in the "
+                                  f"renderer or create the store with feature_dtype='float32'")
 
 
 class StoreWriter:

@@ -39,7 +39,7 @@ def test_sample_dataset_items(store):
     # the values are the stored frame's, channel-first, at the reported origin
     oy, ox = (int(v) for v in it["origin"])
     fr = synthetic_frame(2, 20, 24, 4, scene_seed=8, frame=0, num_frames=2)
-    rad = stored("radiance", fr["radiance"], open_store(store).layout)     # compact: 9-bit mantissa
+    rad = stored("radiance", fr["radiance"], open_store(store).layout)     # compact2: 9-bit mantissa
     np.testing.assert_array_equal(it["radiance"].numpy(), rad[oy:oy + 16, ox:ox + 16, :3].transpose(2, 3, 0, 1))
     np.testing.assert_array_equal(it["reference"].numpy(), fr["reference"][oy:oy + 16, ox:ox + 16].transpose(2, 0, 1))
     full = SampleDataset(store, split=None, spp=4, crop=None, augment=False)[0]

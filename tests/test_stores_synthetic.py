@@ -147,7 +147,8 @@ def test_synthetic_frame_is_deterministic_and_hdr():
 def stored(name: str, a, layout) -> np.ndarray:
     """What a store of ``layout`` returns (``read_frame``) for contract array ``name`` written as
     ``a``: exact for lossless arrays; the encoding's rounding for lossy ones (``compact``: the
-    mantissa rounded to 9 bits, as numcodecs' BitRound does; float16 features; log16 codes)."""
+    mantissa rounded to 9 bits, as numcodecs' BitRound does; ``compact2``: each feature to its
+    group's bits first; float16 features; log16 codes)."""
     from stores import codecs
     from stores.schema import ARRAY_BY_SOURCE
     spec = ARRAY_BY_SOURCE[name]
@@ -156,7 +157,10 @@ def stored(name: str, a, layout) -> np.ndarray:
     a = np.asarray(a, np.float32)
     if name == "radiance" and layout.radiance_encoding == "log16":
         return codecs.decode_log16(codecs.encode_log16(a))
-    keep = spec.chain(layout).keepbits
+    chain = spec.chain(layout)
+    keep = chain.keepbits
+    if chain.channel_keepbits is not None:      # compact2's features: the writer rounds each channel
+        a = codecs.bitround_channels(a, chain.channel_keepbits, -1)
     if keep is not None:
         a = codecs.bitround(a, keep)
     if spec.storage_dtype(layout) == "float16":

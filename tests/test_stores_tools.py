@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stores import bench, export, validate
+from stores import bench, codecs, export, validate
 from stores.errors import ExportError
 from stores.reader import open_store
 from stores.schema import StoreLayout
@@ -166,7 +166,9 @@ def test_export_layerdenoise_matches_its_loader(store2, tmp_path):
         color = f["color"][1, 0:2, ..., 2:10, 3:11]
         target = r["color"][1, ..., 2:10, 3:11]
         assert color.shape == (2, 3, 8, 8) and target.shape == (3, 8, 8)
-        fr = frames[1]
+        fr = dict(frames[1])
+        # the features as the store keeps them (compact2: each group to its own mantissa bits)
+        fr["features"] = stored("features", fr["features"], open_store(path).layout)
         expect = np.minimum(fr["radiance"][2:10, 3:11, 0:2], 65504).transpose(2, 3, 0, 1)
         np.testing.assert_allclose(color.astype(np.float32), expect, rtol=1e-3)
         np.testing.assert_allclose(target.astype(np.float32), np.minimum(fr["reference"], 65504)[2:10, 3:11].transpose(2, 0, 1), rtol=1e-3)
@@ -202,11 +204,15 @@ def test_export_layerdenoise_view_normals_and_per_clip_depth(tmp_path):
     for i, fr in enumerate(frames):
         w.write_frame(i, fr)
     inp, _ = export.export(path, [0, 1, 3], "layerdenoise", str(tmp_path / "l"))   # frame 2 not exported
+    lay = open_store(path).layout
+    for fr in frames:                                         # the features as the store keeps them
+        fr["features"] = stored("features", fr["features"], lay)
     with h5py.File(inp, "r") as h:
         nd = h["normals_depth"][...].astype(np.float32)     # (F, S, 4, H, W)
-        np.testing.assert_allclose(nd[0, :, 0:3, 0, 0], np.tile([1, 0, 0], (S, 1)), atol=2e-3)
-        np.testing.assert_allclose(nd[0, :, 0:3, 0, 1], np.tile([0, 1, 0], (S, 1)), atol=2e-3)
-        np.testing.assert_allclose(nd[0, :, 0:3, 0, 2], np.tile([0, 0, 1], (S, 1)), atol=2e-3)
+        tol = 2e-3 + 2.0 ** -(codecs.FEATURE_KEEPBITS["normal"] + 1)     # float16 + the store's rounding
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 0], np.tile([1, 0, 0], (S, 1)), atol=tol)
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 1], np.tile([0, 1, 0], (S, 1)), atol=tol)
+        np.testing.assert_allclose(nd[0, :, 0:3, 0, 2], np.tile([0, 0, 1], (S, 1)), atol=tol)
         scales = h.attrs["depth_scale"]
         clip_max = max(float(fr["features"][..., 3].max()) for fr in frames[:3])
         np.testing.assert_allclose(scales, [clip_max, clip_max, frames[3]["features"][..., 3].max()], rtol=1e-3)
@@ -236,11 +242,11 @@ def test_bench_smoke():
     f16 = [row for row in r["codecs"] if row["encoding"].startswith("float16")][0]
     assert chosen["inf_after_encoding"] == 0 and f16["inf_after_encoding"] > 0   # sun disc overflows float16
     assert chosen["ratio"] < 0.8 * lz4["ratio"]
-    assert r["encoding"] == "compact" and "crops/s" in bench.format_report(r)
+    assert r["encoding"] == codecs.DEFAULT_ENCODING == "compact2" and "crops/s" in bench.format_report(r)
 
 
 def test_bench_reencode_smoke(tmp_path):
-    """``python -m stores bench --reencode``: per-group ratios of both encodings, compact's radiance error
+    """``python -m stores bench --reencode``: per-group ratios of every encoding, the lossy ones' errors
     (measured from a lossless lz4 store: re-encoding a compact store is exact, its values have 9 bits)."""
     path = tmp_path / "l.zarr"
     w = open_or_create(path, StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=8, encoding="lz4"))
@@ -248,11 +254,18 @@ def test_bench_reencode_smoke(tmp_path):
         w.write_frame(i, synthetic_frame(20 + i, H, W, S, motion=True, defocus=True))
     r = bench.reencode([str(path)], frames=2, crops=2, verbose=False)
     row = r["stores"][str(path)]
-    assert set(row["compact"]["ratio"]) == {"inputs/radiance", "inputs/features", "layers", "reference", "guides"}
-    assert r["all"]["compact"]["total"] < 0.8 * r["all"]["lz4"]["total"]
-    assert r["all"]["compact"]["ratio"]["inputs/radiance"] < 0.8 * r["all"]["lz4"]["ratio"]["inputs/radiance"]
-    assert 2 ** -12 < r["radiance_rel_error"]["max"] <= 2 ** -10
-    assert row["zeros_changed"] == 0 and row["reference_bit_exact"] and row["compact"]["write_ms_per_frame"] > 0
+    assert r["encodings"] == ["compact2", "compact", "lz4"]
+    for enc in ("compact2", "compact"):
+        assert set(row[enc]["ratio"]) == {"inputs/radiance", "inputs/features", "layers", "reference", "guides"}
+        assert r["all"][enc]["total"] < 0.8 * r["all"]["lz4"]["total"]
+        assert r["all"][enc]["ratio"]["inputs/radiance"] < 0.8 * r["all"]["lz4"]["ratio"]["inputs/radiance"]
+        assert 2 ** -12 < r["errors"][enc]["radiance"]["max"] <= 2 ** -10
+        assert row[enc]["write_ms_per_frame"] > 0
+    assert r["all"]["compact2"]["ratio"]["inputs/features"] < r["all"]["compact"]["ratio"]["inputs/features"]
+    assert r["radiance_rel_error"] == r["errors"]["compact2"]["radiance"]
+    lens = 2.0 ** -(codecs.FEATURE_KEEPBITS["lens"] + 1)              # compact2 rounds the lens coarser
+    assert r["errors"]["compact"]["features/lens"] <= 2 ** -10 < r["errors"]["compact2"]["features/lens"] <= lens
+    assert row["zeros_changed"] == 0 and row["reference_bit_exact"]
     assert "of the ceiling" in bench.format_reencode(r)
 
 
