@@ -11,9 +11,8 @@ full per-sample inputs, the full sample layers) and the reference from ``--ref-p
 its production size (the rest of its passes are extrapolated: passes cost alike). Times are the CPU
 seconds of the calibrating process. The frames render ``--concurrent`` at a time in separate
 processes (default: as many as the workers that share one machine, i.e. this machine's cores /
-threads per worker, at most ``--workers``), because workers side by side slow each other down: on
-this 2-core machine the same frames took 1.1-2.4x the CPU seconds with two workers busy, which a
-one-at-a-time calibration missed (-36% core-hours against a real run). With an early-stopping
+threads per worker, at most ``--workers``), as a machine's workers do, so that whatever they cost
+each other (memory bandwidth, shared caches, a CPU's power budget) is in the figures. With an early-stopping
 reference (``ref_target_rel_stderr``) each frame's stop is predicted from its first passes
 (:func:`predicted_passes`). The calibration frames are written to a temporary store with the
 config's layout to measure stored bytes.
@@ -30,7 +29,10 @@ It prints, for the whole dataset:
 
 Error: the figures scale with the calibration frames, which are a handful of random scenes; half
 of the scenes move (time slices cost more), so the mix of a few frames can differ from the whole
-set. ``--scenes-per-group`` trades calibration time for a better mean.
+set. ``--scenes-per-group`` trades calibration time for a better mean. Against a real run of
+``configs/train-cpu.yaml`` on this 2-core machine (issue 13): samples -10.6%, store bytes +2.7%, but
+core-hours -41% and wall -43%: inside the run's Dask workers the outdoor frames took 1.7-2.3x the CPU
+seconds that the same frames take in a plain process, alone or two side by side (docs/throughput.md).
 """
 from __future__ import annotations
 
@@ -170,8 +172,7 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads
     per-frame timings (seconds) and stored bytes, and per-group means.
 
     ``concurrent`` > 1: the frames render in that many processes side by side, as a machine's workers
-    do in a real run, so the figures include what they cost each other (measured here: the same frames
-    took 1.1-2.4x the CPU seconds with two workers busy than alone). The frame list is padded with
+    do in a real run, so the figures include what they cost each other. The frame list is padded with
     repeats to a multiple of ``concurrent`` so that every frame is timed under the same load; a
     frame's figures are the mean of its runs. ``ref_passes``: reference passes rendered per frame
     (default 2; 4 with an early stop, whose pass count is predicted from them, :func:`predicted_passes`).
