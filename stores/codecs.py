@@ -67,8 +67,6 @@ LEGACY_ENCODING = "lz4"          # what a store whose layout records no ``encodi
 DEFAULT_ENCODING = "compact2"    # what create_store uses when the layout leaves it open (None)
 KEEPBITS = 9                     # mantissa bits kept by ``compact``'s bit rounding (float32 and float16)
 COMPACT_MAX_REL_ERROR = 2.0 ** -(KEEPBITS + 1)     # 9.77e-4: round to nearest of a 9-bit mantissa
-# the largest float16 with a 9-bit mantissa: zarr's BitRound rounds 65473..65504 up to 65536 = Inf
-FLOAT16_MAX_COMPACT = float(np.float16(2.0 ** 15 * (2 - 2.0 ** -KEEPBITS)))
 ZSTD_LEVEL = 5                   # Blosc zstd level of ``compact``'s lossless references
 # Lossy arrays: LZ4HC-9 + bit shuffle. On real frames zstd-5 + bit shuffle is 5% smaller in total
 # (features 0.080 vs 0.091 of float32) but its crops read 1.4x slower (SCHEMA.md "Image encodings").

@@ -4,7 +4,6 @@ within 2**-10 (< 1e-3), references bit-exact; ``compact`` and ``lz4`` stores (sc
 read and resume in their own chains."""
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
@@ -19,6 +18,7 @@ from stores.errors import StoreLayoutError, StoreValueError
 from stores.reader import open_store
 from stores.schema import StoreLayout
 from stores.writer import StoreWriter, open_or_create
+from test_stores_compact import _strip_encoding
 from test_stores_synthetic import stored, synthetic_frame
 
 H, W, S = 20, 24, 4
@@ -187,15 +187,6 @@ def test_float16_feature_limits_follow_the_group_bits(tmp_path):
     fr["features"][0, 0, 0, d] = limits[d]
     w.write_frame(0, fr)
     assert open_store(tmp_path / "c.zarr").read_frame(0)["features"][0, 0, 0, d] == limits[d]
-
-
-def _strip_encoding(path) -> None:
-    """Make a store look like one written before ``encoding`` existed: no key in its recorded layout."""
-    p = os.path.join(os.fspath(path), "zarr.json")
-    meta = json.load(open(p))
-    meta["attributes"]["layout"].pop("encoding")
-    meta.pop("consolidated_metadata", None)
-    json.dump(meta, open(p, "w"))
 
 
 @pytest.mark.parametrize("encoding,version", [("compact", 2), ("lz4", 2), ("lz4", 1)])
