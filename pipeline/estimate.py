@@ -115,11 +115,23 @@ def predicted_passes(rel: float, done: int, rc) -> int:
     return rc.ref_passes
 
 
-def _warm_worker(threads: int) -> None:
-    """Process-pool initializer: imports and drjit's thread pool before any task is timed."""
+def _warm_worker(threads: int, cache_dir: str | None = None) -> None:
+    """Process-pool initializer: imports, drjit's thread pool and the kernels every scene shares (a
+    tiny Cornell box) before any task is timed. ``cache_dir``: drjit's kernel cache for this process
+    (``DRJIT_CACHE_DIR``, read when drjit starts), an empty folder so that every calibration frame
+    compiles its kernels as a new scene in a dataset run does, not load them from an earlier run."""
+    if cache_dir:
+        os.environ["DRJIT_CACHE_DIR"] = cache_dir
     from pipeline.variant import mitsuba
-    mitsuba(threads=threads)
+    mi = mitsuba(threads=threads)
     import pipeline.render  # noqa: F401
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=4, height=4)
+    scene = mi.load_dict(d)
+    mi.render(scene, spp=1)
+    del scene, d                    # no instance left to grow the calibration frames' kernels
+    import gc
+    gc.collect()
 
 
 def _calibrate_frame(cfg, gi: int, ref, rc, cal_rc) -> tuple[dict, dict]:
@@ -171,10 +183,11 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads
     """Render the calibration frames of ``cfg`` (a :class:`pipeline.config.DatasetConfig`); returns
     per-frame timings (seconds) and stored bytes, and per-group means.
 
-    ``concurrent`` > 1: the frames render in that many processes side by side, as a machine's workers
-    do in a real run, so the figures include what they cost each other. The frame list is padded with
-    repeats to a multiple of ``concurrent`` so that every frame is timed under the same load; a
-    frame's figures are the mean of its runs. ``ref_passes``: reference passes rendered per frame
+    The frames render in ``concurrent`` fresh processes side by side, as a machine's workers do in a
+    real run, so the figures include what they cost each other; each process starts with an empty
+    drjit kernel cache, so a frame's time includes compiling its scene's kernels, as every new scene of
+    a run does. The frame list is padded with repeats to a multiple of ``concurrent`` so that every
+    frame is timed under the same load; a frame's figures are its first run's. ``ref_passes``: reference passes rendered per frame
     (default 2; 4 with an early stop, whose pass count is predicted from them, :func:`predicted_passes`).
     """
     from stores.schema import create_store
@@ -213,28 +226,24 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads
                 f"timed on {cal_rc.ref_passes if rc.ref_spp else 0}; took {frame['calibration_wall_s']:.1f} s)")
 
     w0 = time.perf_counter()
-    if concurrent == 1:
-        for i in jobs:
-            done(i, *_calibrate_frame(cfg, *picks[i], rc, cal_rc))
-        start_s = 0.0
-    else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    if concurrent > 1:
         log(f"  {len(jobs)} calibration render(s) in {concurrent} processes side by side "
             f"({len(jobs) - len(picks)} repeat(s) keep every frame under the same load)")
-        with ProcessPoolExecutor(concurrent, multiprocessing.get_context("spawn"), initializer=_warm_worker,
-                                 initargs=(int(threads),)) as pool:
-            list(pool.map(time.sleep, [0.0] * concurrent))        # start-up: the processes, imports, drjit
-            start_s = time.perf_counter() - w0
-            futs = [(i, pool.submit(_calibrate_frame, cfg, *picks[i], rc, cal_rc)) for i in jobs]
-            for i, f in futs:
-                done(i, *f.result())
-    frames = []
-    for i in range(len(picks)):
-        rs = runs[i]
-        mean = {k: sum(r[k] for r in rs) / len(rs) for k in ("load_s", "inputs_s", "layers_s", "reference_s",
-                                                              "frame_s", "calibration_wall_s")}
-        frames.append({**rs[0], **mean, "runs": len(rs)})
+    # fresh processes with an empty kernel cache: a frame pays its scene's kernel compilation, as every
+    # new scene of a run does (drjit would otherwise load kernels compiled by an earlier calibration)
+    with tempfile.TemporaryDirectory(prefix="estimate-kernels-", dir=scratch_dir()) as kernels, \
+            ProcessPoolExecutor(concurrent, multiprocessing.get_context("spawn"), initializer=_warm_worker,
+                                initargs=(int(threads), kernels)) as pool:
+        list(pool.map(time.sleep, [0.0] * concurrent))        # start-up: the processes, imports, drjit
+        start_s = time.perf_counter() - w0
+        futs = [(i, pool.submit(_calibrate_frame, cfg, *picks[i], rc, cal_rc)) for i in jobs]
+        for i, f in futs:
+            done(i, *f.result())
+    # a frame's first run is its figure: a repeat (it keeps the last frames under load) finds the kernels
+    # compiled by then
+    frames = [{**runs[i][0], "runs": len(runs[i])} for i in range(len(picks))]
     with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:
         path = Path(tmp) / "calibration.zarr"
         layout = cfg.store_layout().with_frames(len(picks))

@@ -16,24 +16,32 @@ so splitting changes no byte):
 :func:`render_whole_frame` is the unsplit alternative (``pipeline.render.render_frame``: the same
 three parts on one loaded scene).
 
-Warm state per worker: the loaded scene of the last frames (:func:`frame_scene`) is kept, so the
-three stream tasks of a frame that land on one worker load and compile it once; meshes are cached
-per process (``scene_gen.meshes``) and drjit caches compiled kernels, so the frames of a clip reuse
-both. Each rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do
-not oversubscribe the cores.
+Warm state per worker: the loaded scene of the last frame (:func:`frame_scene`) is kept, so the
+three stream tasks of a frame that land on one worker one after another load and compile it once;
+meshes are cached per process (``scene_gen.meshes``) and drjit caches compiled kernels on disk. Only
+one scene is kept, and it is freed *before* the next one loads: drjit traces a virtual call (shape,
+BSDF, emitter, texture) for every instance alive in the process, so each scene left alive grows every
+later kernel (the Cornell box's path kernel: 1,281 operations alone, 26,659 beside one generated
+scene) and LLVM's compile time with it. Keeping two scenes made a train-cpu frame cost 2x in a
+long run (6-12 s of compile a frame, where the render itself took 6-15 s; docs/throughput.md). Each
+rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do not
+oversubscribe the cores.
 """
 from __future__ import annotations
 
 import dataclasses
+import gc
 import hashlib
 import json
+import sys
 import threading
 import time
 from collections import OrderedDict
 
-SCENE_CACHE_SIZE = 2          # loaded scenes kept per worker process (a frame's streams, the next frame)
+SCENE_CACHE_SIZE = 1          # loaded scenes kept per worker process (a frame's three streams)
 _scenes: OrderedDict = OrderedDict()
 _scenes_lock = threading.Lock()
+_in_use = 0                   # scenes taken out of the cache by running tasks
 
 
 def worker_threads() -> int | None:
@@ -59,7 +67,10 @@ class frame_scene:
     this process's cache when the same (spec, frame, config) was loaded before, else loaded.
 
     A scene is used by one task at a time (taken out of the cache while in use, put back after), so
-    tasks in several threads never share one; ``fs.load_seconds`` is 0 for a cached scene.
+    tasks in several threads never share one; ``fs.load_seconds`` is 0 for a cached scene. Before a
+    scene loads, the cached ones are freed (see the module's note), and when no other task holds a
+    scene, drjit's in-memory kernels too (they stay in drjit's disk cache): the worker's memory stays
+    flat over a long run.
     """
 
     def __init__(self, spec_json: str, frame: int, render: dict):
@@ -69,20 +80,35 @@ class frame_scene:
         self.spec_json, self.frame, self.cfg = spec_json, int(frame), cfg
 
     def __enter__(self):
+        global _in_use
         with _scenes_lock:
             fs = _scenes.pop(self.key, None)
+            _in_use += 1
+            if fs is None:                  # free the others first; tasks entering meanwhile wait here
+                _evict_locked(flush_kernels=_in_use == 1)
         if fs is None:
             from pipeline.render import FrameScene
             from scene_gen.spec import SceneSpec
             t0 = time.perf_counter()
-            fs = FrameScene(SceneSpec.from_json(self.spec_json), self.frame, self.cfg)
+            try:
+                fs = FrameScene(SceneSpec.from_json(self.spec_json), self.frame, self.cfg)
+            except BaseException:
+                self._release()
+                raise
             fs.load_seconds = time.perf_counter() - t0
         else:
             fs.load_seconds = 0.0
         self.fs = fs
         return fs
 
+    @staticmethod
+    def _release() -> None:
+        global _in_use
+        with _scenes_lock:
+            _in_use -= 1
+
     def __exit__(self, exc_type, exc, tb):
+        self._release()
         if exc_type is not None:
             return False                    # a scene that failed mid-render is not reused
         self.fs.set_time(0.0)
@@ -91,12 +117,23 @@ class frame_scene:
             _scenes.move_to_end(self.key)
             while len(_scenes) > SCENE_CACHE_SIZE:
                 _scenes.popitem(last=False)
+        self.fs = None
         return False
 
 
-def clear_scene_cache() -> None:
-    with _scenes_lock:
+def _evict_locked(*, flush_kernels: bool) -> None:
+    if _scenes:
         _scenes.clear()
+        gc.collect()                        # a scene in a reference cycle would stay registered
+    if flush_kernels and "drjit" in sys.modules:
+        sys.modules["drjit"].flush_kernel_cache()
+
+
+def clear_scene_cache(*, flush_kernels: bool = False) -> None:
+    """Free the cached scenes (and with ``flush_kernels``, drjit's in-memory kernels, when no task in
+    this process holds a scene)."""
+    with _scenes_lock:
+        _evict_locked(flush_kernels=flush_kernels and _in_use == 0)
 
 
 def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene_gen: dict, case: str = "") -> str:

@@ -124,3 +124,21 @@ def test_predicted_passes_match_the_stopping_rule():
             actual.append(stop)
             predicted.append(predicted_passes(rel_stderr(m, s), 4, rc))
         assert abs(np.mean(predicted) - np.mean(actual)) <= 0.05 * np.mean(actual) + 0.5, (sigma, predicted, actual)
+
+
+def _kernel_files() -> list[str]:
+    import os
+    return sorted(os.listdir(os.environ["DRJIT_CACHE_DIR"]))
+
+
+def test_calibration_processes_compile_into_an_empty_kernel_cache(tmp_path):
+    """A calibration frame pays its kernels' compilation, as a new scene of a run does: its process's
+    drjit kernel cache is the empty folder given to it, not the user's cache of earlier runs."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pipeline.estimate import _warm_worker
+    with ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), initializer=_warm_worker,
+                             initargs=(1, str(tmp_path))) as pool:
+        files = pool.submit(_kernel_files).result()
+    assert [f for f in files if f.endswith(".bin")]        # the warm-up's kernels, compiled there

@@ -57,3 +57,42 @@ def test_cache_holds_a_bounded_number_of_scenes(mi):
     assert len(tasks._scenes) == tasks.SCENE_CACHE_SIZE
     tasks.clear_scene_cache()
     assert not tasks._scenes
+
+
+def _max_kernel_ops(fn) -> int:
+    import drjit as dr
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        fn()
+        return max(k.get("operation_count", 0) for k in dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def test_a_new_scene_loads_after_the_cached_one_is_freed(mi):
+    """drjit traces a virtual call for every instance alive in the process: a scene still cached when
+    the next loads would grow all of the next one's kernels (and their compile time)."""
+    import gc
+    from pipeline import tasks
+    sg = SceneGenConfig(outdoor_objects=6, material_palette=2).to_dict()
+    a, b = (tasks.make_spec(seed, "outdoor", 1, (12, 8), sg) for seed in (5, 6))
+    tasks.clear_scene_cache()
+    gc.collect()
+    alone = _max_kernel_ops(lambda: tasks.render_inputs(b, 0, RENDER))
+    tasks.clear_scene_cache()
+    tasks.render_inputs(a, 0, RENDER)
+    assert len(tasks._scenes) == 1
+    after = _max_kernel_ops(lambda: tasks.render_inputs(b, 0, RENDER))
+    assert len(tasks._scenes) == 1
+    # the measure sees a live scene: with a's scene held elsewhere, b's kernels grow
+    tasks.clear_scene_cache()
+    from pipeline.render import FrameScene
+    from scene_gen.spec import SceneSpec
+    held = FrameScene(SceneSpec.from_json(a), 0, tasks._render_cfg(RENDER))
+    bloated = _max_kernel_ops(lambda: tasks.render_inputs(b, 0, RENDER))
+    del held
+    tasks.clear_scene_cache()
+    assert bloated > 1.2 * alone
+    # (drjit's operation count of one kernel can vary by a few per cent between calls; a's scene is more)
+    assert after < alone + (bloated - alone) / 2, (alone, after, bloated)
