@@ -10,7 +10,10 @@ the dataset, in the same run), since the machine may be shared:
   batch-means standard error) against one ``mi.render`` call of the same total spp (target >= 0.9);
 - **generated scene vs the Cornell box** (``mi.cornell_box()``, same resolution, bounces and spp):
   ``mi.render`` on the generated scene as the renderer loads it, and as it was loaded before shapes
-  were merged (one shape a mesh, no material palette), each against the Cornell box (target >= 0.5);
+  were merged (one shape a mesh, no material palette), each against the Cornell box (target >= 0.5).
+  Each scene is loaded, timed and freed in turn, alone in the process: drjit traces a virtual call for
+  every instance alive, so a scene timed beside another is slower (the Cornell box by a third beside
+  one generated scene; figures before this rule flattered the generated scenes);
 - **end-to-end dataset samples/s vs the Cornell box**: ``python -m pipeline dataset`` on four stills
   (two indoor, two outdoor, default scene generator) on a LocalCluster of ``e2e_workers`` workers,
   all samples (inputs, layers, references) over the wall time, start-up and validation included,
@@ -82,6 +85,11 @@ def _cornell(mi, res: int, max_depth: int):
     d["sensor"]["film"].update(width=res, height=res, rfilter={"type": "box"})
     d["integrator"] = {"type": "path", "max_depth": max_depth + 1, "rr_depth": max_depth + 2}
     return mi.load_dict(d)
+
+
+def _collect() -> None:
+    import gc
+    gc.collect()
 
 
 def _env() -> dict:
@@ -159,36 +167,58 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
     ref_spp = ref_passes * ref_pass_spp
     cfg = R.RenderConfig(res=(res, res), spp=spp, ref_spp=ref_spp, ref_passes=ref_passes,
                          ref_min_passes=min(16, ref_passes), layer_levels=0)
-    fs = R.FrameScene(spec, 0, cfg)
-    mi = fs.mi
-    threads = int(fs.dr.thread_count())
     before_gen = SceneGenConfig.from_dict({k: v for k, v in scene_gen.items() if k != "material_palette"})
     before_spec = dataclasses.replace(sample_scene(seed, kind, num_frames=1, res=res, config=before_gen), shutter=0.0)
-    before = R.FrameScene(before_spec, 0, cfg, merge=False).scene
-    cornell = _cornell(mi, res, spec.max_depth)
     n_in = res * res * spp
     n_ref = res * res * ref_spp
+    cb_spp = 4 * spp
+    n_cb = res * res * cb_spp
 
     def mi_render(scene, k):
         np.asarray(mi.render(scene, spp=k, seed=12345))
 
+    # One scene alive at a time: drjit traces a virtual call for every instance alive in the process,
+    # so a scene beside another renders slower (the Cornell box beside one generated scene: 2.4 against
+    # 3.6 Msamples/s alone). Each comparison below loads its scenes in turn, frees them, and alternates.
     t0 = time.perf_counter()
+    fs = R.FrameScene(spec, 0, cfg)
+    mi, dr = fs.mi, fs.dr
+    threads = int(dr.thread_count())
+    shapes = len(fs.scene.shapes())
     R.render_inputs(fs)            # warm-up: compile the kernels once
-    for sc in (fs.scene, before, cornell):
-        mi_render(sc, spp)
+    mi_render(fs.scene, spp)
     mi_render(fs.scene, ref_pass_spp)
     warm = time.perf_counter() - t0
     t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: mi_render(fs.scene, spp), repeats)
     t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: mi_render(fs.scene, ref_spp),
                                  max(1, repeats - 1))
-    cb_spp = 4 * spp
-    t_gen, t_cb = _best_pair(lambda: mi_render(fs.scene, cb_spp), lambda: mi_render(cornell, cb_spp), repeats)
-    t_before, t_cb2 = _best_pair(lambda: mi_render(before, cb_spp), lambda: mi_render(cornell, cb_spp), repeats)
-    t_cb = min(t_cb, t_cb2)
-    n_cb = res * res * cb_spp
+    del fs
+    _collect()
+
+    def isolated(load) -> tuple[float, int]:
+        """Best time of ``cb_spp`` samples a pixel on the scene ``load()`` returns, alone in the process
+        (and its shape count)."""
+        scene = load()
+        mi_render(scene, cb_spp)                  # kernels: compiled, or from drjit's cache
+        t = float("inf")
+        for _ in range(2):
+            t1 = time.perf_counter()
+            mi_render(scene, cb_spp)
+            t = min(t, time.perf_counter() - t1)
+        n = len(scene.shapes())
+        del scene
+        _collect()
+        return t, n
+
+    t_gen = t_cb = t_before = float("inf")
+    for _ in range(repeats):
+        t_gen = min(t_gen, isolated(lambda: R.FrameScene(spec, 0, cfg).scene)[0])
+        t_cb = min(t_cb, isolated(lambda: _cornell(mi, res, spec.max_depth))[0])
+        t, before_shapes = isolated(lambda: R.FrameScene(before_spec, 0, cfg, merge=False).scene)
+        t_before = min(t_before, t)
     out = {
-        "scene": f"{kind} seed {seed}, {len(spec.objects)} objects, {len(fs.scene.shapes())} shapes "
-                 f"({len(before.shapes())} before merging), {res}x{res}",
+        "scene": f"{kind} seed {seed}, {len(spec.objects)} objects, {shapes} shapes "
+                 f"({before_shapes} before merging), {res}x{res}",
         "threads": threads,
         "warmup_seconds": warm,
         "inputs_msamples_per_s": n_in / t_in / 1e6,
@@ -216,14 +246,16 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
     if e2e_res:
         e2e = end_to_end(res=e2e_res, ref_spp=e2e_ref_spp, workers=workers, scene_gen=scene_gen)
         # the Cornell box at the dataset's size, with as many threads as the dataset's workers
-        cb = _cornell(mi, e2e_res, spec.max_depth)
-        fs.dr.set_thread_count(workers)
+        cb = _cornell(mi, e2e_res, spec.max_depth)          # alone in this process (see above)
+        dr.set_thread_count(workers)
         mi_render(cb, 64)
         t, c = time.perf_counter(), time.process_time()
         mi_render(cb, 1024)
         n = e2e_res * e2e_res * 1024
         cb_rate, cb_cpu_rate = n / (time.perf_counter() - t) / 1e6, n / (time.process_time() - c) / 1e6
-        fs.dr.set_thread_count(threads)
+        dr.set_thread_count(threads)
+        del cb
+        _collect()
         out.update({"dataset_msamples_per_s": e2e["msamples_per_s"], "dataset_wall_s": e2e["wall_s"],
                     "dataset_cpu_s": e2e["cpu_s"], "dataset_samples": e2e["samples"],
                     "dataset_cornell_msamples_per_s": cb_rate, "dataset_vs_cornell": e2e["msamples_per_s"] / cb_rate,

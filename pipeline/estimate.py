@@ -30,9 +30,8 @@ It prints, for the whole dataset:
 Error: the figures scale with the calibration frames, which are a handful of random scenes; half
 of the scenes move (time slices cost more), so the mix of a few frames can differ from the whole
 set. ``--scenes-per-group`` trades calibration time for a better mean. Against a real run of
-``configs/train-cpu.yaml`` on this 2-core machine (issue 13): samples -10.6%, store bytes +2.7%, but
-core-hours -41% and wall -43%: inside the run's Dask workers the outdoor frames took 1.7-2.3x the CPU
-seconds that the same frames take in a plain process, alone or two side by side (docs/throughput.md).
+``configs/train-cpu.yaml`` on this 2-core machine (issue 13): samples -10.6%, store bytes +2.7%,
+core-hours 0% (per kind -15% and +34%) and wall -2% (docs/throughput.md).
 """
 from __future__ import annotations
 
