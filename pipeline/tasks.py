@@ -69,8 +69,8 @@ class frame_scene:
     A scene is used by one task at a time (taken out of the cache while in use, put back after), so
     tasks in several threads never share one; ``fs.load_seconds`` is 0 for a cached scene. Before a
     scene loads, the cached ones are freed (see the module's note), and when no other task holds a
-    scene, drjit's in-memory kernels too (they stay in drjit's disk cache): the worker's memory stays
-    flat over a long run.
+    scene, drjit's in-memory kernels too (they stay in drjit's disk cache), so kernels do not pile up
+    in a long-running worker.
     """
 
     def __init__(self, spec_json: str, frame: int, render: dict):
