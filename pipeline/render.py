@@ -459,8 +459,19 @@ def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[
     s_per = S // slices
     times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
     rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
-    radiance = np.zeros((H, W, S, 3), np.float32)
-    features = np.zeros((H, W, S, NUM_FEATURES), np.float32)
+    if len(times) == 1 and rows_per >= H:
+        # one wavefront is the whole frame (a still that fits): its buffers, pixel-major then sample,
+        # are the frame's arrays as they are (an allocation and a copy of every sample less: 6% of the loop)
+        seed = stream_seed(spec.seed, frame, STREAM_INPUTS, 0, 0, offset=cfg.seed_offset)
+        fs.set_time(float(times[0]))
+        tr = _trace(fs, seed, 0, H, s_per, float(times[0]))
+        L, F = tr["L"], tr["F"]
+        if sample_hook is not None:
+            sample_hook(L, F)
+        L, F, bad = sanitize_samples(L, F, cfg.max_value)
+        return L.reshape(H, W, S, 3), F.reshape(H, W, S, NUM_FEATURES), bad
+    radiance = np.empty((H, W, S, 3), np.float32)           # every element is written below
+    features = np.empty((H, W, S, NUM_FEATURES), np.float32)
     bad_total = 0
     for k, t in enumerate(times):
         fs.set_time(float(t))
@@ -481,6 +492,8 @@ def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[
 
 def sanitize_samples(L: np.ndarray, F: np.ndarray, max_value: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Apply the NaN/Inf rule to samples (N×3 radiance, N×17 features); returns (L, F, count)."""
+    if np.isfinite(L).all() and np.isfinite(F).all():
+        return L, F, 0                      # the common case, in a tenth of the time of the rule below
     nan_l = np.isnan(L).any(axis=1)
     bad = ~np.isfinite(L).all(axis=1) | ~np.isfinite(F).all(axis=1)
     count = int(bad.sum())
