@@ -7,7 +7,8 @@ Figures printed:
   worker has rendered a warm-up frame (imports, mesh code, drjit kernels), so the figure is the
   steady state of a long run of new scenes: each run's workers start with an empty drjit kernel cache
   and compile their scenes' kernels, as a dataset's workers do. 12 frames (6 gave 1.6-1.8x from run to
-  run). Target: 2 workers >= 1.7x one worker on 2 cores.
+  run). Tasks as the config default cuts them (whole frames). Target: 2 workers >= 1.7x one worker
+  on 2 cores.
 - **scheduler overhead per task**: the wall time per task of many no-op tasks on the 2-worker cluster
   (scheduling, messaging, bookkeeping) against the mean render task's duration from the task stream.
   Target: < 2 % of the render time.
@@ -131,7 +132,8 @@ def run(frames: int = 12, res: int = 32, ref_spp: int = 256, objects: int = 20, 
         "efficiency_1_worker": round(one["efficiency"], 3),
         "efficiency_2_workers": round(two["efficiency"], 3),
     }
-    print(f"dask: {frames} frames of {res}x{res} (8 spp, layers to 32 spp, {ref_spp}-spp reference), split tasks")
+    print(f"dask: {frames} frames of {res}x{res} (8 spp, layers to 32 spp, {ref_spp}-spp reference), "
+          f"{'split' if cfg.tasks.split else 'whole-frame'} tasks (the config default)")
     print(f"  1 worker : {res_['frames_per_min_1_worker']:.2f} frames/min (efficiency {one['efficiency']:.0%})")
     print(f"  2 workers: {res_['frames_per_min_2_workers']:.2f} frames/min (efficiency {two['efficiency']:.0%}) "
           f"-> {res_['speedup_2_vs_1']:.2f}x (target >= 1.7x)")

@@ -10,10 +10,10 @@ gives the same graph as a plain Dask task dict (``dask.get``, tests, visualisati
 Keys (stage first, because the dashboard's progress pane groups tasks by the key's prefix)::
 
     spec-scene-000042@T                     scene_gen.sampling.sample_scene → SceneSpec JSON
-    inputs-scene-000042/frame-3@T           per-sample inputs + guides       (split_streams)
-    layers-scene-000042/frame-3@T           sample layers                    (split_streams)
-    reference-scene-000042/frame-3@T        reference (+ resources, e.g. GPU) (split_streams)
-    render-scene-000042/frame-3@T           the whole frame                  (not split_streams)
+    inputs-scene-000042/frame-3@T           per-sample inputs + guides       (split)
+    layers-scene-000042/frame-3@T           sample layers                    (split)
+    reference-scene-000042/frame-3@T        reference (+ resources, e.g. GPU) (split)
+    render-scene-000042/frame-3@T           the whole frame                  (not split: the default)
     write-scene-000042/frame-3@T            gathers the parts, writes the frame's store region
                                             (with the scene's clip id, ``FrameRef.clip_id``)
 
@@ -152,7 +152,7 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
             g.add(Node(sk, fn.make_spec, (ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), scene_gen)
                        + ((ref.case,) if ref.case else ()), "spec"))      # a hard case (scene_gen.cases)
         spec = Ref(sk)
-        if cfg.tasks.split_streams:
+        if cfg.tasks.split:
             parts = (
                 g.add(Node(frame_key("inputs", ref, token), fn.render_inputs, (spec, ref.frame, render), "inputs")),
                 g.add(Node(frame_key("layers", ref, token), fn.render_layers, (spec, ref.frame, render), "layers")),

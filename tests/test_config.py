@@ -216,3 +216,25 @@ def test_scene_kinds_and_store_keys_have_one_source():
     assert C.SCENE_KINDS is spec.SCENE_KINDS
     assert C.STORE_KEYS == {"tile", "radiance_encoding", "feature_dtype", "encoding"}
     assert C.STORE_KEYS | set(SHAPE_FIELDS) == set(StoreLayout.__dataclass_fields__)
+
+
+def test_split_streams_default_follows_reference_resources(tmp_path):
+    """``tasks.split_streams`` null (the default): one task a frame, unless references need their own
+    workers; an explicit true or false wins; anything else is refused."""
+    from pipeline.graph import build_graph
+    d = smoke_dict()
+    d["tasks"].pop("split_streams", None)
+    cfg = load_config(write(tmp_path, d))
+    assert cfg.tasks.split_streams is None and cfg.tasks.split is False
+    assert {n.stage for n in build_graph(cfg, "s.zarr").nodes.values()} == {"spec", "render", "write"}
+    d["tasks"]["reference_resources"] = {"GPU": 1}
+    cfg = load_config(write(tmp_path, d))
+    assert cfg.tasks.split is True
+    g = build_graph(cfg, "s.zarr")
+    assert {n.stage for n in g.nodes.values()} == {"spec", "inputs", "layers", "reference", "write"}
+    assert all(n.resources == {"GPU": 1} for n in g.nodes.values() if n.stage == "reference")
+    d["tasks"] = {"split_streams": True}
+    assert load_config(write(tmp_path, d)).tasks.split is True
+    d["tasks"] = {"split_streams": "yes"}
+    with pytest.raises(ConfigError, match="dataset.tasks.split_streams must be true, false or null"):
+        load_config(write(tmp_path, d))

@@ -30,7 +30,7 @@ def tiny_cfg(**tasks_kw) -> DatasetConfig:
     d = {"name": "tiny", "seed": 3, "resolution": [8, 4],
          "scenes": [{"kind": "indoor", "count": 1}, {"kind": "outdoor", "count": 1, "frames": 2}],
          "render": {"spp": 2, "layer_levels": 3, "ref_spp": 4, "ref_passes": 2, "ref_min_passes": 2},
-         "tasks": {"retries": 1, **tasks_kw}, "cluster": {"dashboard_address": None}}
+         "tasks": {"retries": 1, "split_streams": True, **tasks_kw}, "cluster": {"dashboard_address": None}}
     return DatasetConfig.from_dict(d)
 
 
