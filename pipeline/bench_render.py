@@ -211,7 +211,8 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
         return t, n
 
     t_gen = t_cb = t_before = float("inf")
-    for _ in range(repeats):
+    before_shapes = 0
+    for _ in range(max(1, repeats)):
         t_gen = min(t_gen, isolated(lambda: R.FrameScene(spec, 0, cfg).scene)[0])
         t_cb = min(t_cb, isolated(lambda: _cornell(mi, res, spec.max_depth))[0])
         t, before_shapes = isolated(lambda: R.FrameScene(before_spec, 0, cfg, merge=False).scene)

@@ -130,9 +130,9 @@ class TaskConfig:
     then run on other workers, e.g. GPU ones); ``false``: one task renders the whole frame, so its
     scene is built and its kernels compiled once, where three tasks on three workers would each pay
     for them; ``null`` (default): split exactly when ``reference_resources`` is set. Measured on 2
-    cores (issue 13): whole frames as fast or faster everywhere (the default config 95.3 against 93.9
-    s, the dask bench 1.80x against 1.59-1.69x of one worker); split when a dataset has fewer frames
-    than workers. ``retries``: extra attempts of a failed task (transient failures) before the
+    cores (issue 13): the default config 95.3 s whole-frame against 93.9 s split (within 2%), the four
+    end-to-end stills 25.3/26.3 against 25.5/26.7 s, the dask bench 1.76-1.80x of one worker against
+    1.59-1.69x; split when a dataset has fewer frames than workers. ``retries``: extra attempts of a failed task (transient failures) before the
     frame is recorded as failed. ``reference_resources``: Dask worker resources a reference task
     needs, e.g. ``{GPU: 1}`` (workers must then advertise them: ``dask worker --resources GPU=1``).
     """

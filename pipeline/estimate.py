@@ -115,8 +115,8 @@ def predicted_passes(rel: float, done: int, rc) -> int:
 
 
 def _warm_worker(threads: int, cache_dir: str | None = None) -> None:
-    """Process-pool initializer: imports, drjit's thread pool and the kernels every scene shares (a
-    tiny Cornell box) before any task is timed. ``cache_dir``: drjit's kernel cache for this process
+    """Process-pool initializer: imports, drjit's thread pool and LLVM's start (a tiny Cornell box
+    render) before any task is timed (they count in the printed start-up). ``cache_dir``: drjit's kernel cache for this process
     (``DRJIT_CACHE_DIR``, read when drjit starts), an empty folder so that every calibration frame
     compiles its kernels as a new scene in a dataset run does, not load them from an earlier run."""
     if cache_dir:
@@ -168,6 +168,9 @@ def _calibrate_frame(cfg, gi: int, ref, rc, cal_rc) -> tuple[dict, dict]:
              "has_motion": spec.has_motion, **cpu, "calibration_wall_s": wall,
              "reference_passes": passes, "reference_spp": passes * (rc.ref_spp // rc.ref_passes) if rc.ref_spp else 0}
     frame["frame_s"] = sum(cpu.values())
+    del fs                              # free the scene before this process calibrates another
+    import gc
+    gc.collect()
     return frame, R.assemble(spec_json, ref.frame, inputs, layers, ref_part)
 
 

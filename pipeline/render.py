@@ -690,7 +690,8 @@ def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *
                  scene: FrameScene | None = None) -> dict:
     """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``,
     i.e. :func:`assemble` of :func:`inputs_part`, :func:`layers_part` and :func:`reference_part` on one
-    loaded scene (what the dataset graph's three tasks do on up to three), plus ``oracle``.
+    loaded scene (the dataset graph's whole-frame task; split, its three tasks do it on up to three),
+    plus ``oracle``.
 
     ``on_scene_loaded(scene)`` may modify the freshly loaded ``mi.Scene`` (tests inject NaN emitters
     with it); ``sample_hook`` see :func:`render_inputs`; ``scene``: an already loaded

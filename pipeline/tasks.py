@@ -2,9 +2,10 @@
 
 Every function is a pure function of plain data (a SceneSpec as JSON, a frame index, a render
 config as a dict): its result depends on nothing else — not the worker, the retry or the clock (except
-the ``*_seconds`` timings, which are metadata). Frames are rendered by three tasks, one per
-stream, so references can run on other workers (``pipeline.render`` seeds every stream separately,
-so splitting changes no byte):
+the ``*_seconds`` timings, which are metadata). A frame is rendered by one task
+(:func:`render_whole_frame`, the default), or by three, one per stream, when ``tasks.split_streams``
+says so (references on other workers; ``pipeline.render`` seeds every stream separately, so splitting
+changes no byte):
 
 - :func:`make_spec`        → SceneSpec JSON (str)
 - :func:`render_inputs`    → per-sample inputs + guides + camera matrices (``pipeline.render.inputs_part``)
@@ -13,8 +14,8 @@ so splitting changes no byte):
 - :func:`write_frame`      → gathers the three parts (``pipeline.render.assemble``), writes the frame's
   region of the store (``status/complete`` last) and returns a small summary dict.
 
-:func:`render_whole_frame` is the unsplit alternative (``pipeline.render.render_frame``: the same
-three parts on one loaded scene).
+:func:`render_whole_frame` renders the same three parts on one loaded scene
+(``pipeline.render.render_frame``).
 
 Warm state per worker: the loaded scene of the last frame (:func:`frame_scene`) is kept, so the
 three stream tasks of a frame that land on one worker one after another load and compile it once;
@@ -22,8 +23,10 @@ meshes are cached per process (``scene_gen.meshes``) and drjit caches compiled k
 one scene is kept, and it is freed *before* the next one loads: drjit traces a virtual call (shape,
 BSDF, emitter, texture) for every instance alive in the process, so each scene left alive grows every
 later kernel (the Cornell box's path kernel: 1,281 operations alone, 26,659 beside one generated
-scene) and LLVM's compile time with it. Keeping two scenes made a train-cpu frame cost 2x in a
-long run (6-12 s of compile a frame, where the render itself took 6-15 s; docs/throughput.md). Each
+scene) and LLVM's compile time with it. Keeping two scenes made train-cpu's run 1.65x as long
+(628 against 379 s; 6-12 s of compile a frame, where the render itself took 6-15 s;
+docs/throughput.md). With several threads a worker, scenes in use by other tasks stay alive beside a
+new one: one scene alive holds for one thread a worker (the default). Each
 rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do not
 oversubscribe the cores.
 """
@@ -84,7 +87,7 @@ class frame_scene:
         with _scenes_lock:
             fs = _scenes.pop(self.key, None)
             _in_use += 1
-            if fs is None:                  # free the others first; tasks entering meanwhile wait here
+            if fs is None:                  # free the cached scene first (tasks entering wait for that)
                 _evict_locked(flush_kernels=_in_use == 1)
         if fs is None:
             from pipeline.render import FrameScene
@@ -108,23 +111,28 @@ class frame_scene:
             _in_use -= 1
 
     def __exit__(self, exc_type, exc, tb):
-        self._release()
+        global _in_use
+        fs, self.fs = self.fs, None
         if exc_type is not None:
+            self._release()
             return False                    # a scene that failed mid-render is not reused
-        self.fs.set_time(0.0)
-        with _scenes_lock:
-            _scenes[self.key] = self.fs
+        try:
+            fs.set_time(0.0)
+        except BaseException:
+            self._release()
+            raise
+        with _scenes_lock:                  # released and cached at once: no load can slip in between
+            _in_use -= 1
+            _scenes[self.key] = fs
             _scenes.move_to_end(self.key)
             while len(_scenes) > SCENE_CACHE_SIZE:
                 _scenes.popitem(last=False)
-        self.fs = None
         return False
 
 
 def _evict_locked(*, flush_kernels: bool) -> None:
-    if _scenes:
-        _scenes.clear()
-        gc.collect()                        # a scene in a reference cycle would stay registered
+    _scenes.clear()
+    gc.collect()                            # a scene in a reference cycle (or a failed task's) would stay registered
     if flush_kernels and "drjit" in sys.modules:
         sys.modules["drjit"].flush_kernel_cache()
 
