@@ -3,8 +3,8 @@
 Figures printed:
 
 - **frames/minute with 1 and 2 workers** (LocalCluster, one thread each, drjit sized to it): the same
-  dataset graph (spec → render → write, into a temporary store; split tasks when the config splits) after every
-  worker has rendered a warm-up frame (imports, mesh code, drjit kernels), so the figure is the
+  dataset graph (spec → render → write, into a temporary store; split tasks when the config splits)
+  after every worker has rendered a warm-up frame (imports, mesh code, drjit kernels), so the figure is the
   steady state of a long run of new scenes: each run's workers start with an empty drjit kernel cache
   and compile their scenes' kernels, as a dataset's workers do. 12 frames (6 gave 1.6-1.8x from run to
   run). Tasks as the config default cuts them (whole frames). Target: 2 workers >= 1.7x one worker

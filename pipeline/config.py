@@ -132,8 +132,8 @@ class TaskConfig:
     for them; ``null`` (default): split exactly when ``reference_resources`` is set. Measured on 2
     cores (issue 13): the default config 95.3 s whole-frame against 93.9 s split (within 2%), the four
     end-to-end stills 25.3/26.3 against 25.5/26.7 s, the dask bench 1.76-1.80x of one worker against
-    1.59-1.69x; split when a dataset has fewer frames than workers. ``retries``: extra attempts of a failed task (transient failures) before the
-    frame is recorded as failed. ``reference_resources``: Dask worker resources a reference task
+    1.59-1.69x; split when a dataset has fewer frames than workers. ``retries``: extra attempts of a
+    failed task (transient failures) before the frame is recorded as failed. ``reference_resources``: Dask worker resources a reference task
     needs, e.g. ``{GPU: 1}`` (workers must then advertise them: ``dask worker --resources GPU=1``).
     """
     retries: int = 2

@@ -116,9 +116,10 @@ def predicted_passes(rel: float, done: int, rc) -> int:
 
 def _warm_worker(threads: int, cache_dir: str | None = None) -> None:
     """Process-pool initializer: imports, drjit's thread pool and LLVM's start (a tiny Cornell box
-    render) before any task is timed (they count in the printed start-up). ``cache_dir``: drjit's kernel cache for this process
-    (``DRJIT_CACHE_DIR``, read when drjit starts), an empty folder so that every calibration frame
-    compiles its kernels as a new scene in a dataset run does, not load them from an earlier run."""
+    render) before any task is timed (they count in the printed start-up). ``cache_dir``: drjit's
+    kernel cache for this process (``DRJIT_CACHE_DIR``, read when drjit starts), an empty folder so
+    that every calibration frame compiles its kernels as a new scene in a dataset run does, not load
+    them from an earlier run."""
     if cache_dir:
         os.environ["DRJIT_CACHE_DIR"] = cache_dir
     from pipeline.variant import mitsuba
@@ -189,8 +190,9 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads
     real run, so the figures include what they cost each other; each process starts with an empty
     drjit kernel cache, so a frame's time includes compiling its scene's kernels, as every new scene of
     a run does. The frame list is padded with repeats to a multiple of ``concurrent`` so that every
-    frame is timed under the same load; a frame's figures are its first run's. ``ref_passes``: reference passes rendered per frame
-    (default 2; 4 with an early stop, whose pass count is predicted from them, :func:`predicted_passes`).
+    frame is timed under the same load; a frame's figures are its first run's. ``ref_passes``:
+    reference passes rendered per frame (default 2; 4 with an early stop, whose pass count is
+    predicted from them, :func:`predicted_passes`).
     """
     from stores.schema import create_store
     from stores.writer import StoreWriter

@@ -459,19 +459,12 @@ def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[
     s_per = S // slices
     times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
     rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
-    if len(times) == 1 and rows_per >= H:
-        # one wavefront is the whole frame (a still that fits): its buffers, pixel-major then sample,
-        # are the frame's arrays as they are (an allocation and a copy of every sample less: 6% of the loop)
-        seed = stream_seed(spec.seed, frame, STREAM_INPUTS, 0, 0, offset=cfg.seed_offset)
-        fs.set_time(float(times[0]))
-        tr = _trace(fs, seed, 0, H, s_per, float(times[0]))
-        L, F = tr["L"], tr["F"]
-        if sample_hook is not None:
-            sample_hook(L, F)
-        L, F, bad = sanitize_samples(L, F, cfg.max_value)
-        return L.reshape(H, W, S, 3), F.reshape(H, W, S, NUM_FEATURES), bad
-    radiance = np.empty((H, W, S, 3), np.float32)           # every element is written below
-    features = np.empty((H, W, S, NUM_FEATURES), np.float32)
+    # a still whose frame fits one wavefront takes the trace's buffers (pixel-major, then sample) as its
+    # arrays: an allocation and a copy of every sample less, 6% of the loop
+    whole = len(times) == 1 and rows_per >= H
+    if not whole:
+        radiance = np.empty((H, W, S, 3), np.float32)           # every element is written below
+        features = np.empty((H, W, S, NUM_FEATURES), np.float32)
     bad_total = 0
     for k, t in enumerate(times):
         fs.set_time(float(t))
@@ -483,6 +476,8 @@ def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[
             if sample_hook is not None:
                 sample_hook(L, F)
             L, F, bad = sanitize_samples(L, F, cfg.max_value)
+            if whole:
+                return L.reshape(H, W, S, 3), F.reshape(H, W, S, NUM_FEATURES), bad
             bad_total += bad
             sl = np.s_[row0:row0 + rows, :, k * s_per:(k + 1) * s_per]
             radiance[sl] = L.reshape(rows, W, s_per, 3)

@@ -26,9 +26,8 @@ later kernel (the Cornell box's path kernel: 1,281 operations alone, 26,659 besi
 scene) and LLVM's compile time with it. Keeping two scenes made train-cpu's run 1.65x as long
 (628 against 379 s; 6-12 s of compile a frame, where the render itself took 6-15 s;
 docs/throughput.md). With several threads a worker, scenes in use by other tasks stay alive beside a
-new one: one scene alive holds for one thread a worker (the default). Each
-rendering task sizes drjit's thread pool to its Dask worker's thread count, so workers do not
-oversubscribe the cores.
+new one: one scene alive holds for one thread a worker (the default). Each rendering task sizes
+drjit's thread pool to its Dask worker's thread count, so workers do not oversubscribe the cores.
 """
 from __future__ import annotations
 
