@@ -6,8 +6,10 @@ OUT ?=
 SCHEDULER ?=
 WORKERS ?=
 export DENOISE_DATA ?= $(CURDIR)/data
+# test processes (pytest-xdist): one a core, at most 4 (each loads torch and Mitsuba); TEST_JOBS=0 runs in one process
+TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n < 4 ? n : 4 )))
 
-.PHONY: setup dataset estimate test test-fast bench train report compare compare-realtime compare-temporal hard-cases preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal hard-cases preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -18,8 +20,8 @@ setup:           ## create .venv, install dependencies (CPU torch without a GPU)
 dataset: setup   ## build the dataset of CONFIG (default: configs/default.yaml) on a LocalCluster or SCHEDULER
 	$(PY) -m pipeline dataset --config $(CONFIG) $(if $(OUT),--out $(OUT)) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(WORKERS),--workers $(WORKERS))
 
-test: setup      ## the whole test suite
-	$(PY) -m pytest -q tests
+test: setup      ## the whole test suite (TEST_JOBS processes)
+	$(PY) -m pytest -q -n $(TEST_JOBS) tests
 
 estimate: setup  ## predict samples, core-hours, store bytes and wall time of CONFIG on WORKERS workers
 	$(PY) -m pipeline estimate --config $(CONFIG) $(if $(WORKERS),--workers $(WORKERS))
