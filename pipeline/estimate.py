@@ -357,6 +357,10 @@ def run(args) -> int:
         print(f"             references stop once their relative stderr is <= {rc.ref_target_rel_stderr} (at least "
               f"{rc.ref_min_passes} of {rc.ref_passes} passes): the stop is predicted from each calibration frame's "
               "first passes")
+    if args.scenes_per_group == 1 and any(g.count > 1 for g in cfg.scenes):
+        print("note:        one calibration scene a group; scenes of a kind differ up to 2x in frame time, and a "
+              "stop predicted from few passes runs short: --scenes-per-group 3 --ref-passes 8 gives a closer figure "
+              "for a longer calibration (docs/cluster.md)")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"prediction": p, "calibration": cal}, f, indent=2, default=str)

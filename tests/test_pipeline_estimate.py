@@ -3,6 +3,8 @@ their definitions (samples exactly, core-hours and wall time from the calibrated
 bytes from a real store write)."""
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 
 import pytest
@@ -27,14 +29,16 @@ def estimated(tmp_path_factory):
     cfg = d / "est.yaml"
     cfg.write_text(CONFIG)
     out = d / "est.json"
-    rc = main(["estimate", "--config", str(cfg), "--workers", "3", "--json", str(out)])
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        rc = main(["estimate", "--config", str(cfg), "--workers", "3", "--json", str(out)])
     assert rc == 0
-    return cfg, json.loads(out.read_text())
+    return cfg, json.loads(out.read_text()), printed.getvalue()
 
 
 def test_estimate_figures_follow_from_the_calibration(estimated, capsys):
     from pipeline.config import load_config
-    path, res = estimated
+    path, res, _ = estimated
     p, cal = res["prediction"], res["calibration"]
     cfg = load_config(path)
     assert p["frames"] == 3 + 2 * 2
@@ -55,10 +59,17 @@ def test_estimate_figures_follow_from_the_calibration(estimated, capsys):
     assert p["store_bytes"] == int(cal["store_fixed_bytes"] + 7 * cal["bytes_per_frame"])
 
 
+def test_one_scene_a_group_of_several_says_how_to_calibrate_closer(estimated):
+    printed = estimated[2]
+    assert "core-hours:" in printed and "wall time:" in printed
+    # the indoor group holds 3 scenes and one was calibrated: the note names the options
+    assert "one calibration scene a group" in printed and "--scenes-per-group 3 --ref-passes 8" in printed
+
+
 def test_more_workers_shorter_wall(estimated):
     from pipeline.config import load_config
     from pipeline.estimate import predict
-    path, res = estimated
+    path, res, _ = estimated
     cfg, cal = load_config(path), res["calibration"]
     cal["group_frame_s"] = {int(k): v for k, v in cal["group_frame_s"].items()}
     one, many = predict(cfg, cal, 1), predict(cfg, cal, 1000)
@@ -85,7 +96,7 @@ def test_calibration_renders_side_by_side(estimated):
     """The frames were calibrated in as many processes as the workers that share this machine (at most
     the 3 asked for), every frame timed at least once under that load."""
     from pipeline.estimate import local_slots
-    _, res = estimated
+    _, res, _ = estimated
     cal = res["calibration"]
     assert cal["concurrent"] == min(3, local_slots(1))
     assert all(f["runs"] >= 1 for f in cal["frames"])
