@@ -358,8 +358,9 @@ def run(args) -> int:
               f"{rc.ref_min_passes} of {rc.ref_passes} passes): the stop is predicted from each calibration frame's "
               "first passes")
     if args.scenes_per_group == 1 and any(g.count > 1 for g in cfg.scenes):
+        passes = f" --ref-passes {min(8, rc.ref_passes)}" if rc.ref_spp and rc.ref_passes > 4 else ""
         print("note:        one calibration scene a group; scenes of a kind differ up to 2x in frame time, and a "
-              "stop predicted from few passes runs short: --scenes-per-group 3 --ref-passes 8 gives a closer figure "
+              f"stop predicted from few passes runs short: --scenes-per-group 3{passes} gives a closer figure "
               "for a longer calibration (docs/cluster.md)")
     if args.json:
         with open(args.json, "w") as f:
