@@ -106,13 +106,63 @@ def test_a_checkpoint_that_carries_code_is_refused_and_nothing_runs(tmp_path, wr
     if writer == "pickle-4":        # torch's safe unpickler stops at the protocol-4 framing, before any object
         assert msg.startswith(f"cannot read checkpoint {path}: Unsupported operand")
     else:
-        assert f"refusing to load {path}" in msg and "pickle" in msg and "run any code" in msg
-        assert f"python -m training.checkpoint upgrade {path}" in msg and "system" in msg
+        assert f"refusing to load {path}" in msg and "system" in msg and "Nothing in it was run" in msg
+        assert "training.checkpoint upgrade" not in msg        # never recommend unpacking a file that asks for os.system
     assert not marker.exists()
     # the file really is hostile: an unsafe load runs its code
     with open(path, "rb") as f:
         torch.load(f, weights_only=False) if writer == "torch.save" else pickle.load(f)
     assert marker.exists()
+
+
+class Payload:
+    """Unpickling this calls ``func(*args)``: a crafted checkpoint's way to run code."""
+
+    def __init__(self, func, args):
+        self.func, self.args = func, args
+
+    def __reduce__(self):
+        return self.func, self.args
+
+
+def _hostile(marker):
+    import builtins
+    import subprocess
+    touch = f"open({str(marker)!r}, 'w').close()"
+    return {"os.system": (os.system, (f"touch {marker}",)),
+            "subprocess.Popen": (subprocess.Popen, (["touch", str(marker)],)),
+            "builtins.eval": (builtins.eval, (touch,)),
+            "builtins.exec": (builtins.exec, (touch,))}
+
+
+@pytest.mark.parametrize("name", ["os.system", "subprocess.Popen", "builtins.eval", "builtins.exec"])
+@pytest.mark.parametrize("where", ["payload", "rng"])
+def test_upgrade_runs_no_code_and_names_what_the_file_asks_for(tmp_path, capsys, name, where):
+    """``upgrade`` reads through torch's restricted unpickler: a crafted /1 checkpoint that asks for
+    os.system, subprocess.Popen, eval or exec (beside or inside what an old checkpoint holds) is refused,
+    naming the object, and nothing runs or is written."""
+    marker = tmp_path / "ran"
+    func, args = _hostile(marker)[name]
+    path = tmp_path / "crafted.pt"
+    _old_v1_checkpoint(path)
+    ck = torch.load(path, weights_only=False)
+    if where == "payload":
+        ck["payload"] = Payload(func, args)
+    else:                               # hidden inside the numpy RNG state an old checkpoint holds
+        ck["rng"]["numpy"] = (ck["rng"]["numpy"][0], Payload(func, args)) + tuple(ck["rng"]["numpy"][2:])
+    torch.save(ck, path)
+    before = path.read_bytes()
+    out = tmp_path / "upgraded.pt"
+    assert ckpt.main(["upgrade", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    shown = {"os.system": "posix.system", "subprocess.Popen": ".Popen",   # pickle records the module Popen says it is in
+             "builtins.eval": "builtins.eval", "builtins.exec": "builtins.exec"}[name]
+    assert f"refusing to upgrade {path}" in err and shown in err and "nothing in it was run" in err
+    assert not marker.exists() and not out.exists() and path.read_bytes() == before
+    with pytest.raises(CheckpointError, match="refusing to load") as e:     # load says the same, no upgrade advice
+        ckpt.load(path)
+    assert shown in str(e.value) and "training.checkpoint upgrade" not in str(e.value)
+    assert not marker.exists()
 
 
 def _old_v1_checkpoint(path):
@@ -132,8 +182,9 @@ def _old_v1_checkpoint(path):
 def test_old_checkpoint_is_refused_then_upgrades_once(tmp_path, capsys):
     path = tmp_path / "old.pt"
     model = _old_v1_checkpoint(path)
-    with pytest.raises(CheckpointError, match=r"refusing to load .*old\.pt.*numpy"):
+    with pytest.raises(CheckpointError, match=r"refusing to load .*old\.pt.*numpy") as e:
         ckpt.load(path)
+    assert f"python -m training.checkpoint upgrade {path}" in str(e.value)
     assert ckpt.main(["upgrade", str(path), "--out", str(tmp_path / "new.pt")]) == 0
     assert "new.pt" in capsys.readouterr().out
     ck = ckpt.load(tmp_path / "new.pt")
@@ -152,3 +203,12 @@ def test_corrupt_and_foreign_files_are_named(tmp_path):
     torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
     with pytest.raises(CheckpointError, match=r"foreign\.pt is not a .*checkpoint/2 checkpoint \(format: None\)"):
         ckpt.load(tmp_path / "foreign.pt")
+
+
+def test_a_torch_whose_safe_loader_can_be_bypassed_is_refused(tmp_path, monkeypatch):
+    """torch < 2.6's weights_only loader can be made to run code (CVE-2025-32434): nothing is unpickled."""
+    _save(tmp_path / "c.pt")
+    monkeypatch.setattr(torch, "__version__", "2.5.1")
+    for call in (lambda: ckpt.load(tmp_path / "c.pt"), lambda: ckpt.upgrade(tmp_path / "c.pt")):
+        with pytest.raises(CheckpointError, match=r"torch 2\.5\.1 is too old .*CVE-2025-32434.*torch >= 2\.6"):
+            call()

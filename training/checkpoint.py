@@ -6,7 +6,11 @@ tensors), so :func:`load` reads it with ``torch.load(..., weights_only=True)``: 
 shared never runs code it carries. :func:`save` refuses to write anything else, naming the field. A
 file that would need pickle (a ``/1`` checkpoint of an older version of this project, or a crafted
 one) is refused with a :class:`CheckpointError` that names it and the objects it asks for; one you
-made yourself and trust converts once with ``python -m training.checkpoint upgrade FILE``.
+made yourself converts once with ``python -m training.checkpoint upgrade FILE``, which reads it with
+the same restricted unpickler, allowing only the few objects old checkpoints of this project hold
+(:data:`OLD_GLOBALS`: numpy arrays of the RNG state, torch's version string); a file that asks for
+anything else (``os.system``, ``subprocess.Popen``, ``builtins.eval``, ...) is refused, naming it, and
+nothing in it runs. ``load`` recommends ``upgrade`` only for a file that asks for those objects alone.
 ``load`` also refuses a mismatch with a named error.
 """
 from __future__ import annotations
@@ -106,6 +110,50 @@ def save(path, *, model, optimizer, step: int, cfg: TrainConfig, store_info: dic
     _write(path, payload)
 
 
+SAFE_TORCH = (2, 6)     # torch.load(weights_only=True) can be made to run code before 2.6 (CVE-2025-32434)
+
+
+def _require_safe_torch() -> None:
+    """Refuse to unpickle anything with a torch whose restricted unpickler can be bypassed."""
+    from torch.torch_version import TorchVersion
+    if TorchVersion(torch.__version__) < SAFE_TORCH:
+        raise CheckpointError(f"torch {torch.__version__} is too old to read checkpoints safely: its weights_only "
+                              "loader can be bypassed (CVE-2025-32434); install torch >= 2.6")
+
+
+def _old_globals() -> list:
+    """What a ``/1`` checkpoint of this project needs beyond plain data, for torch's restricted
+    unpickler (``torch.serialization.safe_globals``): the numpy RNG state's array (``ndarray``, its
+    ``dtype`` and ``_reconstruct``, under numpy 1's module name ``numpy.core`` as well as numpy 2's
+    ``numpy._core``) and torch's ``TorchVersion`` string. Nothing here runs code of the file's choosing:
+    each rebuilds a value from data."""
+    try:
+        from numpy._core import multiarray as ma
+    except ImportError:           # numpy 1
+        from numpy.core import multiarray as ma
+    from torch.torch_version import TorchVersion
+    out = [TorchVersion, np.ndarray, np.dtype, ma._reconstruct,
+           (ma._reconstruct, "numpy.core.multiarray._reconstruct"),
+           (ma._reconstruct, "numpy._core.multiarray._reconstruct")]
+    dtypes = getattr(np, "dtypes", None)             # numpy 2 pickles a dtype through its class
+    if dtypes is not None:
+        out += [getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType")]
+    return out
+
+
+def _global_name(g) -> str:
+    return g[1] if isinstance(g, tuple) else f"{g.__module__}.{g.__qualname__}"
+
+
+OLD_GLOBAL_NAMES = ("torch.torch_version.TorchVersion", "numpy.ndarray", "numpy.dtype",
+                    "numpy.core.multiarray._reconstruct", "numpy._core.multiarray._reconstruct")
+
+
+def _is_old_global(name: str) -> bool:
+    """Whether ``name`` is one of the objects a ``/1`` checkpoint of this project holds."""
+    return name in OLD_GLOBAL_NAMES or (name.startswith("numpy.dtypes.") and name.endswith("DType"))
+
+
 def _unsafe_globals(path: Path) -> list[str]:
     """The Python objects a checkpoint file asks pickle for, read without running any of them
     (empty when torch cannot list them, e.g. for a bare pickle file)."""
@@ -131,6 +179,7 @@ def load(path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
+    _require_safe_torch()
     try:
         ck = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
@@ -139,11 +188,17 @@ def load(path, map_location="cpu") -> dict:
             raise CheckpointError(f"cannot read checkpoint {path}: {why}") from e
         needs = _unsafe_globals(path)
         what = f"the Python objects {needs}" if needs else f"Python objects beyond plain data ({why})"
+        foreign = [n for n in needs if not _is_old_global(n)] if needs else [why]
+        if foreign:             # not what an old checkpoint of ours holds: never suggest unpacking it
+            raise CheckpointError(
+                f"refusing to load {path}: it asks pickle for {', '.join(foreign)}, which no checkpoint of "
+                f"this project holds (a checkpoint holds only {PLAIN_DATA}); unpickling it could run code the "
+                "file carries. Nothing in it was run. Do not load it: ask its author for a plain-data "
+                "checkpoint, or retrain.") from e
         raise CheckpointError(
-            f"refusing to load {path}: it needs pickle to unpack {what}, and unpickling can run any code "
-            f"the file carries (a checkpoint holds only {PLAIN_DATA}). If you wrote it yourself with an "
-            f"older version of this project and trust it, convert it once: python -m training.checkpoint "
-            f"upgrade {path}; otherwise ask its author for a plain-data checkpoint or retrain.") from e
+            f"refusing to load {path}: it is an old-format checkpoint that needs {what} (a checkpoint now "
+            f"holds only {PLAIN_DATA}). Convert it once: python -m training.checkpoint upgrade {path} "
+            "(it reads the file without running any code and refuses anything but those objects).") from e
     except Exception as e:   # torch raises many types for a corrupt file
         raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
@@ -152,17 +207,35 @@ def load(path, map_location="cpu") -> dict:
     return ck
 
 
+def _load_old(path: Path) -> dict:
+    """A checkpoint of any format of this project, read by torch's restricted (``weights_only``)
+    unpickler with only :func:`_old_globals` allowed besides plain data: nothing the file carries runs.
+    Anything else it asks for is a :class:`CheckpointError` naming it."""
+    _require_safe_torch()
+    try:
+        with torch.serialization.safe_globals(_old_globals()):
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        needs = [n for n in _unsafe_globals(path) if not _is_old_global(n)]
+        what = ", ".join(needs) if needs else _unpickler_reason(e)
+        raise CheckpointError(
+            f"refusing to upgrade {path}: it asks for {what}, which no checkpoint of this project holds "
+            f"(old checkpoints need only {', '.join(OLD_GLOBAL_NAMES[:3])} and numpy's array rebuild); "
+            "nothing in it was run and nothing was written") from e
+    except Exception as e:   # noqa: BLE001 - torch raises many types for a corrupt file
+        raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
+
+
 def upgrade(path, out=None) -> Path:
-    """Rewrite a trusted ``/1`` checkpoint (which needs pickle) as a ``/2`` plain-data one, at ``out``
-    (default: in place). This loads ``path`` with pickle: only for files whose origin you trust."""
+    """Rewrite a ``/1`` checkpoint (numpy RNG arrays, torch's version string) as a ``/2`` plain-data one,
+    at ``out`` (default: in place). The file is read by torch's restricted unpickler (:func:`_load_old`):
+    it may ask for the few objects old checkpoints hold and nothing else, so a crafted file is refused
+    (naming what it asks for) before anything in it runs."""
     path = Path(path)
     out = Path(out) if out is not None else path
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)   # trusted by the caller (docstring)
-    except Exception as e:   # noqa: BLE001 - torch raises many types for a corrupt file
-        raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
+    ck = _load_old(path)
     if not isinstance(ck, dict) or ck.get("format") not in OLD_FORMATS + (FORMAT,):
         raise CheckpointError(f"{path} is not a training checkpoint of this project; nothing written")
     if ck["format"] in OLD_FORMATS:
@@ -196,9 +269,10 @@ def main(argv=None) -> int:
     import argparse
     import sys
     ap = argparse.ArgumentParser(prog="python -m training.checkpoint",
-                                 description="Convert a checkpoint you trust to the plain-data format.")
+                                 description="Convert an old checkpoint of this project to the plain-data format.")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    u = sub.add_parser("upgrade", help="rewrite a /1 checkpoint (needs pickle: trusted files only) as /2")
+    u = sub.add_parser("upgrade", help="rewrite an old /1 checkpoint as /2 (read by a restricted unpickler: only "
+                                       "the numpy arrays and version string old checkpoints hold are allowed)")
     u.add_argument("file")
     u.add_argument("--out", help="where to write it (default: replace FILE)")
     a = ap.parse_args(argv)
