@@ -288,3 +288,21 @@ def test_resume_takes_a_layout_recorded_before_the_encoding_field_as_lz4():
         check_same_store(old, {"path": "/s.zarr", "layout": {**layout, "encoding": "compact"}}, "ck.pt")
     with pytest.raises(CheckpointError, match="another store"):
         check_same_store(old, {"path": "/s.zarr", "layout": {**layout, "height": 32, "encoding": "lz4"}}, "ck.pt")
+
+
+@pytest.mark.parametrize("text, message", [
+    ('{"layers": 2.5}', 'setting "layers" must be an integer, got 2.5'),
+    ('{"layers": true}', 'setting "layers" must be an integer, got True'),
+    ('{"kernel_sigma": NaN}', "holds NaN, which is not a JSON value"),
+    ('{"kernel_sigma": "wide"}', 'setting "kernel_sigma" must be a finite number'),
+    ('{"partition_hidden": [8, 2.5]}', 'setting "partition_hidden" must be a list of integers'),
+])
+def test_model_settings_are_type_checked_before_anything_trains(store, tmp_path, capsys, text, message):
+    """An integer setting refuses 2.5 and true (not silently 2 or 1), NaN is a one-line error."""
+    from training.__main__ import main
+    out = tmp_path / "run"
+    assert main(["train", "--model", "layer", "--store", store, "--out", str(out), "--steps", "1",
+                 "--model-cfg", text, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (out / "checkpoint.pt").exists()

@@ -7,9 +7,15 @@ import sys
 
 
 def _model_cfg(text: str) -> dict:
+    """``--model-cfg`` as a dict; strict JSON (``NaN`` and ``Infinity`` are not JSON values). The model
+    checks each setting's type when it is built (``training.models.registry.check_settings``)."""
     from .errors import ConfigError
+
+    def no_constant(name):
+        raise ConfigError(f"--model-cfg holds {name}, which is not a JSON value (settings must be finite "
+                          f"numbers): {text!r}")
     try:
-        cfg = json.loads(text)
+        cfg = json.loads(text, parse_constant=no_constant)
     except json.JSONDecodeError as e:
         raise ConfigError(f"--model-cfg is not valid JSON ({e.msg} at character {e.pos}): {text!r}") from None
     if not isinstance(cfg, dict):
