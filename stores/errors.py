@@ -53,6 +53,16 @@ class ExportError(StoreError, RuntimeError):
     """An export could not be written (bad format, frames or output folder)."""
 
 
+class UnfitFrameError(StoreError, ValueError):
+    """Frames that ``validate`` flags (``stores.fitness``: NaN/Inf or out-of-range values, an all-zero
+    reference, NaN/Inf the renderer replaced, incomplete) were asked to be used. ``frames`` maps each
+    to its problems; ``--skip-bad-frames`` leaves them out instead."""
+
+    def __init__(self, message: str, frames: dict | None = None):
+        super().__init__(message)
+        self.frames = dict(frames or {})
+
+
 class StoreCorruptionError(StoreError):
     """The store's files on disk are damaged: a lost shard, a truncated or garbage chunk, a checksum
     mismatch, or array metadata (``zarr.json``) that disagrees with the schema. ``array``, ``frame``

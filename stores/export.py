@@ -1,12 +1,18 @@
 """Exports to the formats other tools read: ``exr``, ``oidn`` and ``layerdenoise``.
 
-``main(argv)`` is ``python -m pipeline export STORE --frames ... --format F --out DIR``. Only complete
-frames are exported (an incomplete one is an error naming it).
+``main(argv)`` is ``python -m pipeline export STORE --frames ... --format F --out DIR``. Only frames
+``validate`` passes are exported (:mod:`stores.fitness`, the check every command applies: complete,
+finite, non-negative references, no all-zero reference under a non-zero input, no NaN the renderer
+replaced); an unfit frame is an error naming it, or with ``--skip-bad-frames`` left out and named.
+Files are written into a temporary folder inside ``DIR`` and moved into place once every frame is
+written, so an export that stops (a damaged store, a full disk, Ctrl-C) leaves no half of itself.
 
 * ``exr``: per frame a folder ``frame_NNNNNN/`` with OpenEXR files (float32, ZIP):
   ``input_mean.exr`` (mean of the per-sample radiance), ``layer_NNNNspp.exr`` (each sample layer),
   ``reference.exr``, ``reference_stderr.exr`` (RGB), ``albedo.exr`` (RGB), ``normal.exr`` (RGB = world xyz),
-  ``depth.exr`` (Y), ``motion.exr`` (R = motion_x, G = motion_y, pixels), and 8-bit PNG previews
+  ``depth.exr`` (``Z``, OpenEXR's depth channel name), ``motion.exr`` (``motion_to_prev.x``,
+  ``motion_to_prev.y``: the screen-space offset to the pixel's position in the previous frame,
+  ``p_prev - p_cur`` in pixels, x right, y down), and 8-bit PNG previews
   (``*.png``, :func:`stores.imageio.to_srgb8`) of input_mean, layers and reference through the
   training tone map (``log(1 + x)`` then the sRGB curve, the layer paper's eq. 7, clipped to [0, 1]),
   of albedo through the sRGB curve, and of normal as ``n * 0.5 + 0.5``.
@@ -51,15 +57,12 @@ FORMATS = ("exr", "oidn", "layerdenoise")
 read_exr = read_exr_channels
 
 
-def _complete(store: Store, frames: list[int]) -> None:
-    bad = [i for i in frames if not store.frames_meta(i)["complete"]]
-    if bad:
-        raise ExportError(f"frames {bad} are incomplete; re-run them or leave them out (--frames)")
+DEPTH_CHANNEL = ["Z"]                                    # OpenEXR's name for depth
+MOTION_CHANNELS = ["motion_to_prev.x", "motion_to_prev.y"]   # p_prev - p_cur, pixels, x right, y down
 
 
 def export_exr(store: Store, frames: list[int], out: str) -> list[str]:
     """Write the ``exr`` format (module docstring). Returns the files written."""
-    _complete(store, frames)
     written = []
     for i in frames:
         fr = store.read_frame(i)
@@ -80,15 +83,14 @@ def export_exr(store: Store, frames: list[int], out: str) -> list[str]:
             else:
                 write_png(os.path.join(d, f"{name}.png"), rgb, mode="clamp" if name == "albedo" else "log")
             written.append(os.path.join(d, f"{name}.png"))
-        write_exr(os.path.join(d, "depth.exr"), fr["guides_depth"][..., :1], channels="Y")
-        write_exr(os.path.join(d, "motion.exr"), fr["guides_motion"][..., :2], channels="RG")
+        write_exr(os.path.join(d, "depth.exr"), fr["guides_depth"][..., :1], channels=DEPTH_CHANNEL)
+        write_exr(os.path.join(d, "motion.exr"), fr["guides_motion"][..., :2], channels=MOTION_CHANNELS)
         written += [os.path.join(d, "depth.exr"), os.path.join(d, "motion.exr")]
     return written
 
 
 def export_oidn(store: Store, frames: list[int], out: str) -> list[str]:
     """Write the ``oidn`` format (module docstring). Returns the files written."""
-    _complete(store, frames)
     os.makedirs(out, exist_ok=True)
     written = []
     for i in frames:
@@ -144,7 +146,6 @@ def clip_depth_scales(store: Store, frames: list[int]) -> dict[int, float]:
 def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "dataset") -> list[str]:
     """Write ``NAME_input.h5`` and ``NAME_ref.h5`` (module docstring). Returns the two paths."""
     import h5py
-    _complete(store, frames)
     os.makedirs(out, exist_ok=True)
     lay = store.layout
     F, S, H, W = len(frames), lay.spp, lay.height, lay.width
@@ -183,19 +184,45 @@ def export_layerdenoise(store: Store, frames: list[int], out: str, name: str = "
     return [inp, ref]
 
 
-def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name: str = "dataset") -> list[str]:
-    """Export ``frames`` (``'all'``, ``'0,2,5-7'`` or a list) of the store in format ``fmt``."""
+def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name: str = "dataset", *,
+           skip_bad_frames: bool = False) -> list[str]:
+    """Export ``frames`` (``'all'``, ``'0,2,5-7'`` or a list) of the store in format ``fmt`` into ``out``.
+    Frames ``validate`` flags are refused (``UnfitFrameError`` naming them), or left out with a warning
+    when ``skip_bad_frames``. Everything is written into a temporary folder in ``out`` first and moved
+    into place at the end (:func:`_into_place`): a failed export leaves ``out`` as it was."""
+    from stores.fitness import screen
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {FORMATS}")
     store = open_store(store_path)
     idx = frames if isinstance(frames, list) else parse_frames(frames, store.num_frames)
     if not idx:
         raise ExportError("no frames to export")
-    if fmt == "exr":
-        return export_exr(store, idx, out)
-    if fmt == "oidn":
-        return export_oidn(store, idx, out)
-    return export_layerdenoise(store, idx, out, name)
+    idx = screen(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}", progress=True)
+    write = {"exr": export_exr, "oidn": export_oidn, "layerdenoise": export_layerdenoise}[fmt]
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:
+        raise ExportError(f"cannot make the output folder {out}: {e.strerror or e}") from e
+    import shutil
+    import tempfile
+    tmp = tempfile.mkdtemp(prefix=".export-", dir=out)
+    try:
+        files = write(store, idx, tmp, name) if fmt == "layerdenoise" else write(store, idx, tmp)
+        return _into_place(tmp, out, files)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _into_place(tmp: str, out: str, files: list[str]) -> list[str]:
+    """Move every entry of ``tmp`` into ``out`` (an entry of the same name there, an earlier export of
+    the same frame, is replaced); returns ``files`` as paths in ``out``."""
+    import shutil
+    for entry in sorted(os.listdir(tmp)):
+        dst = os.path.join(out, entry)
+        if os.path.isdir(dst) and not os.path.islink(dst):
+            shutil.rmtree(dst)
+        os.replace(os.path.join(tmp, entry), dst)
+    return [os.path.join(out, os.path.relpath(f, tmp)) for f in files]
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -205,14 +232,19 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--format", required=True, choices=FORMATS)
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
-    ap.epilog = ("exit status: 0 exported; 2 bad arguments or not a readable store; 3 the store is damaged "
-                 "(missing or corrupt chunk files, array metadata that disagrees with the schema)")
+    ap.add_argument("--skip-bad-frames", action="store_true",
+                    help="leave out frames validate flags (NaN/Inf, negative or all-zero references, NaN the "
+                         "renderer replaced), naming them; default: refuse them")
+    ap.epilog = ("exit status: 0 exported; 2 bad arguments, not a readable store, or frames validate flags "
+                 "(--skip-bad-frames leaves them out); 3 the store is damaged (missing or corrupt chunk files, "
+                 "array metadata that disagrees with the schema)")
 
 
 def run(args) -> int:
     """Export and print a one-line summary; raises StoreError (ExportError, ...) on failure."""
     try:
-        files = export(args.store, args.frames, args.format, args.out, args.name)
+        files = export(args.store, args.frames, args.format, args.out, args.name,
+                       skip_bad_frames=getattr(args, "skip_bad_frames", False))
     except ValueError as e:
         if isinstance(e, StoreError):
             raise

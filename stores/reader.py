@@ -573,33 +573,10 @@ class Store:
 
 
 def frame_problems(store, i: int) -> list[str]:
-    """Why frame ``i`` should not be trained or evaluated on (``[]`` if nothing): incomplete; NaN/Inf
-    values the renderer replaced (``frames/nonfinite_*``); a non-finite or negative reference; an
-    all-zero reference while the input radiance is not zero. Cheap: reads the metadata cache and the
-    reference (the inputs only when the reference is all zero). Damaged data raises (StoreCorruptionError)."""
-    st = store if isinstance(store, Store) else open_store(store)
-    i = st._check_index(i)
-    t = st._frame_row(i)
-    if not t["complete"][i]:
-        return ["incomplete"]
-    out = []
-    for key, what in (("nonfinite_inputs", "input samples"), ("nonfinite_layers", "sample layers"),
-                      ("nonfinite_reference", "reference")):
-        n = int(t[key][i])
-        if n:
-            out.append(f"{n} NaN/Inf values in its {what} (replaced by the renderer, frames/{key})")
-    ref = st.read_array("reference/radiance", i)
-    bad = int(ref.size - np.isfinite(ref).sum())
-    if bad:
-        out.append(f"reference has {bad} NaN/Inf values")
-    neg = int((ref < 0).sum())
-    if neg:
-        out.append(f"reference has {neg} negative values (min {float(np.nanmin(ref)):.4g})")
-    if not np.any(ref):
-        rad = st.read_array("inputs/radiance", i)
-        if np.any(rad):
-            out.append(f"reference is all zero while the input radiance is not (max {float(np.nanmax(rad)):.4g})")
-    return out
+    """Why frame ``i`` should not be trained, evaluated or exported (``[]`` if nothing):
+    :func:`stores.fitness.frame_problems`, the one check ``validate`` applies too."""
+    from stores.fitness import frame_problems as _problems
+    return _problems(store, i)
 
 
 def _missing_error(lost: dict[int, list[tuple[str, str]]]) -> MissingShardError:

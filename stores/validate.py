@@ -11,11 +11,13 @@ schema). Damage is listed in full before exiting 3: every missing shard and ever
 Array metadata (``zarr.json``: dtype, shape, chunks, codecs, fill value, dims) is compared with the
 schema table first; if it disagrees no frame is read (its bytes would be misread).
 
-Per complete frame it checks: no NaN/Inf in any array; radiance, layers and reference >= 0;
-reference standard error >= 0; features in range (albedo and roughness in [0, 1], time in [0, 1],
-lens position inside the unit disk, depth >= 0, normals of unit length or 0 on a miss); guides the
-same; bounds of 1 with the slack the store's rounding may add (``compact2``'s 4-bit lens: 2**-5).
-It reports each frame's value ranges and the reference's mean relative standard error
+Per complete frame it applies :mod:`stores.fitness`, the one check of a frame's fitness that
+``train``, ``evaluate``, ``report``, ``hard-cases`` and ``export`` apply too: no NaN/Inf in any array;
+radiance, layers and reference >= 0; reference standard error >= 0; features in range (albedo and
+roughness in [0, 1], time in [0, 1], lens position inside the unit disk, depth >= 0, normals of unit
+length or 0 on a miss); guides the same; bounds of 1 with the slack the store's rounding may add
+(``compact2``'s 4-bit lens: 2**-5); no NaN/Inf the renderer replaced (``frames/nonfinite_*``), except
+in a frame of the ``nan`` hard case, where it is a note. It reports each frame's value ranges and the reference's mean relative standard error
 (``stderr / max(reference, 1e-3)``) with the renderer's own figure (``frames/reference_rel_stderr``).
 Incomplete frames are problems (with their recorded error text). A complete frame whose reference
 is all zero while its input radiance is not is a problem. Schema v1 stores skipped all-zero shards,
@@ -31,8 +33,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from stores import schema
-from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 from stores.errors import MissingShardError, StoreCorruptionError, StoreError
+from stores.fitness import FRAME_KEYS, RELMSE_EPS, check_values, reference_limits, renderer_findings  # noqa: F401
 from stores.reader import open_store
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE, EXIT_DAMAGED = 0, 1, 2, 3
@@ -41,9 +43,6 @@ EXIT_CODES_HELP = ("exit status: 0 no problem; 1 problems found (incomplete fram
                    "version, creation cut short) or bad arguments; 3 the store is damaged (missing chunk files "
                    "of complete frames, truncated/garbage chunks, crc32c mismatches, array metadata that "
                    "disagrees with the schema)")
-
-_TOL = 2e-3          # float16 features: rel. precision ~5e-4
-
 
 @dataclass
 class FrameReport:
@@ -58,6 +57,7 @@ class FrameReport:
     relmse_floor: float | None = None                    # relMSE of the truth against this reference
     renderer_nonfinite: int = 0                          # NaN/Inf the renderer replaced (frames/nonfinite_*)
     problems: list = field(default_factory=list)         # everything wrong (damage included)
+    notes: list = field(default_factory=list)            # not problems (NaN its hard case intends)
     damage: list = field(default_factory=list)           # missing / corrupt files of this frame
 
 
@@ -127,6 +127,8 @@ class StoreReport:
         for p in self.problems:
             lines.append(f"  {'DAMAGE' if p in self.damage else 'PROBLEM'}: {p}")
         for f in self.frames:
+            for n in f.notes:
+                lines.append(f"  note: frame {f.index}: {n}")
             if f.problems or verbose:
                 status = "ok" if not f.problems else "; ".join(f.problems)
                 rs = f"{f.ref_rel_stderr:.4g}" if f.ref_rel_stderr is not None else "-"
@@ -139,90 +141,14 @@ class StoreReport:
         return "\n".join(lines)
 
 
-def _range_check(name, a, lo=None, hi=None, problems=None, tol=_TOL):
-    fin = a[np.isfinite(a)]
-    if fin.size == 0:
-        return
-    if lo is not None and fin.min() < lo - tol:
-        problems.append(f"{name} below {lo}: min {fin.min():.4g}")
-    if hi is not None and fin.max() > hi + tol:
-        problems.append(f"{name} above {hi}: max {fin.max():.4g}")
-
-
-def _rounding_tols(layout) -> dict[str, float]:
-    """The slack the store's encoding needs past a bound of 1 (feature group or guide -> tolerance):
-    ``_TOL``, or the group's rounding bound ``2**-(k + 1)`` where that is larger (``compact2`` keeps
-    a few mantissa bits of some features: a lens point on the unit circle may be stored at radius 1.03)."""
-    if layout is None:
-        return {}
-    bits = schema.ARRAY_BY_PATH["inputs/features"].chain(layout).channel_bits(NUM_FEATURES)
-    out = {}
-    for g, sl in FEATURE_GROUPS.items():
-        ks = [k for k in bits[sl] if k is not None]
-        out[g] = max([_TOL] + [2.0 ** -(k + 1) for k in ks])
-    for key, path in (("guides_albedo", "guides/albedo"), ("guides_normal", "guides/normal")):
-        k = schema.ARRAY_BY_PATH[path].chain(layout).keepbits
-        out[key] = _TOL if k is None else max(_TOL, 2.0 ** -(k + 1))
-    return out
-
-
 def check_frame_values(fr: dict, report: FrameReport, layout=None) -> None:
-    """Fill ``report`` from one frame in the contract layout (``Store.read_frame``); ``layout`` (the
-    store's) widens the range checks by what its encoding's rounding may add."""
-    tol = _rounding_tols(layout)
-    p = report.problems
-    for key, a in fr.items():
-        if key == "meta":
-            continue
-        a = np.asarray(a)
-        bad = int(a.size - np.isfinite(a).sum())
-        report.nonfinite[key] = bad
-        if bad:
-            p.append(f"{key}: {bad} NaN/Inf values")
-        fin = a[np.isfinite(a)]
-        if fin.size:
-            report.ranges[key] = [float(fin.min()), float(fin.max())]
-    for key in ("radiance", "layers", "reference", "reference_stderr"):
-        _range_check(key, fr[key], lo=0.0, problems=p, tol=0.0)
-    f = fr["features"]
-    g = FEATURE_GROUPS
-    _range_check("features.albedo", f[..., g["albedo"]], 0.0, 1.0, p, tol.get("albedo", _TOL))
-    _range_check("features.roughness", f[..., g["roughness"]], 0.0, 1.0, p, tol.get("roughness", _TOL))
-    _range_check("features.time", f[..., g["time"]], 0.0, 1.0, p, tol.get("time", _TOL))
-    _range_check("features.depth", f[..., g["depth"]], 0.0, None, p)
-    lens = np.linalg.norm(f[..., g["lens"]], axis=-1)
-    _range_check("features.lens radius", lens, None, 1.0, p, tol.get("lens", _TOL))
-    n = np.linalg.norm(f[..., g["normal"]], axis=-1)
-    odd = np.isfinite(n) & (n > 1e-3) & (np.abs(n - 1) > max(1e-2, tol.get("normal", 0.0)))
-    if odd.any():
-        p.append(f"features.normal: {int(odd.sum())} samples neither unit length nor 0")
-    _range_check("guides_albedo", fr["guides_albedo"], 0.0, 1.0, p, tol.get("guides_albedo", _TOL))
-    _range_check("guides_depth", fr["guides_depth"], 0.0, None, p)
-    _range_check("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=max(1e-2, tol.get("guides_normal", 0.0)))
-    if not np.any(fr["reference"]) and np.any(fr["radiance"]):
-        p.append(f"reference is all zero while the input radiance is not (max {float(np.nanmax(fr['radiance'])):.4g})")
-    ref, se = fr["reference"].astype(np.float64), fr["reference_stderr"].astype(np.float64)
-    if np.isfinite(ref).all() and np.isfinite(se).all():
-        report.ref_rel_stderr = float(np.mean(se / np.maximum(np.abs(ref), 1e-3)))
-        report.psnr_ceiling, report.relmse_floor = reference_limits(ref, se)
-
-
-RELMSE_EPS = 0.01     # as training.metrics.relmse
-
-
-def reference_limits(ref: np.ndarray, stderr: np.ndarray) -> tuple[float, float]:
-    """What a reference's own noise allows a metric to show: the expected PSNR (dB, on tone-mapped
-    values, ``stores.imageio.tonemap``, peak 1) and relMSE (``(d - r)^2 / (r^2 + 0.01)``) of the *true*
-    image scored against this reference (``ref``, ``stderr``: float, HWC). Delta method: the
-    tone-mapped error of a pixel is ``T'(ref) * stderr``, its slope taken by central differences."""
-    from stores.imageio import tonemap
-    ref = np.asarray(ref, np.float64)
-    se = np.asarray(stderr, np.float64)
-    h = np.maximum(se, 1e-6)
-    slope = (tonemap(ref + h) - tonemap(np.maximum(ref - h, 0.0))) / (ref + h - np.maximum(ref - h, 0.0))
-    mse = float(np.mean((slope * se) ** 2))
-    psnr = float("inf") if mse == 0.0 else float(10.0 * np.log10(1.0 / mse))
-    return psnr, float(np.mean(se ** 2 / (ref ** 2 + RELMSE_EPS)))
+    """Fill ``report`` from one frame in the contract layout (``Store.read_frame``) with
+    :func:`stores.fitness.check_values` (the one value check every command uses)."""
+    vc = check_values(fr, layout)
+    report.problems.extend(vc.problems)
+    report.nonfinite.update(vc.nonfinite)
+    report.ranges.update(vc.ranges)
+    report.ref_rel_stderr, report.psnr_ceiling, report.relmse_floor = vc.ref_rel_stderr, vc.psnr_ceiling, vc.relmse_floor
 
 
 def parse_frames(spec: str | None, num_frames: int) -> list[int]:
@@ -308,8 +234,11 @@ def validate_store(path, frames=None) -> StoreReport:
         fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
         fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
                                         + meta["nonfinite_reference"])
+        found, notes = renderer_findings(meta)       # stores.fitness: the one fitness check, as train sees it
+        fr_rep.problems.extend(found)
+        fr_rep.notes.extend(notes)
         data = {}
-        for key in _IMAGE_KEYS:
+        for key in FRAME_KEYS:
             try:
                 data[key] = store.read_frame(i, [key])[key]
             except StoreCorruptionError as e:
@@ -337,10 +266,6 @@ def _consolidation_note(path, root, version: int) -> str | None:
         return (f"consolidated metadata is out of date (status/complete {have} vs "
                 f"{root['status/complete'].shape}); {fix}")
     return None
-
-
-_IMAGE_KEYS = ("radiance", "features", "layers", "reference", "reference_stderr", "guides_albedo",
-               "guides_normal", "guides_depth", "guides_motion", "camera_to_world", "world_to_clip")
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:

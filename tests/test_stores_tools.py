@@ -32,6 +32,13 @@ def store2(tmp_path):
     return path, frames
 
 
+def _write_frames(path, frames, tile=8):
+    w = open_or_create(path, StoreLayout(num_frames=len(frames), height=H, width=W, spp=S, tile=tile))
+    for i, fr in enumerate(frames):
+        w.write_frame(i, fr)
+    return path
+
+
 CHILD = textwrap.dedent("""
     import sys, time
     sys.path[:0] = [{root!r}, {tests!r}]
@@ -88,7 +95,8 @@ def test_validator_finds_bad_values(store2):
     f0, f1 = rep.frames
     assert f0.nonfinite["radiance"] == 2
     text = " | ".join(f0.problems)
-    assert "radiance: 2 NaN/Inf" in text and "features.albedo above 1.0" in text and "reference below 0" in text
+    assert "radiance: 2 NaN/Inf" in text and "features.albedo has" in text and "values above 1 (max 1.7" in text \
+        and "reference has 1 negative values" in text
     assert not f1.problems and f1.ref_rel_stderr == pytest.approx(0.01, rel=0.2)
     assert f0.ranges["reference"][0] == -0.5
     assert validate.main([str(path), "--frames", "1"]) == 0
@@ -116,15 +124,18 @@ def test_export_exr(store2, tmp_path):
     np.testing.assert_allclose(mean, fr["radiance"].mean(axis=2), rtol=1e-6)
     np.testing.assert_array_equal(export.read_exr(str(d / "layer_0004spp.exr"))["RGB"], fr["layers"][2])
     np.testing.assert_array_equal(export.read_exr(str(d / "reference.exr"))["RGB"], frames[1]["reference"])
-    np.testing.assert_array_equal(export.read_exr(str(d / "depth.exr"))["Y"], fr["guides_depth"][..., 0])
+    np.testing.assert_array_equal(export.read_exr(str(d / "depth.exr"))["Z"], fr["guides_depth"][..., 0])
     mo = export.read_exr(str(d / "motion.exr"))
-    np.testing.assert_array_equal(mo["R"], fr["guides_motion"][..., 0])
+    assert sorted(mo) == ["motion_to_prev.x", "motion_to_prev.y"]          # names that say what they are
+    np.testing.assert_array_equal(mo["motion_to_prev.x"], fr["guides_motion"][..., 0])
+    np.testing.assert_array_equal(mo["motion_to_prev.y"], fr["guides_motion"][..., 1])
     from PIL import Image
     png = Image.open(d / "reference.png")
     assert png.size == (W, H) and png.mode == "RGB"
     from stores.imageio import to_srgb8            # the training tone map (values: tests/test_tonemap_io.py)
     np.testing.assert_array_equal(np.asarray(png), to_srgb8(frames[1]["reference"]))
     assert not (tmp_path / "e" / "frame_000000").exists()
+    assert sorted(os.listdir(tmp_path / "e")) == ["frame_000001"]          # no temporary folder left
 
 
 def test_export_oidn_naming(store2, tmp_path):
@@ -223,9 +234,10 @@ def test_export_layerdenoise_view_normals_and_per_clip_depth(tmp_path):
 
 
 def test_export_errors(store2, tmp_path):
+    from stores.errors import UnfitFrameError
     path, _ = store2
     StoreWriter(path).mark_failed(0, "boom")
-    with pytest.raises(ExportError, match=r"frames \[0\] are incomplete"):
+    with pytest.raises(UnfitFrameError, match=r"frame 0: incomplete \(last error: boom\)"):
         export.export(path, "all", "oidn", str(tmp_path / "x"))
     with pytest.raises(ExportError, match="unknown export format"):
         export.export(path, "1", "png", str(tmp_path / "x"))
@@ -303,3 +315,52 @@ def test_validate_states_the_reference_error(tmp_path, store2):
     assert done and all(f.psnr_ceiling is not None and f.psnr_ceiling > 10 for f in done)
     text = rep.format()
     assert "PSNR ceiling" in text and "relMSE floor" in text and "10/50/90 %" in text
+
+
+@pytest.mark.parametrize("fmt", ["exr", "oidn", "layerdenoise"])
+@pytest.mark.parametrize("spoil", ["nan", "negative", "zero"])
+def test_export_refuses_frames_validate_flags(tmp_path, capsys, fmt, spoil):
+    """A NaN, negative or all-zero reference (written through zarr-python, past the writer's checks) is
+    refused by every export format, naming the frame, and nothing is written; --skip-bad-frames leaves it
+    out and names it."""
+    import zarr
+    path = tmp_path / "s.zarr"
+    frames = [synthetic_frame(i, H, W, S) for i in range(3)]
+    _write_frames(path, frames)
+    ref = zarr.open_array(str(path / "reference" / "radiance"), mode="r+").with_config({"write_empty_chunks": True})
+    if spoil == "nan":
+        ref[1, 0, 2, 3] = np.nan
+    elif spoil == "negative":
+        ref[1, 1, 2, 3] = -4.0
+    else:
+        ref[1] = 0.0
+    out = tmp_path / "out"
+    args = [str(path), "--format", fmt, "--out", str(out)]
+    assert export.main(args) == 2
+    err = capsys.readouterr().err
+    want = {"nan": "reference: 1 NaN/Inf values", "negative": "reference has 1 negative values",
+            "zero": "reference is all zero while the input radiance is not"}[spoil]
+    assert "frame 1:" in err and want in err and "--skip-bad-frames" in err, err
+    assert not out.exists() or not os.listdir(out)
+    with pytest.warns(UserWarning, match=r"skipping 1 flagged frames .*frame 1:"):
+        assert export.main(args + ["--skip-bad-frames"]) == 0
+    names = " ".join(sorted(os.listdir(out)))
+    assert "000001" not in names and "000000" in names or fmt == "layerdenoise"
+    if fmt == "layerdenoise":
+        import h5py
+        with h5py.File(out / "dataset_input.h5") as f:
+            assert list(f.attrs["frames"]) == [0, 2]
+
+
+def test_an_export_that_stops_leaves_nothing_behind(tmp_path, capsys):
+    """A damaged shard of the last frame stops the export (exit 3): no half-written frame folders stay
+    in --out, and what was there before is untouched."""
+    path = tmp_path / "s.zarr"
+    _write_frames(path, [synthetic_frame(i, H, W, S) for i in range(3)])
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    f = path / "layers" / "radiance" / "c" / "2" / "0" / "0" / "0" / "0"
+    f.write_bytes(f.read_bytes()[:-40])
+    assert export.main([str(path), "--format", "exr", "--out", str(out)]) == 3
+    assert sorted(os.listdir(out)) == ["mine.txt"] and (out / "mine.txt").read_text() == "keep me"

@@ -4,7 +4,9 @@ refuse mismatches, and the CLI contract (train / evaluate) writes what it promis
 from __future__ import annotations
 
 import csv
+import os
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -213,9 +215,6 @@ def test_per_pixel_models_train_and_resume_exactly(store, tmp_path):
 
 
 def test_train_refuses_bad_requests_clearly(store, tmp_path):
-    from training.errors import DataError
-    with pytest.raises(DataError, match="batch 99"):
-        train(cfg(batch=99), store, tmp_path / "big", progress=False)
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(ConfigError, match="is a file"):
@@ -306,3 +305,122 @@ def test_model_settings_are_type_checked_before_anything_trains(store, tmp_path,
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (out / "checkpoint.pt").exists()
+
+
+def test_a_batch_larger_than_the_store_draws_several_crops_per_frame(store, tmp_path):
+    """--batch larger than the training items (a smoke store's 2 frames) trains, says so once, and every
+    visit of a frame in an epoch draws its own crop."""
+    from training.data import EpochBatches, epoch_keys
+    n = 4                                       # the store's train split (make_store: per_split 4, 2, 2)
+    keys = epoch_keys(n, 3, 0, 3)
+    assert sorted(i for i, _ in keys) == sorted(list(range(n)) * 3)
+    assert len(set(keys)) == len(keys)          # (item, draw) pairs never repeat: three crops of each frame
+    assert epoch_keys(n, 3, 1, 1) == [(int(i), 1) for i in __import__("training.data", fromlist=["x"]).epoch_order(n, 3, 1)]
+    batches = list(EpochBatches(n, 10, 3, 0, 3))
+    assert [len(b) for b in batches] == [10, 10, 10]
+    with pytest.warns(UserWarning, match=r"--batch 10 is larger than the 4 training items.*3 times") as rec:
+        res = train(cfg(batch=10, steps=2, val_every=0), store, tmp_path / "big", progress=False)
+    assert res["step"] == 2 and sum("larger than" in str(w.message) for w in rec) == 1
+
+
+def _zarr_set(path, array, sel, value):
+    """Write ``value`` into ``array`` of the store through zarr-python alone (past every check of ours)."""
+    import zarr
+    a = zarr.open_array(f"{path}/{array}", mode="r+").with_config({"write_empty_chunks": True})
+    a[sel] = value
+
+
+@pytest.mark.parametrize("array, sel, value, problem", [
+    ("inputs/radiance", (None, 0, 0, 3, 3), np.inf, "radiance: 1 NaN/Inf values"),
+    ("inputs/features", (None, 1, 2, 4, 4), np.nan, "features: 1 NaN/Inf values"),
+    ("guides/depth", (None, 2, 2), -np.inf, "guides_depth: 1 NaN/Inf values"),
+    ("reference/stderr", (None, 0, 1, 1), -0.5, "reference_stderr has 1 negative values"),
+])
+def test_train_and_evaluate_refuse_what_validate_flags_in_any_array(tmp_path, capsys, array, sel, value, problem):
+    """NaN/Inf in the inputs, features or guides, or a negative reference stderr, written through
+    zarr-python: validate flags the frame, and train and evaluate refuse it by name (exit 2) instead of
+    quietly training on it; --skip-bad-frames leaves it out and names it."""
+    from stores.reader import open_store
+    from stores.validate import validate_store
+    from training.__main__ import main
+    path = make_store(tmp_path / "s.zarr")
+    st = open_store(path)
+    frame = st.frames_in_split("train")[1]
+    _zarr_set(path, array, (frame,) + sel[1:], value)
+    rep = validate_store(path)
+    assert any(problem in p for p in rep.frames[frame].problems), rep.frames[frame].problems
+    args = ["train", "--model", "nbg", "--store", path, "--out", str(tmp_path / "run"), "--steps", "1",
+            "--crop", "16", "--batch", "2", "--no-progress", "--val-every", "0"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"frame {frame}: " in err and problem in err and "--skip-bad-frames" in err
+    with pytest.warns(UserWarning, match=f"skipping 1 flagged frames .*frame {frame}:"):
+        assert main(args + ["--skip-bad-frames"]) == 0
+    capsys.readouterr()
+    test_frame = st.frames_in_split("test")[0]
+    _zarr_set(path, array, (test_frame,) + sel[1:], value)
+    assert main(["evaluate", "--checkpoint", "input", "--store", path, "--out", str(tmp_path / "e.json"),
+                 "--no-flip"]) == 2
+    assert f"frame {test_frame}: " in capsys.readouterr().err
+
+
+def test_evaluate_writes_strict_json(tmp_path):
+    """Every number evaluate writes is finite JSON: a noiseless reference's infinite PSNR ceiling and a
+    perfect PSNR are null, never NaN or Infinity (which JSON parsers other than Python's refuse)."""
+    import json
+    from training.evaluate import evaluate, write_json
+    path = make_store(tmp_path / "s.zarr")
+    from stores.reader import open_store
+    for i in open_store(path).frames_in_split("test"):
+        _zarr_set(path, "reference/stderr", (i,), 0.0)              # a reference without noise
+    res = evaluate("input", path, split="test", with_flip=False)
+    assert any(not np.isfinite(f["ref_psnr_ceiling"]) for f in res["frames"])
+    write_json(res, tmp_path / "e.json")
+    text = (tmp_path / "e.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    back = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    assert back["frames"][0]["ref_psnr_ceiling"] is None and back["mean"]["psnr"] is not None
+
+
+def test_a_nan_loss_is_a_failed_run_not_a_bad_setting(store, tmp_path, capsys, monkeypatch):
+    """A loss that becomes NaN ends the run with exit 1 (the run failed), not 2 (bad settings)."""
+    import training.loop
+    from training.__main__ import main
+    real = training.loop.build_loss
+
+    def nan_loss(name):
+        fn = real(name)
+        return lambda out, ref: fn(out, ref) * float("nan")
+    monkeypatch.setattr(training.loop, "build_loss", nan_loss)
+    assert main(["train", "--model", "layer", "--model-cfg", __import__("json").dumps(TINY), "--store", store,
+                 "--out", str(tmp_path / "r"), "--steps", "2", "--crop", "16", "--batch", "2", "--spp", "2",
+                 "--no-progress"]) == 1
+    assert "NonFiniteError: loss is nan" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):
+    """SIGINT to the training process group (a terminal's Ctrl-C reaches the DataLoader workers too):
+    exit 130, one line saying how to resume, no traceback."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "r"
+    proc = subprocess.Popen([sys.executable, "-m", "training", "train", "--model", "layer", "--model-cfg",
+                             json.dumps(TINY), "--store", store, "--out", str(out), "--steps", "100000",
+                             "--crop", "16", "--batch", "2", "--spp", "2", "--workers", "1", "--checkpoint-every", "5"],
+                            cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while not (out / "checkpoint.pt").exists() and time.monotonic() - t0 < 120:
+            time.sleep(0.2)
+        assert (out / "checkpoint.pt").exists()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err and "resumes" in err

@@ -5,6 +5,8 @@ import argparse
 import json
 import sys
 
+from .jsonio import dumps
+
 
 def _model_cfg(text: str) -> dict:
     """``--model-cfg`` as a dict; strict JSON (``NaN`` and ``Infinity`` are not JSON values). The model
@@ -36,7 +38,7 @@ def _train(a) -> int:
         return 0
     if res["checkpoint"] is None:
         print(f"no step to run (--steps {cfg.steps}); no checkpoint written to {out}", file=sys.stderr)
-    print(json.dumps(res, default=float))
+    print(dumps(res))
     return 0
 
 
@@ -45,7 +47,7 @@ def _evaluate(a) -> int:
     res = evaluate(a.checkpoint, a.store, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
                    skip_bad_frames=a.skip_bad_frames)
     write_json(res, a.out)
-    print(json.dumps({"method": res["method"], **res["mean"]}, default=float))
+    print(dumps({"method": res["method"], **res["mean"]}))
     return 0
 
 
@@ -61,9 +63,8 @@ def _bench(a) -> int:
     from .bench import run
     res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn)
     if a.json:
-        from pathlib import Path
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(res, indent=2, default=float))
+        from .jsonio import write
+        write(a.json, res)
     return 0
 
 
@@ -88,8 +89,7 @@ def _model_names() -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m training", description=__doc__,
-                                epilog="exit codes: 0 done; 2 bad settings, or a store, split or checkpoint that "
-                                       "cannot be used as asked; 3 the store is damaged (see python -m pipeline validate)")
+                                epilog=EXIT_CODES_HELP)
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train", help="train a denoiser; writes OUT/checkpoint.pt and OUT/metrics.csv (resumes)")
@@ -212,17 +212,29 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from stores.errors import StoreCorruptionError, StoreError
 
-    from .errors import TrainingError
+    from .errors import NonFiniteError, TrainingError
     try:
         return a.fn(a)
+    except NonFiniteError as err:               # the run itself failed: not a bad setting
+        print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
+        return EXIT_FAILED
     except (TrainingError, StoreError) as err:
         damaged = isinstance(err, StoreCorruptionError) or isinstance(err.__cause__, StoreCorruptionError)
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return EXIT_DAMAGED if damaged else EXIT_ERROR
+    except KeyboardInterrupt:
+        print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
+EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values
 EXIT_ERROR = 2      # bad settings, a store that cannot be used as asked, a bad checkpoint
 EXIT_DAMAGED = 3    # the store is damaged (missing, truncated or corrupt files): see `python -m pipeline validate`
+EXIT_INTERRUPTED = 130
+EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/Inf) or hard-cases found problems "
+                   "(non-finite outputs or stored values); 2 bad settings, or a store, split or checkpoint that "
+                   "cannot be used as asked (frames validate flags included: --skip-bad-frames leaves them out); "
+                   "3 the store is damaged (see python -m pipeline validate); 130 interrupted")
 
 
 def _message(err: BaseException) -> str:

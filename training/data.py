@@ -38,12 +38,11 @@ def open_store(store):
 
 
 def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True,
-                  skip_bad_frames: bool = False, screen: bool = True):
+                  skip_bad_frames: bool = False, progress: bool = False):
     """The dataset of input declaration ``spec`` (:class:`training.inputs.InputSpec`) on ``store``'s
     ``split``: checks that the store holds every array the kind needs and the sample count, refuses
-    frames that ``validate`` would flag (see :func:`screen_frames`; ``screen=False`` keeps them, for
-    the hard-case set, whose ``nan`` frame is such a frame on purpose), and turns store errors into
-    :class:`DataError`."""
+    frames that ``validate`` would flag (see :func:`screen_frames`; ``skip_bad_frames`` leaves them out
+    with a warning naming them), and turns store errors into :class:`DataError`."""
     from stores.errors import StoreError
     st = open_store(store)
     kind = spec.input_kind
@@ -51,41 +50,36 @@ def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: 
     kind.check_spp(st, spp)
     try:
         ds = kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
-        if screen:
-            screen_frames(ds, st, split, skip_bad_frames)
+        screen_frames(ds, st, split, skip_bad_frames, progress)
     except StoreError as e:
         raise DataError(f"{split!r} data from {st.path!s}: {e}") from e
     return ds
 
 
-def screen_frames(ds, store, split: str, skip: bool) -> int:
-    """Refuse (or, with ``skip``, drop with a warning) the items of ``ds`` that use a frame
-    ``stores.reader.frame_problems`` flags: NaN/Inf the renderer replaced, a negative or non-finite
-    reference, an all-zero reference under a non-zero input. Returns the number of frames dropped.
-    The store datasets list their frames in ``frames`` (one per item) or ``windows`` (tuples)."""
-    from stores.reader import frame_problems
+def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> int:
+    """Refuse (or, with ``skip``, drop with a warning naming them) the items of ``ds`` that use a frame
+    ``validate`` flags: :func:`stores.fitness.check_frames`, the one fitness check (NaN/Inf or
+    out-of-range values in any stored array, negative references or standard errors, an all-zero
+    reference under a non-zero input, NaN/Inf the renderer replaced). Returns the number of frames
+    dropped. The store datasets list their frames in ``frames`` (one per item) or ``windows`` (tuples)."""
+    from stores.fitness import check_frames, describe
     attr = "frames" if hasattr(ds, "frames") else "windows"
     items = list(getattr(ds, attr))
     used = sorted({int(i) for it in items for i in (it if isinstance(it, tuple) else (it,))})
-    bad = {}
-    for i in used:
-        problems = frame_problems(store, i)
-        if problems:
-            bad[i] = problems
+    bad = check_frames(store, used, progress=progress)
     if not bad:
         return 0
-    listed = "; ".join(f"frame {i}: {', '.join(p)}" for i, p in list(bad.items())[:5])
-    more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
+    listed = describe(bad)
     if not skip:
         raise DataError(f"{len(bad)} of the {len(used)} frames of split {split!r} of {store.path!s} would be "
-                        f"flagged by validate: {listed}{more}; re-render them (python -m pipeline dataset resumes), "
+                        f"flagged by validate: {listed}; re-render them (python -m pipeline dataset resumes), "
                         "or pass --skip-bad-frames to leave them out")
     keep = [it for it in items if not any(int(i) in bad for i in (it if isinstance(it, tuple) else (it,)))]
     if not keep:
-        raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}{more}")
+        raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}")
     setattr(ds, attr, keep)
     warnings.warn(f"skipping {len(bad)} flagged frames of split {split!r} ({len(items) - len(keep)} items): "
-                  f"{listed}{more}", stacklevel=3)
+                  f"{listed}", stacklevel=3)
     return len(bad)
 
 
@@ -100,22 +94,39 @@ def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:
     return np.random.default_rng(np.random.SeedSequence([seed, epoch, ORDER_SALT])).permutation(n)
 
 
-def batches_per_epoch(n: int, batch: int) -> int:
+def draws_per_epoch(n: int, batch: int) -> int:
+    """How many times an epoch visits each item: 1, or ``ceil(batch / n)`` when a batch holds more crops
+    than there are items (a small store), each visit drawing its own crop and augmentation."""
     if n < 1:
         raise DataError("the training split is empty")
-    if batch > n:
-        raise DataError(f"--batch {batch} is larger than the {n} training items of the store; "
-                        f"use --batch {n} or fewer")
-    return n // batch
+    return max(1, -(-batch // n))
+
+
+def batches_per_epoch(n: int, batch: int) -> int:
+    return n * draws_per_epoch(n, batch) // batch
+
+
+def epoch_keys(n: int, seed: int, epoch: int, draws: int) -> list[tuple[int, int]]:
+    """The ``(item, draw)`` sequence of one epoch: with one draw per item, ``epoch_order`` with draw
+    ``epoch`` (the crops of that epoch); with ``draws`` > 1, that many shuffled passes, pass ``j``
+    drawing its crops as epoch ``epoch * draws + j`` would, so no two visits of an item share a crop."""
+    if draws == 1:
+        return [(int(i), epoch) for i in epoch_order(n, seed, epoch)]
+    out = []
+    for j in range(draws):
+        token = epoch * draws + j
+        out += [(int(i), token) for i in epoch_order(n, seed, token)]
+    return out
 
 
 class EpochBatches(Sampler):
-    """Batches ``start .. stop - 1`` of a run as lists of ``(item, epoch)``; with ``world`` > 1 only
-    rank ``rank``'s share (items ``rank * b .. (rank + 1) * b - 1``, ``b = batch // world``) of each
-    global batch."""
+    """Batches ``start .. stop - 1`` of a run as lists of ``(item, draw)`` (:func:`epoch_keys`); with
+    ``world`` > 1 only rank ``rank``'s share (items ``rank * b .. (rank + 1) * b - 1``,
+    ``b = batch // world``) of each global batch."""
 
     def __init__(self, n: int, batch: int, seed: int, start: int, stop: int, rank: int = 0, world: int = 1):
         self.n, self.batch, self.seed, self.start, self.stop = n, batch, seed, start, stop
+        self.draws = draws_per_epoch(n, batch)
         self.per_epoch = batches_per_epoch(n, batch)
         if world < 1 or not 0 <= rank < world or batch % world:
             raise DataError(f"--batch {batch} (the global batch) must divide evenly over the {world} ranks; "
@@ -126,14 +137,14 @@ class EpochBatches(Sampler):
         return max(0, self.stop - self.start)
 
     def __iter__(self):
-        order, have = None, None
+        keys, have = None, None
         for step in range(self.start, self.stop):
             epoch, pos = divmod(step, self.per_epoch)
             if epoch != have:
-                order, have = epoch_order(self.n, self.seed, epoch), epoch
-            keys = order[pos * self.batch:(pos + 1) * self.batch]
+                keys, have = epoch_keys(self.n, self.seed, epoch, self.draws), epoch
+            batch = keys[pos * self.batch:(pos + 1) * self.batch]
             b = self.batch // self.world
-            yield [(int(i), epoch) for i in keys[self.rank * b:(self.rank + 1) * b]]
+            yield batch[self.rank * b:(self.rank + 1) * b]
 
 
 class _ByEpoch(Dataset):

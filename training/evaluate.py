@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stores.validate import reference_limits
+from stores.fitness import reference_limits
 
 from . import checkpoint as ckpt
 from . import metrics
@@ -105,15 +105,15 @@ def frame_tags(store, idx: int) -> dict:
 def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
              with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
              threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels",
-             screen: bool = True) -> dict:
+             progress: bool = False) -> dict:
     """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
 
     The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
     ``spp``, windows of a clip ending on each frame). ``spp`` None: the checkpoint's training spp, the
     model's declared default, or for a baseline the store's full sample count; a count the store does
-    not hold is refused, and so are frames ``validate`` would flag (``screen=False`` keeps them: the
-    hard-case set evaluates its ``nan`` frame, whose renderer NaNs the store replaced; ``skip_bad_frames`` leaves them out,
-    with a warning naming them). Models run in their inference form (``for_inference``). ``keep``: positions
+    not hold is refused, and so are frames ``validate`` would flag (``stores.fitness``: non-finite or
+    negative values, a non-finite or negative reference standard error, NaN the renderer replaced;
+    ``skip_bad_frames`` leaves them out, with a warning naming them). Models run in their inference form (``for_inference``). ``keep``: positions
     (in the split) of frames whose output images (float32 HW3) are returned under ``"images"`` (not
     written to JSON). Times are wall-clock per frame after one warm-up frame."""
     if threads:
@@ -150,7 +150,7 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         from .inputs import InputSpec
         spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
     ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False,
-                       skip_bad_frames=skip_bad_frames, screen=screen)
+                       skip_bad_frames=skip_bad_frames, progress=progress)
     kind = spec.input_kind
     n = len(ds) if not max_frames else min(int(max_frames), len(ds))
     info["spp"] = spp
@@ -238,11 +238,13 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
 
 
 def write_json(result: dict, path) -> None:
+    """``result`` as strict JSON (:func:`training.jsonio.dumps`: a non-finite number, e.g. the PSNR of an
+    exact output or the ceiling of a noiseless reference, is ``null``), written atomically."""
+    from .jsonio import write
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     clean = {k: v for k, v in result.items() if k not in ("images", "sample_map")}
     if "sample_map" in result:                   # the counts image stays out of the JSON; its frame and mean do not
         sm = result["sample_map"]
         clean["sample_map"] = {"index": sm["index"], "mean_spp": float(np.mean(sm["counts"])),
                                "max_spp": int(np.max(sm["counts"]))}
-    path.write_text(json.dumps(clean, indent=2, default=float))
+    write(path, clean)

@@ -18,9 +18,12 @@ Flags (the ``flags`` list; each names the stage, the method and the frame):
   holds NaN/Inf on a frame (kind ``non-finite``), or its relMSE on a case is more than
   :data:`OUTLIER_FACTOR` (10) times the median of that method's relMSE over the cases (kind ``error``,
   an error far above its neighbours; the case's worst frame is named);
-- **not evaluated**: frames ``evaluate`` could not read are left out of the methods' numbers and listed
-  here. Frames ``validate`` flags are evaluated (``screen=False``): the ``nan`` case's frame, whose renderer
-  NaNs the store replaced, is the point of that case.
+- **not evaluated**: frames ``validate`` flags (``stores.fitness``, the one check every command applies)
+  are left out of the methods' numbers and listed here. The ``nan`` case's frame is fit: its stored
+  arrays are finite and its renderer NaNs are its case's purpose (a note, not a problem).
+
+The command exits 1 when it finds a non-finite output, a non-finite stored value or a frame it could not
+evaluate (the table says which), 0 otherwise.
 
 PSNR is ``inf`` where a method reproduces the reference exactly (the ``black`` case's input): a perfect
 score, not a non-finite output.
@@ -29,12 +32,14 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ConfigError, DataError
+from .jsonio import write
 
 OUTLIER_FACTOR = 10.0
 SPLITS = ("train", "val", "test")
@@ -112,8 +117,7 @@ def evaluate_frames(method, store, *, label: str, spp=None, baseline_input: str 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             r = evaluate(method, st, split=split, spp=spp, max_frames=max_frames, with_flip=with_flip,
-                         keep=tuple(range(st.num_frames)), skip_bad_frames=True, baseline_input=baseline_input,
-                         screen=False)     # every case, the nan frame too: its stored arrays are finite
+                         keep=tuple(range(st.num_frames)), skip_bad_frames=True, baseline_input=baseline_input)
         images = r.get("images", {})
         for pos, row in enumerate(r["frames"]):
             img = images.get(pos)
@@ -129,9 +133,12 @@ def _mean(vals) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str = "") -> dict:
+def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str = "",
+              unfit: dict[int, list[str]] | None = None) -> dict:
     """The hard-case results: per case and method the mean relMSE and PSNR over the case's frames and
-    finiteness, plus the flags (store flags given, model-output and outlier flags added)."""
+    finiteness, plus the flags (store flags given, model-output and outlier flags added). ``unfit``:
+    frame -> why validate flags it (``stores.fitness.check_frames``), named in "not evaluated" flags."""
+    unfit = unfit or {}
     case_names = []
     for c in cases:
         c = c or NO_CASE
@@ -170,7 +177,8 @@ def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str
     for i, c in enumerate(cases):
         if evals and i not in evaluated:
             flags.append({"stage": "evaluate", "method": "all", "frame": i, "case": c or NO_CASE,
-                          "kind": "not evaluated", "detail": "refused by evaluate (validate flags the frame)"})
+                          "kind": "not evaluated", "detail": "left out: " + "; ".join(
+                              unfit.get(i, ["refused by evaluate (validate flags the frame)"]))})
     return {"store": str(store), "methods": [e["label"] for e in evals], "cases": table, "flags": flags,
             "outlier_factor": OUTLIER_FACTOR,
             "methods_info": {e["label"]: {k: e.get(k) for k in ("method", "spp", "input_kind", "params")} for e in evals}}
@@ -230,7 +238,8 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
             tag = f" @{n}spp" + (" layers" if b == "sampled-layers" else "") if several else ""
             evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
                                          with_flip=with_flip, progress=progress))
-    res = summarize(evals, cases, store_flags(st), str(st.path))
+    from stores.fitness import check_frames
+    res = summarize(evals, cases, store_flags(st), str(st.path), check_frames(st, st.complete_frames()))
     res["runs"] = [str(d) for d in run_dirs]
     res["markdown"] = hard_case_table(res)
     out = Path(out)
@@ -238,14 +247,8 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
     (out / "hard-cases.md").write_text(f"# Hard cases: `{st.path}`\n\n{res['markdown']}\n")
     clean = {k: v for k, v in res.items() if k != "markdown"}
     clean["frames"] = {e["label"]: e["frames"] for e in evals}
-    (out / "hard-cases.json").write_text(json.dumps(clean, indent=2, default=_json_default))
+    write(out / "hard-cases.json", clean)
     return res
-
-
-def _json_default(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return str(v)
 
 
 def hard_cases_cli(a) -> int:
@@ -259,4 +262,18 @@ def hard_cases_cli(a) -> int:
         raise
     print(res["markdown"])
     print(f"wrote {a.out}/hard-cases.md and {a.out}/hard-cases.json")
+    found = problem_flags(res)
+    if found:
+        print(f"hard cases: {len(found)} problem(s) found (non-finite outputs or stored values, frames left "
+              f"out): see the flags above", file=sys.stderr)
+        return 1
     return 0
+
+
+PROBLEM_KINDS = ("non-finite", "not evaluated")
+
+
+def problem_flags(res: dict) -> list[dict]:
+    """The flags that make ``hard-cases`` exit 1: a non-finite output or stored value, a frame left out.
+    (The renderer's replaced NaN and relMSE outliers are findings, not failures.)"""
+    return [f for f in res["flags"] if f["kind"] in PROBLEM_KINDS]

@@ -35,7 +35,7 @@ from stores.errors import SplitError
 from . import checkpoint as ckpt
 from . import distributed, metrics
 from .config import TrainConfig
-from .data import batch_loader, batches_per_epoch, model_dataset, open_store, to_device
+from .data import batch_loader, batches_per_epoch, draws_per_epoch, model_dataset, open_store, to_device
 from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from .losses import build_loss
 from .models import build
@@ -244,6 +244,11 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
     loss, val = float("nan"), {}
     todo = max(cfg.steps - step, 0) if stop_after is None else max(min(cfg.steps - step, stop_after), 0)
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
+    draws = draws_per_epoch(len(train_ds), cfg.batch)
+    if draws > 1 and dist.is_main:
+        warnings.warn(f"--batch {cfg.batch} is larger than the {len(train_ds)} training items of the store: each "
+                      f"epoch visits every item {draws} times, each visit its own crop and augmentation",
+                      stacklevel=2)
     bar = None
     if progress and dist.is_main:
         from tqdm import tqdm

@@ -7,7 +7,6 @@ for adaptive samplers (where the samples went) and ``out/eval-<name>.json``. Fig
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 from .errors import DataError
 from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, evaluate, write_json
 from .fma import figure10, figure10_markdown
+from .jsonio import write as write_strict
 from .tonemap import tonemap
 
 COLUMNS = (("relmse", "relMSE ↓", "{:.4f}"), ("smape", "SMAPE ↓", "{:.4f}"), ("psnr", "PSNR ↑", "{:.2f}"),
@@ -320,7 +320,7 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     lines += ["", "## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, paper defaults)", "",
               figure10_markdown(fig10), ""]
     prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
-    (out / "provenance.json").write_text(json.dumps(prov, indent=2, default=str))
+    write_strict(out / "provenance.json", prov)
     lines += ["## Provenance", "",
               f"Every number above was computed by this run of the report ({prov['created']}, "
               f"{prov['report_seconds']:.0f} s, code {prov['git_commit'] or 'outside git'}"
