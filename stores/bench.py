@@ -15,10 +15,10 @@
 
 Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
 (``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first, in the
-default (``compact2``) encoding.
+default (``compact3``, ``compact2``'s values in spec-only chains) encoding.
 
 ``reencode(paths)`` (``--reencode STORE ...``): a few complete frames of each real store written again
-into a ``compact2``, a ``compact`` and an ``lz4`` store: stored bytes / float32 bytes per array group
+into a ``compact3``, a ``compact`` and an ``lz4`` store: stored bytes / float32 bytes per array group
 and in total, the errors of the lossy encodings (input radiance: max and 99.9th percentile of
 ``|x' - x| / |x|`` over non-zero samples; zeros must stay zero; the max per feature group, layers
 and guides), write (encode) ms per frame, and the crop read of each store against the ``np.load``
@@ -91,7 +91,7 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
     br = lambda r: bitround(r, KEEPBITS)  # noqa: E731
     lz4hc = Blosc("lz4hc", 9, Blosc.BITSHUFFLE)
     cases += [
-        ("compact2: 9-bit radiance, features per group, lz4hc-9 + bitshuffle, (C,H,W,S) (chosen)",
+        ("compact3 = compact2: 9-bit radiance, features per group, lz4hc-9 + bitshuffle, (C,H,W,S) (chosen)",
          lz4hc, br, "grp16", "cm"),
         ("  the same, zstd-5 + bitshuffle", Blosc("zstd", 5, Blosc.BITSHUFFLE), br, "grp16", "cm"),
         ("compact: 9-bit radiance + features, lz4hc-9 + bitshuffle, (C,H,W,S)", lz4hc, br, "br16", "cm"),
@@ -326,7 +326,7 @@ def format_report(r: dict) -> str:
 
 GROUP_OF = {"inputs/radiance": "inputs/radiance", "inputs/features": "inputs/features",
             "layers/radiance": "layers", "reference/radiance": "reference", "reference/stderr": "reference"}
-REENCODINGS = ("compact2", "compact", "lz4")     # what --reencode writes: the default of new stores first
+REENCODINGS = ("compact3", "compact", "lz4")     # what --reencode writes: the default of new stores first
 
 
 def _rel_error(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -457,7 +457,7 @@ def main(argv=None) -> int:
     ap.add_argument("--crops", type=int, default=40)
     ap.add_argument("--size", type=int, default=256, help="synthetic frame size")
     ap.add_argument("--reencode", nargs="+", default=None, metavar="STORE",
-                    help="re-encode a few frames of these real stores in compact2, compact and lz4 and compare")
+                    help="re-encode a few frames of these real stores in compact3, compact and lz4 and compare")
     ap.add_argument("--frames", type=int, default=4, help="frames per store for --reencode")
     ap.add_argument("--encoding", default=None, choices=list(ENCODINGS),
                     help=f"encoding of the synthetic store (default: that of new stores, {DEFAULT_ENCODING})")

@@ -19,7 +19,13 @@
   SCHEMA.md ("Image encodings"). Our own code adds nothing to the chains: every codec is zarr's or
   numcodecs' (``decode`` of ``bitround`` is the identity, so any zarr v3 reader with numcodecs reads
   floats; xarray shows values, not codes).
-* ``compact2`` (the default of new stores, issue 13's size target): ``compact`` with each
+* ``compact3`` (the default of new stores): ``compact2``'s values, byte for byte, with chains of Zarr
+  v3 specification codecs only (``sharding_indexed``, ``transpose``, ``bytes``, ``blosc``, ``crc32c``):
+  the writer rounds every lossy array itself (``Chain.writer_rounds``, :func:`bitround`, the same
+  numcodecs implementation), so no ``numcodecs.bitround`` is in any chain. Every Zarr v3 reader opens
+  every array (tensorstore does not register numcodecs codecs), and zarr-python no longer warns that a
+  codec is not in the specification.
+* ``compact2`` (the default of new stores from issue 13 until ``compact3``): ``compact`` with each
   feature group rounded to its own mantissa bits (``FEATURE_KEEPBITS``, chosen by what a denoiser can
   use; input radiance and sample layers keep 9 bits). The writer rounds the features per group before
   the float16 cast (``Chain.channel_keepbits``, :func:`bitround_channels`); the chain's ``bitround``
@@ -62,9 +68,9 @@ def decode_log16(code: np.ndarray) -> np.ndarray:
 
 BLOSC = {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}     # the image arrays' compressor (SCHEMA.md)
 
-ENCODINGS = ("lz4", "compact", "compact2")
+ENCODINGS = ("lz4", "compact", "compact2", "compact3")
 LEGACY_ENCODING = "lz4"          # what a store whose layout records no ``encoding`` was written with
-DEFAULT_ENCODING = "compact2"    # what create_store uses when the layout leaves it open (None)
+DEFAULT_ENCODING = "compact3"    # what create_store uses when the layout leaves it open (None)
 KEEPBITS = 9                     # mantissa bits kept by ``compact``'s bit rounding (float32 and float16)
 COMPACT_MAX_REL_ERROR = 2.0 ** -(KEEPBITS + 1)     # 9.77e-4: round to nearest of a 9-bit mantissa
 ZSTD_LEVEL = 5                   # Blosc zstd level of ``compact``'s lossless references
@@ -118,7 +124,9 @@ class Chain:
     None: lossless) and the Blosc compressor (``cname``, ``clevel``, ``shuffle``).
     ``channel_keepbits`` (not a codec): mantissa bits per entry of the ``channel_dim`` axis that the
     writer rounds to before the codecs (``ArraySpec.to_store``); ``keepbits`` is then their largest,
-    so the chain's ``BitRound`` changes nothing more."""
+    so the chain's ``BitRound`` changes nothing more. ``writer_rounds`` (``compact3``): the writer does
+    all the rounding (to ``channel_keepbits``, else ``keepbits``) and the chain holds no ``BitRound``;
+    ``keepbits`` is still the precision the array keeps."""
 
     cname: str
     clevel: int
@@ -127,6 +135,12 @@ class Chain:
     sample_last: bool = False
     channel_keepbits: tuple[int, ...] | None = None
     channel_dim: str = "feature"
+    writer_rounds: bool = False     # compact3: the writer rounds to ``keepbits``; no BitRound codec in the chain
+
+    @property
+    def codec_keepbits(self) -> int | None:
+        """``keepbits`` of the chain's ``numcodecs.bitround`` codec (None: no such codec)."""
+        return None if self.writer_rounds else self.keepbits
 
     def order(self, dims: tuple[str, ...]) -> tuple[int, ...] | None:
         """The ``TransposeCodec`` order over ``dims`` (frame first), None when nothing moves."""
@@ -174,6 +188,8 @@ def image_chain(path: str, encoding: str, dtype: str) -> Chain:
         c = _COMPACT.get(path, _LOSSY)                           # guides: lossy like the features
     elif encoding == "compact2":
         c = _compact2(path)
+    elif encoding == "compact3":                                 # compact2's values, spec codecs only
+        c = replace(_compact2(path), writer_rounds=True)
     else:
         raise ValueError(f"unknown encoding {encoding!r}; known: {ENCODINGS}")
     if c.keepbits is not None and not np.dtype(dtype).kind == "f":
@@ -217,10 +233,10 @@ def zarr_filters(chain: Chain, dims: tuple[str, ...]) -> list:
     order = chain.order(dims)
     if order is not None:
         out.append(TransposeCodec(order=order))
-    if chain.keepbits is not None:
+    if chain.codec_keepbits is not None:
         with warnings.catch_warnings():     # "numcodecs codecs are not in the Zarr v3 specification"
             warnings.simplefilter("ignore")
-            out.append(BitRound(keepbits=chain.keepbits))
+            out.append(BitRound(keepbits=chain.codec_keepbits))
     return out
 
 

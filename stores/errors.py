@@ -91,6 +91,59 @@ class StorePathError(StoreError, OSError):
     file system. The message names the path and the system's reason."""
 
 
+class StoreFullError(StoreError, OSError):
+    """The file system (or quota) holding the store is full: ``ENOSPC`` or ``EDQUOT``. Its own exit code
+    (``exit_code``, 4): nothing is wrong with the config or the store; free space and re-run (complete
+    frames stay, the run resumes)."""
+    exit_code = 4
+
+
+DISK_FULL_ERRNOS = (28, 122)      # ENOSPC, EDQUOT (Linux)
+
+
+def is_disk_full(e: BaseException) -> bool:
+    """Whether ``e`` (or an exception it was raised from) is a full file system or quota."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in DISK_FULL_ERRNOS:
+            return True
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def _free_bytes(path: str) -> int | None:
+    import os
+    import shutil
+    p = os.path.abspath(path)
+    while p and not os.path.exists(p):
+        p = os.path.dirname(p)
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "KB", "MB", "GB", "TB"):
+        if abs(n) < 1024 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TB"
+
+
+def store_full(path, doing: str, need_bytes: int | None = None) -> StoreFullError:
+    """The :class:`StoreFullError` for the store at ``path`` (one line: what was being written, the free
+    space there, the space the rest of the run needs when known, and what to do)."""
+    import os
+    where = os.fspath(path)
+    free = _free_bytes(where) if "://" not in where else None
+    have = f"{_size(free)} free there" if free is not None else "no space left"
+    need = f"; the rest of the run needs about {_size(need_bytes)} more" if need_bytes else ""
+    return StoreFullError(f"no space left on the device of the store {where} ({doing}; {have}{need}): free space "
+                          "or choose another --out; complete frames stay, and the same command resumes")
+
+
 class StoreExistsError(StoreError, FileExistsError):
     """A store already exists where a new one was to be created (``overwrite`` not given)."""
 

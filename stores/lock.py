@@ -24,7 +24,7 @@ import os
 import socket
 import time
 
-from stores.errors import StoreLockedError, StorePathError
+from stores.errors import StoreLockedError, StorePathError, is_disk_full, store_full
 from stores.schema import LOCK_NAME
 
 
@@ -111,6 +111,16 @@ class StoreLock:
         except (OSError, ValueError):
             return None
 
+    def _holder_record(self, fd: int, wait: float = 2.0) -> dict | None:
+        """The record of the run that holds the lock. A run that has just taken it writes its record
+        right after: wait up to ``wait`` seconds for it rather than report an empty one."""
+        deadline = time.monotonic() + wait
+        while True:
+            holder = self._read(fd)
+            if holder or time.monotonic() >= deadline:
+                return holder
+            time.sleep(0.05)
+
     def _drop_made_dir(self) -> None:
         """Remove the store's folder if this lock made it and it is still empty."""
         if self._made_dir:
@@ -122,8 +132,9 @@ class StoreLock:
     def _refuse(self, holder: dict | None, why: str) -> StoreLockedError:
         self._drop_made_dir()
         h = holder or {}
+        who = describe(h) if h else "a run that started at the same moment (its record is not written yet)"
         return StoreLockedError(
-            f"the store {self.store} is in use by another dataset run: {describe(h)}{why}; lock file {self.path}",
+            f"the store {self.store} is in use by another dataset run: {who}{why}; lock file {self.path}",
             holder=h)
 
     def acquire(self) -> "StoreLock":
@@ -134,6 +145,8 @@ class StoreLock:
             try:
                 os.makedirs(self.store, exist_ok=True)
             except OSError as e:
+                if is_disk_full(e):
+                    raise store_full(self.store, "making its folder") from None
                 raise _path_error(self.store, "cannot make the store's folder", e) from e
             self._made_dir = True
         me = socket.gethostname()
@@ -146,7 +159,7 @@ class StoreLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = self._read(fd)
+                holder = self._holder_record(fd)
                 os.close(fd)
                 raise self._refuse(holder, "; wait for it to finish (or stop it) and run again") from None
             try:                    # a run that was releasing may have unlinked the file we locked
@@ -168,9 +181,16 @@ class StoreLock:
                                                "dataset run, delete the lock file)")
                 self.took_over = holder
             data = json.dumps(self._record()).encode()
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, data, 0)
-            os.fsync(fd)
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, data, 0)
+                os.fsync(fd)
+            except OSError as e:
+                os.close(fd)
+                self._drop_made_dir()
+                if is_disk_full(e):
+                    raise store_full(self.store, f"writing its lock file {self.path}") from None
+                raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
             self._fd = fd
             return self
         raise StoreLockedError(f"could not take the lock {self.path}: it kept changing under this run")

@@ -342,8 +342,27 @@ class Store:
                 paths = [p for _, p in self._meta_columns() if p not in self._absent]
                 for i, lost in schema.missing_chunks(self.root, done, self.version, paths=paths).items():
                     damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
+            if self.version >= 2:
+                for i, f in self._lost_flags(table["complete"]).items():
+                    damage.setdefault(i, []).append(MissingShardError(
+                        f"status/complete: frame {i} was written (its status/error chunk is there) but its "
+                        f"completion flag's chunk file {f} is missing (re-render the frame: `python -m pipeline "
+                        "dataset` resumes it)", array="status/complete", frame=i, path=f))
             self._meta_cache = (table, {i: damage[i] for i in sorted(damage)})
         return self._meta_cache
+
+    def _lost_flags(self, complete: np.ndarray) -> dict[int, str]:
+        """Frames read as incomplete whose ``status/complete`` chunk file is missing although their
+        ``status/error`` chunk (written in the same first step of every frame) is there: a lost flag, not
+        a frame never started (schema v2), frame -> the missing file."""
+        todo = [int(i) for i in np.nonzero(~np.asarray(complete, bool))[0]]
+        if not todo:
+            return {}
+        no_flag = schema.missing_chunks(self.root, todo, self.version, paths=["status/complete"])
+        if not no_flag:
+            return {}
+        no_error = schema.missing_chunks(self.root, list(no_flag), self.version, paths=["status/error"])
+        return {i: lost[0][1] for i, lost in no_flag.items() if i not in no_error}
 
     def _read_column_leniently(self, path: str, damage: dict) -> np.ndarray:
         """Column ``path`` chunk by chunk: every chunk that does not decode reads as the fill value and

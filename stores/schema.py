@@ -53,11 +53,13 @@ class StoreLayout:
     ``tile`` is the inner chunk edge in pixels (clamped to the frame). ``radiance_encoding`` is
     ``float32`` (default) or ``log16`` (uint16 log code, rel. error <= 3.4e-4).
     ``feature_dtype`` is ``float16`` (default; values must stay within +-65504) or ``float32``.
-    ``encoding`` is the image arrays' codec chains (``stores.codecs.ENCODINGS``): ``compact2``
+    ``encoding`` is the image arrays' codec chains (``stores.codecs.ENCODINGS``): ``compact3``
+    (``compact2``'s values with the writer doing all rounding: Zarr v3 specification codecs only),
+    ``compact2``
     (``compact`` with each feature group and guide rounded to its own mantissa bits,
     ``codecs.FEATURE_KEEPBITS``), ``compact`` (bit-rounded inputs, layers and guides, rel. error
     <= 2**-10; lossless references; zstd) or ``lz4`` (everything lossless, LZ4). None leaves it open:
-    ``create_store`` makes a new store ``compact2`` and an existing store keeps its own, so a config
+    ``create_store`` makes a new store ``compact3`` and an existing store keeps its own, so a config
     that does not name it resumes stores of any. A stored layout without the key is a store written
     before the field existed (``lz4``); ``to_dict`` omits None, so configs that leave it open keep
     their old form.
@@ -194,13 +196,16 @@ class ArraySpec:
         if self.image:
             ch = self.chain(layout)
             if ch.channel_keepbits is not None:
-                # compact2's features: each channel to its own bits, in float32, before the cast (the
-                # codec's BitRound keeps the largest of them, so it changes nothing more)
+                # compact2/3's features: each channel to its own bits, in float32, before the cast (the
+                # codec's BitRound, if any, keeps the largest of them, so it changes nothing more)
                 a = codecs.bitround_channels(a, ch.channel_keepbits, self.dims.index(ch.channel_dim) - 1)
             elif ch.keepbits is not None and dtype == "float16" and a.dtype != np.float16:
                 # round once, in float32, to the bits kept: the float16 cast is then exact (for
                 # |x| >= 2**-14) and the codec's BitRound a no-op; f32 -> f16 -> 9 bits would round twice
                 a = codecs.bitround(np.asarray(a, np.float32), ch.keepbits)
+            elif ch.keepbits is not None and ch.writer_rounds:
+                # compact3: no BitRound codec in the chain; the same rounding, done here
+                a = codecs.bitround(np.asarray(a, dtype), ch.keepbits)
         return np.ascontiguousarray(a, dtype=dtype)
 
     def chain(self, layout: StoreLayout) -> "codecs.Chain":
@@ -413,7 +418,7 @@ def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple
         ch = spec.chain(layout)
         order = ch.order(spec.dims)
         pre = ((("transpose", ("order", json.dumps(list(order)))),) if order is not None else ()) + \
-              ((("numcodecs.bitround", ("keepbits", json.dumps(ch.keepbits))),) if ch.keepbits is not None else ())
+              ((("numcodecs.bitround", ("keepbits", json.dumps(ch.keepbits))),) if ch.codec_keepbits is not None else ())
         inner = pre + (("bytes", "little"), ("blosc", ch.cname, ch.clevel, ch.shuffle)) + crc
         return (("sharding_indexed", spec.chunks(layout), inner, (("bytes", "little"), ("crc32c",)), "end"),)
     return (ser,) + crc
@@ -511,9 +516,10 @@ def chunk_file(root, spec: ArraySpec, frame: int) -> tuple[bool, str]:
 
 def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> dict[int, list[tuple[str, str]]]:
     """frame -> ``[(array, file), ...]`` of the per-frame arrays (all, or those in ``paths``) whose chunk
-    or shard file for that frame does not exist. Only meaningful for frames marked complete of schema
-    v2 stores (every chunk is written, even all-zero ones); v1 writers skipped all-zero chunks, so v1
-    returns ``{}``. On a local store a one-dimensional array's chunks are one directory listing."""
+    or shard file for that frame does not exist. Meaningful for frames marked complete of schema v2
+    stores (every chunk is written, even all-zero ones), and for a frame's ``status/*`` chunks, which
+    its first write step makes; v1 writers skipped all-zero chunks, so v1 returns ``{}``. On a local
+    store a one-dimensional array's chunks are one directory listing."""
     version = version_of(root) if version is None else version
     if version < 2:
         return {}
@@ -625,14 +631,25 @@ def foreign_entries(path_or_url) -> list[str] | None:
     return names or None
 
 
+def refuse_link(path, what: str = "--overwrite") -> None:
+    """Raise ForeignStoreError when ``path`` is a symbolic link: deleting "its contents" would delete the
+    contents of the folder it points to, which may not be a store at all (or anyone's store)."""
+    p = os.fspath(path)
+    if _is_local(p) and os.path.islink(p):
+        raise ForeignStoreError(f"{p} is a symbolic link to {os.path.realpath(p)}; {what} never deletes through a "
+                                "link: give the link's target itself, or remove the link")
+
+
 def _clear(path_or_url) -> None:
-    """Remove everything at ``path_or_url`` but our lock file (``--overwrite``)."""
+    """Remove everything at ``path_or_url`` but our lock file (``--overwrite``). A symbolic link is refused
+    (:func:`refuse_link`), and links inside the folder are removed, never followed."""
     import shutil
     p = _zarr_store(path_or_url)
     if not _is_local(p):
         import zarr
         zarr.open_group(p, mode="w")            # zarr clears the prefix
         return
+    refuse_link(p)
     if not os.path.isdir(p):
         raise ForeignStoreError(f"{p} is a file, not a folder; refusing to replace it with a store")
     for name in os.listdir(p):

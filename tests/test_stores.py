@@ -23,9 +23,9 @@ H, W, S = 20, 24, 4
 LAYOUT = StoreLayout(num_frames=3, height=H, width=W, spp=S, tile=16)   # 16 does not divide 20 or 24
 
 
-@pytest.fixture(params=["compact2", "compact", "lz4"])
+@pytest.fixture(params=["compact3", "compact2", "compact", "lz4"])
 def store3(tmp_path, request):
-    """Three frames, in a store of each encoding (``compact2`` is what a layout that leaves it open gets)."""
+    """Three frames, in a store of each encoding (``compact3`` is what a layout that leaves it open gets)."""
     path = tmp_path / "s.zarr"
     lay = LAYOUT if request.param == codecs.DEFAULT_ENCODING else StoreLayout(**{**LAYOUT.to_dict(),
                                                                                  "encoding": request.param})
@@ -46,7 +46,7 @@ def test_round_trip_every_array(store3):
     s = open_store(path)
     assert s.num_frames == 3 and s.complete_frames() == [0, 1, 2]
     compact = {"reference", "reference_stderr", "camera_to_world", "world_to_clip"}
-    lossless = {"compact2": compact, "compact": compact,
+    lossless = {"compact3": compact, "compact2": compact, "compact": compact,
                 "lz4": set(FRAME_ARRAYS) - {"features"}}[s.layout.encoding]
     root = zarr.open_group(str(path), mode="r")
     for i, fr in enumerate(frames):
@@ -118,7 +118,8 @@ def test_xarray_opens_every_group_with_named_dims(store3):
 
 
 @pytest.mark.parametrize("encoding,codec_set", [("float32", "lz4"), ("float32", "compact"), ("float32", "compact2"),
-                                                ("log16", "lz4"), ("log16", "compact"), ("log16", "compact2")])
+                                                ("float32", "compact3"), ("log16", "lz4"), ("log16", "compact"),
+                                                ("log16", "compact2"), ("log16", "compact3")])
 def test_hdr_extremes_round_trip_without_inf(tmp_path, encoding, codec_set):
     lay = StoreLayout(num_frames=1, height=8, width=8, spp=4, tile=8, radiance_encoding=encoding, encoding=codec_set)
     w = open_or_create(tmp_path / "x.zarr", lay)
@@ -133,7 +134,7 @@ def test_hdr_extremes_round_trip_without_inf(tmp_path, encoding, codec_set):
         assert np.isfinite(out[k]).all(), k
     assert (out["radiance"][fr["radiance"] == 0] == 0).all()
     tol = {("float32", "lz4"): 0.0, ("float32", "compact"): 2 ** -10,
-           ("float32", "compact2"): 2 ** -10}.get((encoding, codec_set), 1e-3)
+           ("float32", "compact2"): 2 ** -10, ("float32", "compact3"): 2 ** -10}.get((encoding, codec_set), 1e-3)
     nz = fr["radiance"] > 0
     assert _rel_err(fr["radiance"][nz], out["radiance"][nz]) <= tol
     assert out["radiance"].max() == pytest.approx(1e8, rel=tol)
@@ -290,12 +291,12 @@ def test_black_frame_overwrites_stale_data(store3):
 
 @settings(max_examples=25, deadline=None)
 @given(h=st.integers(1, 40), w=st.integers(1, 40), tile=st.sampled_from([3, 8, 16, 32]), s=st.integers(1, 3),
-       chain=st.sampled_from(["plain", "lz4", "compact", "compact2"]),
+       chain=st.sampled_from(["plain", "lz4", "compact", "compact2", "compact3"]),
        array=st.sampled_from(["inputs/radiance", "inputs/features", "layers/radiance", "guides/depth"]),
        data=st.data())
 def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, s, chain, array, data):
     """The direct shard reader returns exactly zarr's values for any frame size, tile, crop and codec
-    chain (``plain``: LZ4 without a checksum; ``lz4``, ``compact``, ``compact2``: the schema v2 chains,
+    chain (``plain``: LZ4 without a checksum; ``lz4``, ``compact``, ``compact2``, ``compact3``: the schema v2 chains,
     the compact ones with their transposed, bit-rounded inner chunks)."""
     from stores.reader import _ShardReader
     lay = StoreLayout(num_frames=2, height=h, width=w, spp=s, tile=tile,

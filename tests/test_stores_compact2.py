@@ -1,4 +1,5 @@
-"""The ``compact2`` encoding (issue 13, store size): the default of new stores, each feature group rounded to
+"""The ``compact2`` encoding (issue 13, store size; the default of new stores until ``compact3``, which keeps
+its values with spec-only chains: ``tests/test_stores_compact3.py``), each feature group rounded to
 its own mantissa bits (``codecs.FEATURE_KEEPBITS``) and recorded per feature, input radiance and layers
 within 2**-10 (< 1e-3), references bit-exact; ``compact`` and ``lz4`` stores (schema v1 and v2) still
 read and resume in their own chains."""
@@ -22,7 +23,8 @@ from test_stores_compact import _strip_encoding
 from test_stores_synthetic import stored, synthetic_frame
 
 H, W, S = 20, 24, 4
-LAYOUT = StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=16)        # encoding left open: compact2
+LAYOUT = StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=16, encoding="compact2")
+OPEN = StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=16)            # encoding left open
 GUIDES = {"guides_albedo": "albedo", "guides_normal": "normal", "guides_depth": "depth", "guides_motion": "motion"}
 
 
@@ -58,8 +60,7 @@ def test_feature_precision_table():
     assert codecs.image_chain("inputs/radiance", "compact2", "uint16").keepbits is None
 
 
-def test_new_stores_are_compact2_and_record_it(tmp_path):
-    assert codecs.DEFAULT_ENCODING == "compact2"
+def test_compact2_stores_record_their_chains(tmp_path):
     open_or_create(tmp_path / "s.zarr", LAYOUT)
     root = zarr.open_group(str(tmp_path / "s.zarr"), mode="r")
     assert dict(root.attrs)["layout"]["encoding"] == "compact2"
@@ -189,11 +190,11 @@ def test_float16_feature_limits_follow_the_group_bits(tmp_path):
     assert open_store(tmp_path / "c.zarr").read_frame(0)["features"][0, 0, 0, d] == limits[d]
 
 
-@pytest.mark.parametrize("encoding,version", [("compact", 2), ("lz4", 2), ("lz4", 1)])
+@pytest.mark.parametrize("encoding,version", [("compact2", 2), ("compact", 2), ("lz4", 2), ("lz4", 1)])
 def test_old_stores_read_and_resume_in_their_own_chains(tmp_path, encoding, version):
     """A ``compact`` store and ``lz4`` stores (v2, and v1 from before the ``encoding`` field) read as
     written, and a config that leaves the encoding open resumes and appends to them in their own
-    chains (features of a compact store keep 9 bits); asking for ``compact2`` is a layout mismatch."""
+    chains (features of a compact store keep 9 bits); asking for ``compact3`` is a layout mismatch."""
     path = tmp_path / "old.zarr"
     lay = StoreLayout(**{**LAYOUT.to_dict(), "encoding": encoding})
     schema.create_store(path, lay, schema_version=version)
@@ -204,7 +205,7 @@ def test_old_stores_read_and_resume_in_their_own_chains(tmp_path, encoding, vers
     s = open_store(path)
     assert s.layout.encoding == encoding and schema.version_of(s.root) == version
     before = s.read_frame(0)
-    w = open_or_create(path, LAYOUT.with_frames(3))                  # encoding left open: the store's
+    w = open_or_create(path, OPEN.with_frames(3))                    # encoding left open: the store's
     assert w.layout.encoding == encoding and w.incomplete_frames() == [1, 2]
     for i in (1, 2):
         w.write_frame(i, frames[i])
@@ -221,7 +222,7 @@ def test_old_stores_read_and_resume_in_their_own_chains(tmp_path, encoding, vers
     if encoding == "compact":        # compact's 9 bits for every feature, lens included
         x = frames[1]["features"][..., FEATURE_GROUPS["lens"]]
         assert _rel(x, s.read_frame(1)["features"][..., FEATURE_GROUPS["lens"]]).max() <= 2 ** -10
-    else:
+    elif encoding == "lz4":
         np.testing.assert_array_equal(s.read_frame(1)["radiance"], frames[1]["radiance"])    # lossless
     with pytest.raises(StoreLayoutError, match="encoding"):
-        open_or_create(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": "compact2"}))
+        open_or_create(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": "compact3"}))

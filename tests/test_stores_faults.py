@@ -197,6 +197,20 @@ def test_damaged_completion_flag_means_rerender(store):
     assert StoreWriter(store).incomplete_frames() == [1]
 
 
+def test_a_lost_completion_flag_is_damage_not_an_incomplete_frame(store, capsys):
+    """Frame 1's status/complete chunk file is deleted: validate says damage (exit 3, naming the file),
+    not "incomplete" (exit 1); the resume re-renders the frame. A frame never started (no status chunk
+    at all) stays merely incomplete."""
+    f = _shard(store, "status/complete", 1)
+    os.unlink(f)
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and "status/complete: frame 1" in text and str(f) in text, text
+    assert StoreWriter(store).incomplete_frames() == [1]
+    os.unlink(_shard(store, "status/error", 1))                 # as a frame whose first step never ran
+    code, text = _validate(store, capsys)
+    assert code == EXIT_PROBLEMS and "incomplete" in text and "DAMAGE" not in text, text
+
+
 def test_flipped_byte_in_a_frame_scalar_is_detected(store, capsys):
     f = _shard(store, "frames/scene_seed", 1)
     data = bytearray(open(f, "rb").read())

@@ -147,8 +147,8 @@ def test_synthetic_frame_is_deterministic_and_hdr():
 def stored(name: str, a, layout) -> np.ndarray:
     """What a store of ``layout`` returns (``read_frame``) for contract array ``name`` written as
     ``a``: exact for lossless arrays; the encoding's rounding for lossy ones (``compact``: the
-    mantissa rounded to 9 bits, as numcodecs' BitRound does; ``compact2``: each feature to its
-    group's bits first; float16 features; log16 codes)."""
+    mantissa rounded to 9 bits, as numcodecs' BitRound does; ``compact2`` and ``compact3``: each feature
+    to its group's bits first; float16 features; log16 codes)."""
     from stores import codecs
     from stores.schema import ARRAY_BY_SOURCE
     spec = ARRAY_BY_SOURCE[name]
@@ -165,7 +165,7 @@ def stored(name: str, a, layout) -> np.ndarray:
         a = codecs.bitround(a, keep)
     if spec.storage_dtype(layout) == "float16":
         a = a.astype(np.float16)
-        if keep is not None:     # the codec's own BitRound, a no-op but for float16 subnormals (|x| < 2**-14)
-            a = codecs.bitround(a, keep)
+        if chain.codec_keepbits is not None:   # the codec's own BitRound (not compact3's): a no-op but for
+            a = codecs.bitround(a, keep)       # float16 subnormals (|x| < 2**-14)
         a = a.astype(np.float32)
     return a
