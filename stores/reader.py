@@ -235,6 +235,7 @@ class Store:
         if self.fast and isinstance(p, (str, os.PathLike)) and "://" not in os.fspath(p):
             self._local = os.fspath(p)
         self._meta_cache = None
+        self._clip_starts = None
 
     def __getstate__(self):
         return {"path": self.path, "fast": self.fast, "threads": self.threads}
@@ -315,8 +316,12 @@ class Store:
             raise _missing_error(lost)
 
     def _meta_columns(self) -> list[tuple[str, str]]:
-        """``(table key, array path)`` of the columns of the metadata table."""
-        cols = [(key, schema.meta_path(key, self.version)) for key in list(FRAME_META) + ["clip_id"]]
+        """``(table key, array path)`` of the columns of the metadata table (v3: with the camera matrices,
+        whose chunks hold many frames, and without the scene JSON, kept once a clip: :meth:`scene_json`)."""
+        keys = [k for k in FRAME_META if not (self.version >= 3 and k == "scene_json")] + ["clip_id"]
+        cols = [(key, schema.meta_path(key, self.version)) for key in keys]
+        if self.version >= 3:
+            cols += [(key, ARRAY_BY_SOURCE[key].path) for key in ("camera_to_world", "world_to_clip")]
         return cols + [("complete", "status/complete"), ("error", "status/error")]
 
     def _meta(self) -> tuple[dict, dict[int, list[StoreCorruptionError]]]:
@@ -342,6 +347,13 @@ class Store:
                 paths = [p for _, p in self._meta_columns() if p not in self._absent]
                 for i, lost in schema.missing_chunks(self.root, done, self.version, paths=paths).items():
                     damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
+            if self.version >= 3 and done:
+                for i, (first, f) in self._lost_scene_json(table, done).items():
+                    damage.setdefault(i, []).append(MissingShardError(
+                        f"frames/scene_json: frame {i} is marked complete but its clip's SceneSpec JSON (kept at "
+                        f"the clip's first frame, {first}) has no chunk file {f} (re-render the clip's frames: "
+                        "`python -m pipeline validate --mark-damaged`, then `python -m pipeline dataset`)",
+                        array="frames/scene_json", frame=i, path=f))
             if self.version >= 2:
                 for i, f in self._lost_flags(table["complete"]).items():
                     damage.setdefault(i, []).append(MissingShardError(
@@ -349,6 +361,7 @@ class Store:
                         f"completion flag's chunk file {f} is missing (re-render the frame: `python -m pipeline "
                         "dataset` resumes it)", array="status/complete", frame=i, path=f))
             self._meta_cache = (table, {i: damage[i] for i in sorted(damage)})
+            self._clip_starts = None
         return self._meta_cache
 
     def _lost_flags(self, complete: np.ndarray) -> dict[int, str]:
@@ -366,15 +379,57 @@ class Store:
 
     def _read_column_leniently(self, path: str, damage: dict) -> np.ndarray:
         """Column ``path`` chunk by chunk: every chunk that does not decode reads as the fill value and
-        goes into ``damage`` (frame -> CorruptChunkError)."""
+        each of its frames goes into ``damage`` (frame -> CorruptChunkError)."""
         arr = self.root[path]
         out = np.full(arr.shape, arr.fill_value, dtype=object if arr.dtype.kind in "OTU" else arr.dtype)
-        for i in range(arr.shape[0]):
+        n = arr.chunks[0]
+        for lo in range(0, arr.shape[0], n):
+            hi = min(lo + n, arr.shape[0])
             try:
-                out[i] = self._zarr_read(path, i, i)
+                out[lo:hi] = self._zarr_read(path, slice(lo, hi), lo)
             except CorruptChunkError as e:
-                damage.setdefault(i, []).append(e)
+                for i in range(lo, hi):
+                    damage.setdefault(i, []).append(
+                        e if n == 1 else CorruptChunkError(f"{path}: frame {i}: {e}", array=path, frame=i, path=e.path))
         return out.astype(str) if out.dtype == object else out
+
+    def _clip_start(self, table: dict, i: int) -> int:
+        """The frame holding frame ``i``'s SceneSpec JSON in a v3 store: its clip's first frame, ``i -
+        frame_in_clip`` (a dataset writes a clip's frames one after another), else another frame of its
+        clip with ``frame_in_clip`` 0, else ``i`` itself."""
+        clip, fic = table["clip_id"], table["frame"]
+        j = i - int(fic[i])
+        if 0 <= j < len(fic) and int(fic[j]) == 0 and clip[j] == clip[i]:
+            return j
+        if self._clip_starts is None:
+            self._clip_starts = {int(clip[k]): int(k) for k in np.nonzero(np.asarray(fic) == 0)[0][::-1]}
+        return self._clip_starts.get(int(clip[i]), i)
+
+    def _lost_scene_json(self, table: dict, done: list[int]) -> dict[int, tuple[int, str]]:
+        """Complete frames whose clip's SceneSpec JSON chunk (at the clip's first frame) is missing,
+        frame -> (first frame, file) (schema v3)."""
+        spec = self._specs["frames/scene_json"]
+        names = schema._chunk_names_1d(self.root, spec)
+        out, seen = {}, {}
+        for i in done:
+            f0 = self._clip_start(table, i)
+            if f0 not in seen:
+                seen[f0] = ((True, "") if names is not None and str(f0) in names
+                            else schema.chunk_file(self.root, spec, f0))
+            there, f = seen[f0]
+            if not there:
+                out[i] = (f0, f)
+        return out
+
+    def scene_json(self, i: int) -> str:
+        """The SceneSpec JSON of frame ``i``'s scene ('' where none was stored). Schema v3 keeps it once a
+        clip, at the clip's first frame; v1 and v2 with every frame."""
+        i = self._check_index(i)
+        t = self._frame_row(i)
+        if self.version < 3:
+            return str(t["scene_json"][i])
+        f0 = self._clip_start(t, i)
+        return str(self._zarr_read("frames/scene_json", f0, f0))
 
     def metadata_damage(self) -> dict[int, list[StoreCorruptionError]]:
         """Frames whose ``frames/*`` or ``status/*`` chunks are damaged or (v2, complete frames) missing,
@@ -399,8 +454,19 @@ class Store:
     def meta_column(self, key: str) -> np.ndarray:
         """One ``frames/*`` column by its ``FRAME_META`` key (or ``clip_id``, ``complete``, ``error``) for
         all frames, from the cache. ``frame`` (= ``frame_in_clip``) is the index in the clip, stored as
-        ``frames/frame`` in v1 and ``frames/frame_in_clip`` in v2."""
-        return self._meta_table()[key].copy()
+        ``frames/frame`` in v1 and ``frames/frame_in_clip`` in v2. ``scene_json`` of a v3 store, kept once
+        a clip, is read clip by clip (:meth:`scene_json` reads one frame's)."""
+        t = self._meta_table()
+        if key == "scene_json" and key not in t:
+            texts: dict[int, str] = {}
+            out = []
+            for i in range(self.num_frames):
+                f0 = self._clip_start(t, i)
+                if f0 not in texts:
+                    texts[f0] = str(self._zarr_read("frames/scene_json", f0, f0))
+                out.append(texts[f0])
+            return np.array(out, dtype=object).astype(str)
+        return t[key].copy()
 
     def complete_mask(self) -> np.ndarray:
         """``complete (bool, F)``."""
@@ -437,7 +503,10 @@ class Store:
         t = self._frame_row(i)
         out = {}
         for key, typ in FRAME_META.items():
-            out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
+            if key in t:
+                out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
+            else:                                       # v3's scene JSON: once a clip
+                out[key] = self.scene_json(i)
         out["clip_id"] = int(t["clip_id"][i])
         out["complete"] = bool(t["complete"][i])
         out["error"] = str(t["error"][i])
@@ -447,8 +516,11 @@ class Store:
 
     def _read_matrix(self, key: str, i: int) -> np.ndarray:
         """``frames/<key>`` (float64, 44) of frame ``i``; MissingShardError if a complete v2 frame lost it."""
+        t = self._frame_row(i)
+        if key in t:                                    # v3: in the metadata table (checked there)
+            return np.asarray(t[key][i], np.float64)
         path = ARRAY_BY_SOURCE[key].path
-        if bool(self._frame_row(i)["complete"][i]):
+        if bool(t["complete"][i]):
             self._require_chunks([path], [i])
         return self._zarr_read(path, i, i)
 

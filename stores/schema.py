@@ -33,9 +33,10 @@ from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
                            StoreExistsError, StoreLayoutError, StoreNotFoundError)
 
-SCHEMA_VERSION = 2                 # what create_store writes
-READABLE_VERSIONS = (1, 2)         # what open_group reads (and appends to, in its own layout)
+SCHEMA_VERSION = 3                 # what create_store writes
+READABLE_VERSIONS = (1, 2, 3)      # what open_group reads (and appends to, in its own layout)
 COORD_CHUNK = 1024                 # chunk length of the v2 ``frame`` coordinates (they grow with the store)
+META_CHUNK = 1024                  # v3: frames a chunk of the per-frame metadata and status arrays hold
 STORE_KIND = "denoise-datagen.sample-store"
 RADIANCE_ENCODINGS = ("float32", "log16")
 FEATURE_DTYPES = ("float16", "float32")
@@ -177,6 +178,8 @@ class ArraySpec:
     coord: str = ""             # "" per-frame data; else a v2 coordinate written at creation (see coord_values)
     labels: tuple[str, ...] = ()    # the values of a ``labels`` coordinate
     xr_coords: str = ""         # v2: names of non-index coordinates (xarray's ``coordinates`` attribute)
+    frame_chunk: int = 1        # frames a chunk holds (v3 metadata: META_CHUNK, written by one process)
+    clip_first: bool = False    # v3 ``frames/scene_json``: written only at each clip's first frame
 
     @property
     def per_frame(self) -> bool:
@@ -246,7 +249,8 @@ class ArraySpec:
         if self.coord:
             return self.shape(layout)
         tiles = {"y": layout.tile_y, "x": layout.tile_x}
-        return tuple(1 if d == "frame" else tiles.get(d, s) for d, s in zip(self.dims, self.shape(layout)))
+        return tuple(self.frame_chunk if d == "frame" else tiles.get(d, s)
+                     for d, s in zip(self.dims, self.shape(layout)))
 
     def shards(self, layout: StoreLayout) -> tuple[int, ...] | None:
         """Shard shape: one whole frame (spatial extent rounded up to whole tiles); None for scalars."""
@@ -332,9 +336,25 @@ def _v2(spec: ArraySpec) -> ArraySpec:
 
 # v2: every chunk carries a crc32c checksum; frames/frame -> frames/frame_in_clip; coordinates
 ARRAYS_V2: tuple[ArraySpec, ...] = tuple(_v2(s) for s in ARRAYS_V1) + _v2_coords()
-TABLES = {1: ARRAYS_V1, 2: ARRAYS_V2}
+
+
+def _v3(spec: ArraySpec) -> ArraySpec:
+    """v3: the per-frame metadata, camera matrices and status in chunks of :data:`META_CHUNK` frames,
+    written by one process (the dataset run's client, ``stores.writer.StoreWriter.commit``); the SceneSpec
+    JSON once a clip, at its first frame (``clip_first``), written by the scene's own task."""
+    if spec.path == "frames/scene_json":
+        return replace(spec, clip_first=True, doc="SceneSpec JSON of the clip, at its first frame only "
+                                                  "(frame_in_clip 0; '' elsewhere)")
+    if spec.per_frame and not spec.image:
+        return replace(spec, frame_chunk=META_CHUNK)
+    return spec
+
+
+# v3: per-frame metadata and status in chunks of META_CHUNK frames; scene JSON once a clip
+ARRAYS_V3: tuple[ArraySpec, ...] = tuple(_v3(s) for s in ARRAYS_V2)
+TABLES = {1: ARRAYS_V1, 2: ARRAYS_V2, 3: ARRAYS_V3}
 ARRAYS = TABLES[SCHEMA_VERSION]
-ARRAY_BY_PATH = {s.path: s for s in ARRAYS}
+ARRAY_BY_PATH = {s.path: s for s in ARRAYS}    # image specs (paths, chains) are the same in every version
 ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}     # the same in v1 and v2
 
 
@@ -392,8 +412,8 @@ def coord_values(spec: ArraySpec, layout: StoreLayout) -> np.ndarray:
 
 def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VERSION) -> dict:
     """``zarr.Group.create_array`` keyword arguments of ``spec`` in schema ``version``: image arrays
-    sharded with Blosc inner chunks, scalars uncompressed; v2 appends the ``crc32c`` codec to every
-    (inner) chunk."""
+    sharded with Blosc inner chunks, v3 metadata chunks (many frames each) Blosc zstd, other scalars
+    uncompressed; v2 appends the ``crc32c`` codec to every (inner) chunk."""
     dtype = spec.storage_dtype(layout)
     crc = [codecs.checksum()] if version >= 2 else []
     attrs = {"doc": spec.doc, "source": spec.source}
@@ -405,9 +425,14 @@ def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VE
         ch = spec.chain(layout)
         kw.update(shards=spec.shards(layout), filters=codecs.zarr_filters(ch, spec.dims) or None,
                   compressors=[codecs.compressor(ch.cname, ch.clevel, ch.shuffle)] + crc)
+    elif spec.frame_chunk > 1:         # v3 metadata: a chunk of 1024 frames, mostly fill in a small store
+        kw.update(compressors=[codecs.compressor(*META_BLOSC)] + crc)
     else:
         kw.update(compressors=crc or None)
     return kw
+
+
+META_BLOSC = ("zstd", 3, "shuffle")    # v3 metadata chunks: a 4-frame store's 1024-frame camera matrices 1.2 KB, not 128
 
 
 def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple:
@@ -421,6 +446,8 @@ def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple
               ((("numcodecs.bitround", ("keepbits", json.dumps(ch.keepbits))),) if ch.codec_keepbits is not None else ())
         inner = pre + (("bytes", "little"), ("blosc", ch.cname, ch.clevel, ch.shuffle)) + crc
         return (("sharding_indexed", spec.chunks(layout), inner, (("bytes", "little"), ("crc32c",)), "end"),)
+    if spec.frame_chunk > 1:
+        return (ser, ("blosc",) + META_BLOSC) + crc
     return (ser,) + crc
 
 
@@ -497,8 +524,9 @@ def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: boo
 
 
 def chunk_key(spec: ArraySpec, frame: int) -> str:
-    """The key (path below the array) of frame ``frame``'s chunk or shard of a per-frame array."""
-    return "/".join(["c", str(int(frame))] + ["0"] * (len(spec.dims) - 1))
+    """The key (path below the array) of the chunk or shard holding frame ``frame`` of a per-frame array
+    (v3 metadata: chunk ``frame // META_CHUNK``)."""
+    return "/".join(["c", str(int(frame) // spec.frame_chunk)] + ["0"] * (len(spec.dims) - 1))
 
 
 def chunk_file(root, spec: ArraySpec, frame: int) -> tuple[bool, str]:
@@ -525,15 +553,19 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
         return {}
     absent = absent_arrays(root, version)
     specs = [s for s in arrays(version) if s.per_frame and (paths is None or s.path in paths)
-             and s.path not in absent]
+             and s.path not in absent and not s.clip_first]       # v3 scene JSON: at clip starts only
     frames = [int(i) for i in frames]
     out: dict[int, list[tuple[str, str]]] = {}
     for spec in specs:
         names = _chunk_names_1d(root, spec) if len(frames) > 8 else None
+        seen: dict[int, tuple[bool, str]] = {}            # chunk index -> (exists, file): a chunk holds many frames
         for i in frames:
-            if names is not None and str(i) in names:
+            c = i // spec.frame_chunk
+            if names is not None and str(c) in names:
                 continue
-            there, f = chunk_file(root, spec, i)
+            if c not in seen:
+                seen[c] = chunk_file(root, spec, i)
+            there, f = seen[c]
             if not there:
                 out.setdefault(i, []).append((spec.path, f))
     return {i: out[i] for i in sorted(out)}
@@ -650,6 +682,8 @@ def _clear(path_or_url) -> None:
         zarr.open_group(p, mode="w")            # zarr clears the prefix
         return
     refuse_link(p)
+    if not os.path.lexists(p):                  # nothing there: nothing to clear
+        return
     if not os.path.isdir(p):
         raise ForeignStoreError(f"{p} is a file, not a folder; refusing to replace it with a store")
     for name in os.listdir(p):
@@ -761,10 +795,12 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
             "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,
             "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
     # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
+    import uuid
     root.attrs.put({
         "kind": STORE_KIND, "schema_version": schema_version, "layout": layout.to_dict(),
         "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
         "package_versions": package_versions(), "git_hash": git_hash(),
+        "store_id": uuid.uuid4().hex,      # this store, not another made at the same path (writers' caches)
     })
     if schema_version >= 2:
         consolidate(p)

@@ -171,11 +171,13 @@ def parse_frames(spec: str | None, num_frames: int) -> list[int]:
     return sorted(out)
 
 
-def validate_store(path, frames=None) -> StoreReport:
+def validate_store(path, frames=None, *, read_values: bool = True) -> StoreReport:
     """Validate the store at ``path`` (all frames, or the indices in ``frames``). Raises StoreError
     subclasses when the path is not a readable store of a known schema; damage is reported, not raised
     (``report.damage``, ``FrameReport.damage``; ``report.exit_code`` 3): every damaged or missing
-    metadata chunk and every missing shard is listed, each with its array, frame and file."""
+    metadata chunk and every missing shard is listed, each with its array, frame and file.
+    ``read_values=False`` checks the array metadata, completeness, files and the renderer's counts
+    but reads no image (a dataset run's summary: its write tasks checked the values they wrote)."""
     root, lay = schema.open_group(path, mode="r", check=False)
     version = schema.version_of(root)
     rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(), num_frames=lay.num_frames)
@@ -237,6 +239,8 @@ def validate_store(path, frames=None) -> StoreReport:
         found, notes = renderer_findings(meta)       # stores.fitness: the one fitness check, as train sees it
         fr_rep.problems.extend(found)
         fr_rep.notes.extend(notes)
+        if not read_values:
+            continue
         data = {}
         for key in FRAME_KEYS:
             try:
@@ -316,10 +320,8 @@ def mark_damaged(path, rep: StoreReport) -> list[int]:
     try:
         w = StoreWriter(path)
         why = {f.index: f.damage[0] for f in rep.frames if f.damage}
-        out = []
-        for i in rep.damaged_frames:
-            w.mark_failed(i, f"damaged: {why.get(i, 'frames/status metadata chunk')}")
-            out.append(i)
+        out = list(rep.damaged_frames)
+        w.commit({}, {i: f"damaged: {why.get(i, 'frames/status metadata chunk')}" for i in out})
     finally:
         lock.release()
     return out

@@ -46,8 +46,20 @@ def store(tmp_path):
     return path
 
 
+@pytest.fixture()
+def store_v2(tmp_path):
+    """A schema v2 store (one chunk file a frame for every ``frames/*`` and ``status/*`` value; stores
+    written before issue 22 stay readable and resumable): the tests of per-frame metadata chunks."""
+    path = tmp_path / "v2.zarr"
+    _write(path, version=2)
+    return path
+
+
 def _shard(path, array, frame):
-    spec = schema.ARRAY_BY_PATH[array]
+    """The file holding ``array``'s chunk or shard of ``frame`` in the store at ``path`` (its version's)."""
+    import zarr
+    version = int(zarr.open_group(str(path), mode="r").attrs["schema_version"])
+    spec = next(s for s in schema.arrays(version) if s.path == array)
     return os.path.join(path, *array.split("/"), *schema.chunk_key(spec, frame).split("/"))
 
 
@@ -189,37 +201,37 @@ def test_mark_damaged_refuses_while_a_dataset_run_holds_the_store(store, capsys)
     capsys.readouterr()
 
 
-def test_damaged_completion_flag_means_rerender(store):
-    f = _shard(store, "status/complete", 1)
+def test_damaged_completion_flag_means_rerender(store_v2):
+    f = _shard(store_v2, "status/complete", 1)
     data = bytearray(open(f, "rb").read())
     data[0] ^= 0x01
     open(f, "wb").write(bytes(data))
-    assert StoreWriter(store).incomplete_frames() == [1]
+    assert StoreWriter(store_v2).incomplete_frames() == [1]
 
 
-def test_a_lost_completion_flag_is_damage_not_an_incomplete_frame(store, capsys):
+def test_a_lost_completion_flag_is_damage_not_an_incomplete_frame(store_v2, capsys):
     """Frame 1's status/complete chunk file is deleted: validate says damage (exit 3, naming the file),
     not "incomplete" (exit 1); the resume re-renders the frame. A frame never started (no status chunk
     at all) stays merely incomplete."""
-    f = _shard(store, "status/complete", 1)
+    f = _shard(store_v2, "status/complete", 1)
     os.unlink(f)
-    code, text = _validate(store, capsys)
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED and "status/complete: frame 1" in text and str(f) in text, text
-    assert StoreWriter(store).incomplete_frames() == [1]
-    os.unlink(_shard(store, "status/error", 1))                 # as a frame whose first step never ran
-    code, text = _validate(store, capsys)
+    assert StoreWriter(store_v2).incomplete_frames() == [1]
+    os.unlink(_shard(store_v2, "status/error", 1))                 # as a frame whose first step never ran
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_PROBLEMS and "incomplete" in text and "DAMAGE" not in text, text
 
 
-def test_flipped_byte_in_a_frame_scalar_is_detected(store, capsys):
-    f = _shard(store, "frames/scene_seed", 1)
+def test_flipped_byte_in_a_frame_scalar_is_detected(store_v2, capsys):
+    f = _shard(store_v2, "frames/scene_seed", 1)
     data = bytearray(open(f, "rb").read())
     data[0] ^= 0x04
     open(f, "wb").write(bytes(data))
-    code, text = _validate(store, capsys)
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED and "frames/scene_seed: frame 1" in text, text
     with pytest.raises(CorruptChunkError, match="frames/scene_seed: frame 1"):
-        open_store(store).complete_frames()
+        open_store(store_v2).complete_frames()
 
 
 # ----------------------------------------------------------------------------- 3. edited metadata
@@ -402,27 +414,27 @@ def test_every_entry_point_exits_3_on_a_damaged_store(store, tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- 2. missing metadata chunks
 @pytest.mark.parametrize("fast", [True, False])
-def test_missing_camera_matrix_chunk_is_not_a_zero_matrix(store, capsys, fast):
-    f = _shard(store, "frames/camera_to_world", 1)
+def test_missing_camera_matrix_chunk_is_not_a_zero_matrix(store_v2, capsys, fast):
+    f = _shard(store_v2, "frames/camera_to_world", 1)
     assert f.endswith(os.path.join("c", "1", "0", "0"))
     os.remove(f)
-    st = open_store(store, fast=fast)
+    st = open_store(store_v2, fast=fast)
     for read in (lambda: st.frames_meta(1), lambda: st.read_frame(1), lambda: st.read_frame(1, ["camera_to_world"])):
         with pytest.raises(MissingShardError, match="frames/camera_to_world: frame 1 is marked complete") as e:
             read()
         assert (e.value.array, e.value.frame, e.value.path) == ("frames/camera_to_world", 1, f)
     assert st.frames_meta(0)["camera_to_world"].any() and st.complete_frames() == [0, 1, 2]
-    code, text = _validate(store, capsys)
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED, text
     assert f"frames/camera_to_world: frame 1 is complete but its chunk file {f} is missing" in text, text
     assert text.count("frames/camera_to_world: frame 1") == 1, text
 
 
-def test_missing_clip_id_chunk_is_not_clip_0(store, capsys):
+def test_missing_clip_id_chunk_is_not_clip_0(store_v2, capsys):
     """A lost frames/clip_id chunk would read as clip 0 and could move the frame to another split."""
-    f = _shard(store, "frames/clip_id", 1)
+    f = _shard(store_v2, "frames/clip_id", 1)
     os.remove(f)
-    st = open_store(store)
+    st = open_store(store_v2)
     for read in (lambda: st.frames_in_split("train"), lambda: st.split_of_frame(1), lambda: st.clips(),
                  lambda: st.frames_meta(1), lambda: st.read_frame(1, ["reference"])):
         with pytest.raises(MissingShardError, match=f"frames/clip_id: frame 1 .*{f} is missing") as e:
@@ -430,17 +442,18 @@ def test_missing_clip_id_chunk_is_not_clip_0(store, capsys):
         assert (e.value.array, e.value.frame, e.value.path) == ("frames/clip_id", 1, f)
     st.read_frame(0)                                  # the other frames still read one by one
     assert list(st.metadata_damage()) == [1]
-    code, text = _validate(store, capsys)
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED and f"frames/clip_id: frame 1 is complete but its chunk file {f} is missing" in text
     torch = pytest.importorskip("torch")  # noqa: F841
     from stores.datasets import SampleDataset
     with pytest.raises(MissingShardError, match="frames/clip_id: frame 1"):
-        SampleDataset(store, split="train", spp=S, crop=8)
+        SampleDataset(store_v2, split="train", spp=S, crop=8)
 
 
 def test_missing_metadata_chunk_of_an_incomplete_frame_is_not_damage(tmp_path, capsys):
     path = tmp_path / "s.zarr"
-    w = open_or_create(path, LAYOUT, {})
+    schema.create_store(path, LAYOUT, {}, schema_version=2)        # v2: a chunk file a frame
+    w = StoreWriter(path)
     for i in range(2):
         w.write_frame(i, synthetic_frame(i, H, W, S))
     w.mark_failed(1, "render crashed")
@@ -457,33 +470,33 @@ def _flip(f, at=0):
     open(f, "wb").write(bytes(data))
 
 
-def test_validate_lists_every_damaged_metadata_chunk_and_missing_shard(store, capsys):
+def test_validate_lists_every_damaged_metadata_chunk_and_missing_shard(store_v2, capsys):
     """A corrupt camera matrix (frame 1), two corrupt frames/* chunks (frames 0 and 2) and a missing
     shard (frame 2): one report names them all, --json reads, --mark-damaged marks all three frames."""
-    bad = {_shard(store, "frames/world_to_clip", 1): "frames/world_to_clip: frame 1",
-           _shard(store, "frames/scene_seed", 0): "frames/scene_seed: frame 0",
-           _shard(store, "frames/clip_id", 2): "frames/clip_id: frame 2"}
+    bad = {_shard(store_v2, "frames/world_to_clip", 1): "frames/world_to_clip: frame 1",
+           _shard(store_v2, "frames/scene_seed", 0): "frames/scene_seed: frame 0",
+           _shard(store_v2, "frames/clip_id", 2): "frames/clip_id: frame 2"}
     for f in bad:
         _flip(f)
-    gone = _shard(store, "guides/depth", 2)
+    gone = _shard(store_v2, "guides/depth", 2)
     os.remove(gone)
-    code, text = _validate(store, capsys)
+    code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED and "Traceback" not in text, text
     for f, what in bad.items():
         assert what in text and f in text, (what, text)
     assert f"guides/depth: frame 2 is complete but its chunk file {gone} is missing" in text, text
-    assert pipeline_main(["validate", str(store), "--json"]) == EXIT_DAMAGED
+    assert pipeline_main(["validate", str(store_v2), "--json"]) == EXIT_DAMAGED
     rep = json.loads(capsys.readouterr().out)
     assert rep["damaged"] and [f["index"] for f in rep["frames"] if f["damage"]] == [0, 1, 2]
-    assert pipeline_main(["validate", str(store), "--frames", "1", "--mark-damaged"]) == EXIT_DAMAGED
+    assert pipeline_main(["validate", str(store_v2), "--frames", "1", "--mark-damaged"]) == EXIT_DAMAGED
     assert "marked 1 damaged frame(s) incomplete: [1]" in capsys.readouterr().err
-    assert pipeline_main(["validate", str(store), "--mark-damaged"]) == EXIT_DAMAGED
+    assert pipeline_main(["validate", str(store_v2), "--mark-damaged"]) == EXIT_DAMAGED
     assert "marked 3 damaged frame(s) incomplete: [0, 1, 2]" in capsys.readouterr().err
-    w = StoreWriter(store)
+    w = StoreWriter(store_v2)
     assert w.incomplete_frames() == [0, 1, 2] and w.errors()[1].startswith("damaged: frames/world_to_clip: frame 1")
-    for i in range(3):                                  # a resume rewrites them: the store is sound again
+    for i in range(3):                                  # a resume rewrites them: the store_v2 is sound again
         w.write_frame(i, synthetic_frame(i, H, W, S, motion=False))
-    assert _validate(store, capsys)[0] == EXIT_OK
+    assert _validate(store_v2, capsys)[0] == EXIT_OK
 
 
 # ----------------------------------------------------------------------------- 4. completion flag metadata
@@ -500,3 +513,71 @@ def test_validate_on_a_lost_completion_flag_zarr_json_exits_3(store, capsys, how
     text = out.out + out.err
     assert code == EXIT_DAMAGED, text
     assert "status/complete: " + ("missing" if how == "deleted" else "unreadable zarr.json") in text, text
+
+
+# ----------------------------------------------------------------------------- schema v3: shared metadata chunks
+def test_v3_a_frame_is_its_image_shards_plus_shared_metadata(tmp_path):
+    """Schema v3: a frame's own files are its nine image shards (and, at a clip's first frame, the
+    clip's SceneSpec JSON); every frames/* and status/* value lives in chunks of META_CHUNK frames."""
+    from test_stores_synthetic import synthetic_frame as sf
+    path = tmp_path / "s.zarr"
+    frames = [sf(i, H, W, S) for i in range(5)]
+    for i, fr in enumerate(frames):                       # one clip of 5 frames: scene JSON once
+        fr["meta"].update(frame=i, num_frames=5, clip_id=77)
+    _write(path, StoreLayout(num_frames=5, height=H, width=W, spp=S, tile=8), frames=frames)
+    images = [s for s in schema.ARRAYS if s.image]
+    for i in range(5):
+        assert all(schema.chunk_file(open_store(path).root, s, i)[0] for s in images)
+    json_files = list((path / "frames" / "scene_json" / "c").iterdir())
+    assert [f.name for f in json_files] == ["0"]           # the clip's first frame only
+    for spec in schema.ARRAYS:
+        if spec.per_frame and not spec.image and not spec.clip_first:
+            files = [f for f in (path / spec.path).rglob("*") if f.is_file() and f.name != "zarr.json"]
+            assert len(files) == 1 and spec.chunks(StoreLayout(5, H, W))[0] == schema.META_CHUNK, spec.path
+    st = open_store(path)
+    assert all(st.scene_json(i) == frames[0]["meta"]["scene_json"] for i in range(5))
+    assert st.frames_meta(3)["scene_json"] == frames[0]["meta"]["scene_json"]
+    np.testing.assert_array_equal(st.frames_meta(4)["camera_to_world"], frames[4]["camera_to_world"])
+    assert validate_store(path).ok
+
+
+def test_v3_a_damaged_shared_chunk_damages_its_frames_and_a_resume_rewrites_it(store, capsys):
+    """A flipped byte in the frames/clip_id chunk (every frame's): validate names it for each complete
+    frame (exit 3); --mark-damaged marks them all; writing the frames again rebuilds the chunk."""
+    f = _shard(store, "frames/clip_id", 1)
+    _flip(f)
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and all(f"frames/clip_id: frame {i}" in text for i in range(3)), text
+    assert pipeline_main(["validate", str(store), "--mark-damaged"]) == EXIT_DAMAGED
+    assert "marked 3 damaged frame(s) incomplete: [0, 1, 2]" in capsys.readouterr().err
+    w = StoreWriter(store)
+    assert w.incomplete_frames() == [0, 1, 2]
+    for i in range(3):
+        w.write_frame(i, synthetic_frame(i, H, W, S, motion=False))
+    assert _validate(store, capsys)[0] == EXIT_OK
+
+
+def test_v3_commit_rebuilds_a_damaged_chunk_without_leaving_its_other_frames_complete(store):
+    """A commit that meets a damaged metadata chunk writes it again from the new values, and marks the
+    chunk's other frames incomplete (their values are gone), never complete with fill values."""
+    _flip(_shard(store, "frames/scene_seed", 0))
+    w = StoreWriter(store)
+    w.write_frame(1, synthetic_frame(1, H, W, S, motion=False))
+    assert w.incomplete_frames() == [0, 2]
+    assert "metadata chunk" in w.errors()[0] and open_store(store).frames_meta(1)["complete"]
+
+
+def test_v3_a_lost_flag_chunk_is_damage_for_its_frames(store, capsys):
+    os.unlink(_shard(store, "status/complete", 1))
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and all(f"status/complete: frame {i}" in text for i in range(3)), text
+    assert StoreWriter(store).incomplete_frames() == [0, 1, 2]
+
+
+def test_v3_a_lost_scene_json_is_damage(store, capsys):
+    f = _shard(store, "frames/scene_json", 2)
+    os.unlink(f)
+    code, text = _validate(store, capsys)
+    assert code == EXIT_DAMAGED and "frames/scene_json: frame 2" in text and f in text, text
+    with pytest.raises(MissingShardError, match="frames/scene_json: frame 2"):
+        open_store(store).clips()

@@ -28,7 +28,7 @@ def test_real_frame_round_trip(rendered, tmp_path):
     assert rep.ok, rep.format()
     st_ = open_store(tmp_path / "r.zarr")
     out = st_.read_frame(0)
-    assert st_.layout.encoding == "compact2"       # the default of new stores: 9-bit radiance, exact references
+    assert st_.layout.encoding == "compact3"       # the default of new stores: 9-bit radiance, exact references
     for k in ("radiance", "layers", "features", "guides_albedo", "guides_normal", "guides_depth", "guides_motion"):
         np.testing.assert_array_equal(out[k], stored(k, fr[k], st_.layout), err_msg=k)
         chain = ARRAY_BY_SOURCE[k].chain(st_.layout)       # features and guides: their group's bits

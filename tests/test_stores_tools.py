@@ -254,7 +254,7 @@ def test_bench_smoke():
     f16 = [row for row in r["codecs"] if row["encoding"].startswith("float16")][0]
     assert chosen["inf_after_encoding"] == 0 and f16["inf_after_encoding"] > 0   # sun disc overflows float16
     assert chosen["ratio"] < 0.8 * lz4["ratio"]
-    assert r["encoding"] == codecs.DEFAULT_ENCODING == "compact2" and "crops/s" in bench.format_report(r)
+    assert r["encoding"] == codecs.DEFAULT_ENCODING == "compact3" and "crops/s" in bench.format_report(r)
 
 
 def test_bench_reencode_smoke(tmp_path):
@@ -266,17 +266,17 @@ def test_bench_reencode_smoke(tmp_path):
         w.write_frame(i, synthetic_frame(20 + i, H, W, S, motion=True, defocus=True))
     r = bench.reencode([str(path)], frames=2, crops=2, verbose=False)
     row = r["stores"][str(path)]
-    assert r["encodings"] == ["compact2", "compact", "lz4"]
-    for enc in ("compact2", "compact"):
+    assert r["encodings"] == ["compact3", "compact", "lz4"]
+    for enc in ("compact3", "compact"):
         assert set(row[enc]["ratio"]) == {"inputs/radiance", "inputs/features", "layers", "reference", "guides"}
         assert r["all"][enc]["total"] < 0.8 * r["all"]["lz4"]["total"]
         assert r["all"][enc]["ratio"]["inputs/radiance"] < 0.8 * r["all"]["lz4"]["ratio"]["inputs/radiance"]
         assert 2 ** -12 < r["errors"][enc]["radiance"]["max"] <= 2 ** -10
         assert row[enc]["write_ms_per_frame"] > 0
-    assert r["all"]["compact2"]["ratio"]["inputs/features"] < r["all"]["compact"]["ratio"]["inputs/features"]
-    assert r["radiance_rel_error"] == r["errors"]["compact2"]["radiance"]
-    lens = 2.0 ** -(codecs.FEATURE_KEEPBITS["lens"] + 1)              # compact2 rounds the lens coarser
-    assert r["errors"]["compact"]["features/lens"] <= 2 ** -10 < r["errors"]["compact2"]["features/lens"] <= lens
+    assert r["all"]["compact3"]["ratio"]["inputs/features"] < r["all"]["compact"]["ratio"]["inputs/features"]
+    assert r["radiance_rel_error"] == r["errors"]["compact3"]["radiance"]
+    lens = 2.0 ** -(codecs.FEATURE_KEEPBITS["lens"] + 1)              # compact3 rounds the lens coarser
+    assert r["errors"]["compact"]["features/lens"] <= 2 ** -10 < r["errors"]["compact3"]["features/lens"] <= lens
     assert row["zeros_changed"] == 0 and row["reference_bit_exact"]
     assert "of the ceiling" in bench.format_reencode(r)
 
