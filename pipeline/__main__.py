@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     except (PipelineError, StoreError, SceneGenError) as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return int(getattr(e, "exit_code", 2))
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

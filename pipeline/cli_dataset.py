@@ -26,8 +26,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.config import DatasetConfig, load_config
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, PipelineError
+from stores.errors import is_disk_full, store_full
 
 DEFAULT_CONFIG = "configs/default.yaml"
 
@@ -50,8 +53,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers must be an integer >= 1, got {args.workers}")
+    if args.workers is not None and not 1 <= args.workers <= 4096:
+        raise ConfigError(f"--workers must be an integer in [1, 4096] (LocalCluster processes, or batch jobs), "
+                          f"got {args.workers}")
     cfg = load_config(args.config)
     summary = run_dataset(cfg, out=args.out, scheduler=args.scheduler, workers=args.workers,
                           progress=not args.no_progress, overwrite=args.overwrite)
@@ -76,6 +80,8 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     from stores.errors import ForeignStoreError, IncompleteStoreError, StoreCorruptionError
     if "://" not in store and os.path.lexists(store) and not os.path.isdir(store):
         raise ForeignStoreError(f"--out {store} is a file, not a folder; choose another --out")
+    if overwrite:
+        schema.refuse_link(store)                   # never delete through a symbolic link
     found = schema.foreign_entries(store)
     if found:
         if overwrite:
@@ -114,12 +120,19 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     return cfg
 
 
-def _validate(store: str) -> dict:
-    """The store validator's verdict: ``{'ok': bool, 'problems': [...], 'frames_checked': n, 'report': text}``."""
+def _validate_run(store: str, written: list[int], checked: dict[int, list[str]] | None = None) -> dict:
+    """The run's validation, without reading back what it rendered: the store's array metadata and the
+    metadata damage of every frame (``stores.validate.validate_store`` with ``read_values=False``), the
+    completeness and files of the frames ``written`` (or attempted) now, and their values as the write tasks checked
+    them (``checked``: frame -> ``stores.fitness.check_values`` problems) plus the renderer's replaced
+    NaN (``stores.fitness.renderer_findings``). Frames of earlier runs were checked by theirs;
+    ``python -m pipeline validate`` reads every frame again. ``{'ok', 'problems', 'frames_checked'}``."""
     from stores.validate import validate_store
-    rep = validate_store(store)
+    rep = validate_store(store, sorted(written), read_values=False)
     problems = list(rep.problems) + [f"frame {f.index}: {p}" for f in rep.frames for p in f.problems]
-    return {"ok": bool(rep.ok), "problems": problems, "frames_checked": len(rep.frames), "report": rep.format()}
+    for i, found in sorted((checked or {}).items()):
+        problems += [f"frame {i}: {p}" for p in found]
+    return {"ok": not problems, "problems": problems, "frames_checked": len(written)}
 
 
 def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | None = None,
@@ -135,6 +148,7 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     from stores.lock import StoreLock
     store = cfg.store_path(out)
     cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
+    check_cluster_settings(cfg, scheduler=scheduler, workers=workers)
     check_memory_before_start(cfg, scheduler=scheduler, workers=workers)
     if "://" not in store and not Path(store).parent.is_dir():
         try:
@@ -158,39 +172,83 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
 
     from pipeline import cluster as cl
     from pipeline.graph import build_graph
-    from stores.writer import open_or_create
+    from stores.writer import generation, open_or_create
 
     t0 = time.perf_counter()
     cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
+    _print(f"dataset {cfg.name!r}: {cfg.num_scenes} scenes, {cfg.num_frames} frames at "
+           f"{cfg.resolution[0]}x{cfg.resolution[1]} -> {store}")
+    if not overwrite and frames_to_render(cfg, store) == []:     # a complete store: no cluster to start
+        _print("resume: every frame is complete; nothing to render")
+        return _summary(cfg, store, t0, results=[], failed={}, skipped=cfg.num_frames, dashboard=None,
+                        cluster="none (nothing to render)", validation=_validate_run(store, []))
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
+    results: list[dict] = []
     try:
         dashboard = conn.dashboard
-        _print(f"dataset {cfg.name!r}: {cfg.num_scenes} scenes, {cfg.num_frames} frames at "
-               f"{cfg.resolution[0]}x{cfg.resolution[1]} -> {store}")
         _print(f"cluster: {conn.kind} at {conn.address}, {conn.n_workers()} worker(s)")
         _print(f"dashboard: {dashboard or 'none'}")
         _check_worker_memory(cfg, conn)
-        writer = open_or_create(store, cfg.store_layout(), cfg.content_dict(), overwrite=overwrite)
+        try:
+            writer = open_or_create(store, cfg.store_layout(), cfg.content_dict(), overwrite=overwrite)
+        except OSError as e:
+            if is_disk_full(e):
+                raise store_full(store, "creating the store", space_needed(cfg, store, cfg.num_frames)) from None
+            raise
         todo = set(writer.incomplete_frames())
         frames = [f for f in cfg.frames() if f.index in todo]
         skipped = cfg.num_frames - len(frames)
         if skipped:
             _print(f"resume: {skipped} frame(s) already complete, {len(frames)} to render")
-        graph = build_graph(cfg, store, frames, functions=functions)
-        results, failed = _execute(conn.client, graph, writer, progress, as_completed)
-        validation = _run_validation(conn.client, store, graph.token)
+        graph = build_graph(cfg, store, frames, functions=functions, generation=generation(store))
+        results, failed = _execute(conn.client, graph, writer, progress, as_completed,
+                                   watch_workers=conn.kind == "local",
+                                   on_disk_full=lambda left: store_full(store, "writing frames",
+                                                                        space_needed(cfg, store, left)))
     except KeyboardInterrupt:
         _print(f"\ninterrupted: complete frames stay in {store}; run the same command again to resume")
         raise
     finally:
         conn.close()
+    validation = _validate_run(store, [r["index"] for r in results] + list(failed),
+                               {r["index"]: r.get("checked") or [] for r in results})
+    return _summary(cfg, store, t0, results=results, failed=failed, skipped=skipped, dashboard=dashboard,
+                    cluster=conn.kind, validation=validation)
+
+
+def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
+    """The frames of ``cfg`` a run on ``store`` would render (incomplete, or complete with files missing),
+    None when it cannot tell without creating or changing the store (no store yet, or one to grow)."""
+    from stores import schema
+    from stores.errors import StoreError
+    from stores.writer import _complete_flags
+    if not schema._exists(store):
+        return None
+    try:
+        root, layout = schema.open_group(store, mode="r")
+    except StoreError:
+        return None
+    if layout.num_frames != cfg.num_frames or schema.absent_arrays(root):
+        return None
+    done = _complete_flags(root)
+    lost = schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
+    return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
+
+
+def _summary(cfg: DatasetConfig, store: str, t0: float, *, results, failed, skipped, dashboard, cluster,
+             validation) -> dict:
+    """The run's summary dict, printed as the closing lines."""
+    from stores.writer import _complete_flags
+    from stores import schema
     elapsed = time.perf_counter() - t0
     render_s = sum(r["render_seconds"] for r in results)
-    complete = cfg.num_frames - len(writer.incomplete_frames())
+    left = frames_to_render(cfg, store)
+    complete = cfg.num_frames - len(left) if left is not None else \
+        int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
     summary = {
         "store": store, "frames": cfg.num_frames, "complete": complete, "rendered": len(results),
         "skipped": skipped, "failed": failed, "elapsed_s": round(elapsed, 3),
-        "render_s": round(render_s, 3), "dashboard": dashboard, "cluster": conn.kind,
+        "render_s": round(render_s, 3), "dashboard": dashboard, "cluster": cluster,
         "validation": validation,
         "ok": not failed and complete == cfg.num_frames and validation.get("ok") is not False,
     }
@@ -204,8 +262,50 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
     _print(f"dashboard:  {dashboard or 'none'}")
     v = validation
     _print(f"validation: {'ok' if v.get('ok') else ('not run' if v.get('ok') is None else 'PROBLEMS')}"
+           f" ({v.get('frames_checked', 0)} frame(s) written now; `python -m pipeline validate` reads every frame)"
            + ("".join(f"\n  {p}" for p in v.get("problems", [])[:20]) if not v.get("ok") else ""))
     return summary
+
+
+def space_needed(cfg: DatasetConfig, store: str, frames: int) -> int | None:
+    """About how many bytes ``frames`` more frames take in ``store``: the bytes a complete frame takes
+    there so far (the store's files over its complete frames), else the frame's float32 arrays at the
+    default encoding's measured 0.18 of float32 (stores/SCHEMA.md). None when unknown (URLs)."""
+    from pipeline.config import frame_bytes
+    if "://" in store or frames <= 0:
+        return None
+    total, done = 0, 0
+    try:
+        for root, _, files in os.walk(store):
+            total += sum(os.path.getsize(os.path.join(root, f)) for f in files)
+        from stores import schema
+        from stores.writer import _complete_flags
+        done = int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
+    except Exception:  # noqa: BLE001 - a store cut short by the full disk: fall back to the estimate
+        done = 0
+    per_frame = total / done if done else 0.18 * frame_bytes(cfg)
+    return int(per_frame * frames)
+
+
+LOCAL_OVERSUBSCRIBE = 4      # a LocalCluster's worker threads may be at most this many per core
+
+
+def check_cluster_settings(cfg: DatasetConfig, *, scheduler: str | None = None, workers: int | None = None) -> None:
+    """Settings of where the run goes that are wrong whatever the store (ConfigError, exit 2, before the
+    lock, the store or a cluster is touched): a ``--scheduler`` that is not a ``scheme://host:port``, a
+    dashboard address this machine cannot serve, more LocalCluster workers than
+    :data:`LOCAL_OVERSUBSCRIBE` a core."""
+    from pipeline.cluster import check_address, check_dashboard, machine_cores
+    if scheduler:
+        check_address(scheduler)
+    elif cfg.cluster.kind == "local" and not cfg.cluster.address:
+        check_dashboard(cfg.cluster.dashboard_address)
+        n, cores = workers or cfg.cluster.workers, machine_cores()
+        if n and n * cfg.cluster.threads_per_worker > LOCAL_OVERSUBSCRIBE * cores:
+            raise ConfigError(f"{'--workers' if workers else 'dataset.cluster.workers'} {n} is more than a "
+                              f"LocalCluster on this machine's {cores} core(s) can run: each worker is a process "
+                              f"of its own; use at most {LOCAL_OVERSUBSCRIBE * cores // cfg.cluster.threads_per_worker}"
+                              ", or a cluster (--scheduler, cluster.kind slurm/pbs) for more")
 
 
 def check_memory_before_start(cfg: DatasetConfig, *, scheduler: str | None = None, workers: int | None = None) -> None:
@@ -232,45 +332,158 @@ def _check_worker_memory(cfg: DatasetConfig, conn) -> None:
                                                         "worker(s)")
 
 
-def _execute(client, graph, writer, progress: bool, as_completed) -> tuple[list[dict], dict[int, str]]:
-    """Submit ``graph``, wait for every write, record frames that failed. Returns (results, failures)."""
+LOST_WORKERS_AFTER = 15.0     # seconds a LocalCluster may have no worker before the run gives up on it
+
+
+class WorkersLostError(PipelineError):
+    """Every worker of the run's LocalCluster is gone and none came back (killed, or stopped by a signal
+    from outside the run); the frames written so far stay complete, and a re-run resumes."""
+    exit_code = 1          # frames were not rendered (as failed frames), not a bad setting
+
+
+def _watch_workers(client, futures, lost: list, stop, after: float = LOST_WORKERS_AFTER) -> None:
+    """Until ``stop`` is set: when the scheduler has had no worker for ``after`` seconds, note it in
+    ``lost`` and cancel ``futures`` (so the run stops instead of waiting for workers that will not come)."""
+    import time
+    since = None
+    while not stop.wait(1.0):
+        try:
+            n = len(client.scheduler_info(n_workers=-1).get("workers", {}))
+        except Exception:  # noqa: BLE001 - the scheduler is closing: the main loop will see it
+            continue
+        if n:
+            since = None
+            continue
+        since = since or time.monotonic()
+        if time.monotonic() - since >= after:
+            lost.append(time.monotonic() - since)
+            client.cancel(futures)
+            return
+
+
+COMMIT_SECONDS = 2.0     # the client commits finished frames (metadata, then status) at most this often
+
+
+class Committer:
+    """The client's side of the v3 write protocol (``stores.writer``): the records of finished frames
+    and the errors of failed ones, committed together (``StoreWriter.commit``: metadata, then
+    ``status/complete`` last) once :data:`COMMIT_SECONDS` have passed since the last commit, and at the
+    end. So a frame costs a share of a few metadata writes, not a write of each value; a run stopped
+    between commits leaves those frames incomplete (the resume renders them again). ``latencies``: for
+    each committed frame, seconds from its task's end to its commit."""
+
+    def __init__(self, writer, every: float = COMMIT_SECONDS):
+        self.writer, self.every = writer, every
+        self.records: dict[int, dict] = {}
+        self.failures: dict[int, str] = {}
+        self.done_at: dict[int, float] = {}
+        self.last = time.monotonic()
+        self.latencies: list[float] = []
+        self.commits = 0
+
+    def add(self, result: dict) -> None:
+        if result.get("record") is not None:
+            self.records[int(result["index"])] = result["record"]
+            self.done_at[int(result["index"])] = float(result.get("done_at") or time.time())
+
+    def fail(self, index: int, text: str) -> None:
+        self.failures[int(index)] = text
+
+    def maybe_flush(self) -> None:
+        if time.monotonic() - self.last >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.records or self.failures:
+            self.writer.commit(self.records, self.failures)
+            now = time.time()
+            self.latencies += [now - self.done_at[i] for i in self.records]
+            self.commits += 1
+        self.records, self.failures, self.done_at = {}, {}, {}
+        self.last = time.monotonic()
+
+
+def _execute(client, graph, writer, progress: bool, as_completed, *, watch_workers: bool = False,
+             on_disk_full=None, committer: Committer | None = None) -> tuple[list[dict], dict[int, str]]:
+    """Submit ``graph``, wait for every write, commit the frames written (:class:`Committer`) and
+    record those that failed. Returns (results, failures). ``watch_workers`` (a LocalCluster's run):
+    raise :class:`WorkersLostError` when the cluster has had no worker for :data:`LOST_WORKERS_AFTER`
+    seconds, instead of waiting for ever. A write that finds the store's file system full stops the
+    run at once (every other write would fail alike): the rest is cancelled and
+    ``on_disk_full(frames_left)`` (a ``StoreFullError``) raised; the failed frame stays incomplete, so a
+    re-run after freeing space resumes it. Whatever stops the run, the frames finished before are
+    committed first (best effort), so the resume does not render them again."""
+    import threading
     futures = graph.submit(client)
     by_future = {futures[k]: idx for idx, k in graph.writes.items()}
     # Hold only the writes: the scheduler then frees each render result once its write is done
     # (memory stays bounded by the frames in flight, not the dataset).
     del futures
+    commit = committer or Committer(writer)
     results: list[dict] = []
     failed: dict[int, str] = {}
+    lost: list = []
+    stop = threading.Event()
+    if watch_workers and by_future:
+        threading.Thread(target=_watch_workers, args=(client, list(by_future), lost, stop),
+                         name="watch-workers", daemon=True).start()
     bar = None
     if progress and by_future:
         from tqdm import tqdm
         bar = tqdm(total=len(by_future), unit="frame", desc="frames", file=sys.stderr, dynamic_ncols=True)
+
+    def full(e):
+        return (on_disk_full or (lambda n: e))(len(by_future) - len(results))
+    finished = False
     try:
         for fut in as_completed(list(by_future), loop=client.loop):
             idx = by_future[fut]
             if fut.status == "finished":
-                results.append(fut.result())
+                r = fut.result()
+                results.append(r)
+                commit.add(r)
+            elif fut.status == "cancelled":
+                continue                    # the run is stopping (workers lost): the frame stays incomplete
             else:
                 exc = fut.exception()
+                if is_disk_full(exc):
+                    raise full(exc)
                 text = f"{type(exc).__name__}: {exc}"
                 failed[idx] = text
-                writer.mark_failed(idx, text)
+                commit.fail(idx, text)
+            try:
+                commit.maybe_flush()
+            except OSError as e:
+                if not is_disk_full(e):
+                    raise
+                raise full(e) from None
             if bar is not None:
                 bar.update(1)
                 if failed:
                     bar.set_postfix(failed=len(failed))
             fut.release()
+        try:
+            commit.flush()
+        except OSError as e:
+            if not is_disk_full(e):
+                raise
+            raise full(e) from None
+        finished = True
     finally:
+        stop.set()
         if bar is not None:
             bar.close()
         client.cancel(list(by_future))
+        if not finished:
+            try:
+                commit.flush()              # keep what finished before the stop
+            except Exception:  # noqa: BLE001 - the stop's own error is the one to report
+                pass
+    if lost:
+        raise WorkersLostError(
+            f"every worker of the LocalCluster is gone (none for {lost[0]:.0f} s: killed or stopped from outside "
+            f"this run); {len(results)} frame(s) were written now and stay complete: run the same command again "
+            "to resume")
     return results, failed
 
 
-def _run_validation(client, store: str, token: str) -> dict:
-    """Run the validator as a task on the cluster (it reads the whole store)."""
-    fut = client.submit(_validate, store, key=f"validate-store@{token}", pure=False)
-    try:
-        return fut.result()
-    except Exception as e:  # noqa: BLE001 - the validator itself broke: say so in the summary
-        return {"ok": False, "problems": [f"validator failed: {type(e).__name__}: {e}"]}

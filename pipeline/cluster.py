@@ -11,7 +11,10 @@ cannot be reached or dask-jobqueue is missing, before anything is rendered.
 - ``scheduler`` (or ``--scheduler ADDR``): ``Client(ADDR)``; start workers yourself with
   ``dask worker ADDR --nthreads 1`` on machines that see the store (no ``--preload`` needed).
 - ``slurm`` / ``pbs``: ``dask_jobqueue.SLURMCluster`` / ``PBSCluster`` with ``cluster.jobqueue`` as
-  keyword arguments, scaled to ``cluster.jobs`` jobs.
+  keyword arguments and what every worker needs written into the job script (:func:`job_settings`),
+  scaled to ``cluster.jobs`` jobs; a job SLURM could never run is refused before anything is submitted
+  (``sbatch --test-only``), the run waits (saying what the queue says) for the first worker, and a job
+  that ends mid-run (``scancel``, its walltime) is replaced (:class:`JobKeeper`).
 
 The dashboard listens on ``cluster.dashboard_address``; an address without a host (``:8787``, which
 distributed would open on every interface) is bound to 127.0.0.1 (:func:`dashboard_bind`): reach it
@@ -37,7 +40,7 @@ from typing import Any
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from pipeline.config import ClusterConfig
+from pipeline.config import ClusterConfig, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
 
 
@@ -100,6 +103,24 @@ def dashboard_bind(address: str | None) -> str | None:
     if a.startswith(":") or a.isdigit():
         return f"{LOCALHOST}:{a.lstrip(':')}"
     return a
+
+
+def check_dashboard(address: str | None, where: str = "dataset.cluster.dashboard_address") -> None:
+    """Refuse (ConfigError, one line) a dashboard address this machine cannot serve: bad syntax, a host
+    name that does not resolve, an interface this machine does not have. A port already in use is not
+    an error: distributed then serves the dashboard on another one and the run prints where."""
+    import socket
+    if address is None:
+        return
+    host, _ = parse_dashboard(dashboard_bind(address), where)
+    try:
+        infos = socket.getaddrinfo(host or LOCALHOST, 0, type=socket.SOCK_STREAM)
+        fam, _, _, _, addr = infos[0]
+        with socket.socket(fam, socket.SOCK_STREAM) as sk:
+            sk.bind((addr[0], 0))
+    except OSError as e:
+        raise ConfigError(f"{where} {address!r} cannot be served on this machine ({e.strerror or e}); name one "
+                          f"of its interfaces, e.g. 127.0.0.1:8787, or null for no dashboard") from None
 
 
 def check_security(sec, where: str = "dataset.cluster.security") -> None:
@@ -196,35 +217,378 @@ def local_cluster(cfg: ClusterConfig, workers: int | None = None):
     127.0.0.1, its dashboard at :func:`dashboard_bind` of ``cfg.dashboard_address``."""
     from distributed import LocalCluster
     from pipeline import worker_init
+    check_dashboard(cfg.dashboard_address)
     worker_init.prepare_environment()
     n = workers or cfg.workers or max(1, machine_cores() // cfg.threads_per_worker)
-    return LocalCluster(n_workers=n, threads_per_worker=cfg.threads_per_worker, processes=True,
-                        memory_limit=cfg.memory_limit, dashboard_address=dashboard_bind(cfg.dashboard_address),
-                        host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD],
-                        security=make_security(cfg.security))
+    try:
+        return LocalCluster(n_workers=n, threads_per_worker=cfg.threads_per_worker, processes=True,
+                            memory_limit=cfg.memory_limit, dashboard_address=dashboard_bind(cfg.dashboard_address),
+                            host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD],
+                            security=make_security(cfg.security),
+                            env={worker_init.LOCAL_WORKER_ENV: "1"})    # its workers leave Ctrl-C to us
+    except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
+        cause = e.__cause__ or e
+        raise ClusterError(f"cannot start a LocalCluster of {n} worker(s): {type(cause).__name__}: {cause}") from None
 
 
 def jobqueue_cluster(cfg: ClusterConfig):
-    """A dask-jobqueue SLURMCluster/PBSCluster from ``cfg.jobqueue`` (not yet scaled)."""
+    """A dask-jobqueue SLURMCluster/PBSCluster from ``cfg.jobqueue`` with what every worker needs
+    (:func:`job_settings`), not yet scaled. ``cluster.job_script()`` shows the job script it submits."""
     try:
         import dask_jobqueue
     except ImportError as e:
         raise ClusterError(f"cluster.kind {cfg.kind!r} needs dask-jobqueue: pip install 'dask-jobqueue>=0.8' "
                            "(or pip install -e .[cluster])") from e
     cls = {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[cfg.kind]
-    kw = dict(cfg.jobqueue)
-    extra = list(kw.get("worker_extra_args") or [])
-    if PRELOAD not in extra:
-        kw["worker_extra_args"] = extra + ["--preload", PRELOAD]
-    if cfg.dashboard_address is not None:
-        kw.setdefault("scheduler_options", {"dashboard_address": dashboard_bind(cfg.dashboard_address)})
+    kw = job_settings(cfg)
     security = make_security(cfg.security)
     if security is not None:
         kw.setdefault("security", security)
     try:
         return cls(**kw)
-    except TypeError as e:
-        raise ClusterError(f"cluster.jobqueue: {e}") from e
+    except (TypeError, ValueError) as e:
+        raise ClusterError(f"dataset.cluster.jobqueue: {type(e).__name__}: {e}") from e
+
+
+JOB_THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")   # as pipeline.worker_init sets them
+JOB_PASS_ENV = ("MI_VARIANT", "DENOISE_FORCE_CPU")     # this machine's choice of variant, passed on when set
+
+
+def _count(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+
+def job_settings(cfg: ClusterConfig) -> dict:
+    """The keyword arguments of the SLURMCluster / PBSCluster: ``cfg.jobqueue`` with what every worker needs
+    written into its job script, so a job does not depend on what sbatch or qsub pass on from here:
+
+    - threads: ``processes`` (workers a job) defaults to ``cores / cluster.threads_per_worker``, one
+      single-threaded worker a core by default; when given, ``cores`` must be ``processes x
+      threads_per_worker`` (dask-jobqueue gives each worker cores / processes threads, and the render
+      tasks size drjit's pool to a worker's threads); ``job_cpu`` may not be below ``cores``;
+    - ``memory`` (the job's, shared by its workers) must be a size;
+    - ``python`` defaults to this interpreter (this checkout's venv); a relative path such as
+      ``.venv/bin/python`` is taken from the checkout (:func:`job_python`), not from where a job starts;
+    - ``resources: {GPU: 1}`` (our key, not dask-jobqueue's) becomes ``--resources GPU=1`` on the worker
+      command line: what ``tasks.reference_resources`` asks for; and ``--preload pipeline.worker_init``;
+    - the job script's prologue (``job_script_prologue``): ``cd`` to this directory (PBS starts jobs
+      in $HOME; a relative ``--out`` must name the same store for the workers), BLAS/OpenMP pools of one
+      thread, drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
+      ``MI_VARIANT`` / ``DENOISE_FORCE_CPU`` when set here; then the config's own prologue lines, which
+      may override any of them;
+    - the dashboard at :func:`dashboard_bind` of ``cluster.dashboard_address`` (none when null) unless
+      ``scheduler_options`` names one.
+
+    Raises ConfigError (exit 2) naming the setting."""
+    import shlex
+
+    from dask.utils import parse_bytes
+
+    from scene_gen.variant import VariantError, find_libllvm
+    where = "dataset.cluster.jobqueue"
+    kw = dict(cfg.jobqueue)
+    tpw = cfg.threads_per_worker
+    cores, procs = kw.get("cores"), kw.get("processes")
+    if not _count(cores):
+        raise ConfigError(f"{where}.cores must be an integer >= 1 (the CPUs one job asks for), got {cores!r}")
+    if procs is None:
+        if cores % tpw:
+            raise ConfigError(f"{where}.cores ({cores}) must be a multiple of dataset.cluster.threads_per_worker "
+                              f"({tpw}): a job runs cores / threads_per_worker workers")
+        kw["processes"] = procs = cores // tpw
+    elif not _count(procs):
+        raise ConfigError(f"{where}.processes must be an integer >= 1 (Dask workers a job), got {procs!r}")
+    elif procs * tpw != cores:
+        fixes = [f"processes: {cores // tpw}"] if cores % tpw == 0 else []
+        fixes += [f"dataset.cluster.threads_per_worker: {cores // procs}"] if cores % procs == 0 else []
+        raise ConfigError(f"{where}: cores ({cores}) must equal processes ({procs}) x "
+                          f"dataset.cluster.threads_per_worker ({tpw}): each of a job's workers gets cores / "
+                          "processes threads and drjit renders "
+                          f"with a worker's threads; set {' or '.join(fixes) or 'them to agree'}")
+    job_cpu = kw.get("job_cpu")
+    if job_cpu is not None and not (_count(job_cpu) and job_cpu >= cores):
+        raise ConfigError(f"{where}.job_cpu must be null (= cores) or an integer >= cores ({cores}): the job's "
+                          f"workers run {cores} threads, got {job_cpu!r}")
+    mem = kw.get("memory")
+    try:
+        if isinstance(mem, bool) or int(parse_bytes(str(mem))) <= 0:
+            raise ValueError(mem)
+    except (ValueError, TypeError):
+        raise ConfigError(f"{where}.memory must be a size like '4GiB' (the memory one job asks for, shared by its "
+                          f"{procs} worker(s)), got {mem!r}") from None
+    kw["python"] = job_python(kw.get("python") or sys.executable)
+    logs = kw.get("log_directory")
+    if isinstance(logs, str) and logs and not logs.startswith(("$", "~")):
+        kw["log_directory"] = os.path.abspath(logs)     # the #SBATCH -o/-e paths, whatever the job's directory
+
+    extra = kw.get("worker_extra_args") or []
+    if not isinstance(extra, list):
+        raise ConfigError(f"{where}.worker_extra_args must be a list of `dask worker` arguments, got {extra!r}")
+    extra = [str(a) for a in extra]
+    res = kw.pop("resources", None)
+    if res is not None:
+        if not (isinstance(res, dict) and res and all(
+                isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
+                and isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for k, v in res.items())):
+            raise ConfigError(f"{where}.resources must be a mapping of resource names to the amount each worker "
+                              f"has, e.g. {{GPU: 1}}, got {res!r}")
+        if "--resources" in extra:
+            raise ConfigError(f"{where}: worker resources are given twice, as resources and as --resources in "
+                              "worker_extra_args; keep one")
+        extra += ["--resources", ",".join(f"{k}={v}" for k, v in res.items())]
+    if PRELOAD not in extra:
+        extra += ["--preload", PRELOAD]
+    kw["worker_extra_args"] = extra
+
+    lines = [f"cd {shlex.quote(os.getcwd())}"]
+    lines += [f"export {k}=1" for k in JOB_THREAD_ENV]
+    try:
+        lib = find_libllvm()
+    except VariantError:
+        lib = None
+    if lib:
+        q = shlex.quote(os.path.abspath(lib))
+        lines.append(f"if [ -f {q} ]; then export DRJIT_LIBLLVM_PATH={q}; fi")
+    lines += [f"export {k}={shlex.quote(os.environ[k])}" for k in JOB_PASS_ENV if os.environ.get(k)]
+    user = kw.pop("job_script_prologue", None) or kw.pop("env_extra", None) or []
+    kw.pop("env_extra", None)
+    if isinstance(user, str):
+        user = [user]
+    if not isinstance(user, list):
+        raise ConfigError(f"{where}.job_script_prologue must be a list of shell lines, got {user!r}")
+    kw["job_script_prologue"] = lines + [str(x) for x in user]
+
+    opts = kw.get("scheduler_options") or {}
+    if not isinstance(opts, dict):
+        raise ConfigError(f"{where}.scheduler_options must be a mapping of Scheduler arguments, got {opts!r}")
+    opts = dict(opts)
+    if "dashboard_address" not in opts and "dashboard" not in opts:
+        if cfg.dashboard_address is None:
+            opts["dashboard"] = False
+        else:
+            opts["dashboard_address"] = dashboard_bind(cfg.dashboard_address)
+    kw["scheduler_options"] = opts
+    return kw
+
+
+def job_python(python: str) -> str:
+    """The worker jobs' ``python``: a relative path (``.venv/bin/python``) made absolute against this
+    checkout, where ``make setup`` puts the venv (else against the current directory), so it means the
+    same wherever a job starts; an absolute path, a bare name (found on the node's PATH) and one starting
+    with ``$`` or ``~`` (expanded by the job's shell) are kept. Links are not followed: a venv's python
+    is one, and resolving it would leave the venv."""
+    from pathlib import Path
+    p = str(python)
+    if os.path.isabs(p) or "/" not in p or p.startswith(("$", "~")):
+        return p
+    root = Path(__file__).resolve().parent.parent
+    return os.path.abspath(root / p) if os.path.lexists(root / p) else os.path.abspath(p)
+
+
+def check_job_submission(cluster, kind: str, timeout: float = 60.0) -> None:
+    """Ask the batch system whether it would ever run one worker job, before any is submitted: SLURM's
+    ``sbatch --test-only`` on the job script. A job asking for more CPUs or memory than a node of the
+    partition has is otherwise accepted and waits in the queue for ever (reason ``PartitionConfig``),
+    or refused with the run waiting for workers that never come. Raises ClusterError with sbatch's
+    answer and the job's request. PBS has no such check: nothing is done."""
+    import shutil
+    import subprocess
+    import tempfile
+    if kind != "slurm":
+        return
+    if shutil.which("sbatch") is None:
+        raise ClusterError("cluster.kind 'slurm' needs SLURM's sbatch on this machine's PATH: run from a login node "
+                           "of the cluster (for a one-node cluster on this machine: scripts/local-slurm.sh up)")
+    with tempfile.NamedTemporaryFile("w", suffix=".sh", prefix="denoise-job-") as f:
+        f.write(cluster.job_script())
+        f.flush()
+        try:
+            r = subprocess.run(["sbatch", "--test-only", f.name], capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise ClusterError(f"sbatch --test-only did not answer within {timeout:g} s: is slurmctld up "
+                               "(sinfo)?") from None
+    if r.returncode != 0:
+        said = " | ".join(ln.strip() for ln in (r.stderr + r.stdout).splitlines() if ln.strip())
+        raise ClusterError(f"SLURM would never run the worker job that dataset.cluster.jobqueue describes "
+                           f"({job_request(cluster)}): sbatch --test-only says: {said or f'exit {r.returncode}'}; "
+                           "ask for at most what a node of the partition has (sinfo -N -o '%N %c %m %P')")
+
+
+def job_request(cluster) -> str:
+    """What a worker job asks the batch system for: its ``#SBATCH`` / ``#PBS`` directives, one line."""
+    heads = [ln.split(None, 1)[1] for ln in cluster.job_header.splitlines()
+             if ln.startswith(("#SBATCH ", "#PBS ")) and len(ln.split(None, 1)) == 2]
+    return " ".join(h for h in heads if not h.startswith(("-J", "-e", "-o", "-N")))
+
+
+JOB_GONE_GRACE = 5.0          # seconds a job's workers may be away before the job counts as ended
+JOB_WAIT_NOTE = 30.0          # seconds between notes while no worker job has started
+JOB_SUBMIT_TIMEOUT = 120.0    # seconds the first submission may take
+# squeue reasons of a pending job that will never start
+HOPELESS = ("PartitionConfig", "PartitionNodeLimit", "PartitionTimeLimit", "BadConstraints", "InvalidAccount",
+            "InvalidQOS", "DependencyNeverSatisfied")
+
+
+class JobKeeper:
+    """Keep ``jobs`` worker jobs in the queue for the whole run. dask-jobqueue submits a job once: one
+    that ends (``scancel``, its walltime, a lost node, a worker's ``--lifetime``) is not submitted again
+    (``SpecCluster`` re-creates workers only when scaled, and ``adapt`` at a fixed size sees its plan
+    unchanged). So every ``every`` seconds, on the cluster's event loop: a job whose workers joined the
+    scheduler and have all been gone for :data:`JOB_GONE_GRACE` seconds is dropped from the cluster's
+    spec (closing it, a harmless ``scancel`` of a finished job) and ``scale(jobs=jobs)`` submits a new
+    one; the scheduler had already given its tasks to the other workers. Jobs that never had a worker
+    are left to :func:`wait_for_jobs`. ``replaced`` lists ``(worker name, job id)`` of each ended job."""
+
+    def __init__(self, cluster, jobs: int, *, every: float = 2.0, grace: float = JOB_GONE_GRACE, say=print):
+        from tornado.ioloop import PeriodicCallback
+        self.cluster, self.jobs, self.grace, self.say = cluster, jobs, grace, say
+        self.seen: set = set()
+        self.gone: dict = {}
+        self.replaced: list = []
+        self.used: set = set()          # every job (worker spec) name this cluster has had
+        self._pc = PeriodicCallback(self.check, every * 1000)
+        cluster.loop.add_callback(self._pc.start)
+
+    def check(self) -> None:
+        import time
+
+        from distributed.core import Status
+        c = self.cluster
+        if c.status in (Status.closing, Status.closed, Status.failed):
+            self._pc.stop()
+            return
+        present = {str(w.get("name")) for w in (c.scheduler_info or {}).get("workers", {}).values()}
+        now = time.monotonic()
+        ended = []
+        for name, spec in list(c.worker_spec.items()):
+            names = {f"{name}{s}" for s in spec["group"]} if "group" in spec else {str(name)}
+            if names & present:
+                self.seen.add(name)
+                self.gone.pop(name, None)
+            elif name in self.seen and now - self.gone.setdefault(name, now) >= self.grace:
+                ended.append(name)
+        self.used.update(c.worker_spec)
+        if not ended:
+            return
+        for name in ended:
+            job_id = getattr(c.workers.get(name), "job_id", None)
+            del c.worker_spec[name]
+            self.seen.discard(name)
+            self.gone.pop(name, None)
+            self.replaced.append((name, job_id))
+            self.say(f"cluster: job {job_id} ({name}) ended (cancelled, walltime reached or node lost); its "
+                     "unfinished tasks go to other workers, and a new job is submitted", flush=True)
+        # New jobs get names never used: SpecCluster would take a name still held by the ended job as
+        # running (nothing submitted), and its lost-worker timer for the old worker would close a new
+        # job of that name that has not started yet.
+        while c._new_worker_name(c._i) in self.used or c._new_worker_name(c._i) in c.workers:
+            c._i += 1
+        c.scale(jobs=self.jobs)
+
+
+def slurm_queue(job_ids) -> dict | None:
+    """``{job id: (state, reason)}`` of those of ``job_ids`` still in SLURM's queue (``squeue``, this
+    user's jobs); None when squeue does not answer."""
+    import getpass
+    import subprocess
+    ids = {str(j) for j in job_ids if j}
+    try:
+        r = subprocess.run(["squeue", "-h", "-u", getpass.getuser(), "-o", "%i|%T|%r"], capture_output=True,
+                           text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if r.returncode != 0:
+        return None
+    out = {}
+    for line in r.stdout.splitlines():
+        jid, _, rest = line.strip().partition("|")
+        state, _, reason = rest.partition("|")
+        if jid in ids:
+            out[jid] = (state, reason)
+    return out
+
+
+def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
+    """Return once a worker of the batch jobs has joined the scheduler, noting every :data:`JOB_WAIT_NOTE`
+    seconds what the queue says of the jobs. Jobs may wait in a queue for hours, so there is no time
+    limit, but ClusterError (exit 2) when the jobs cannot bring workers: not submitted within
+    :data:`JOB_SUBMIT_TIMEOUT` s, pending for a reason that never clears (:data:`HOPELESS`), or all ended
+    without a worker joining (the job script failed: its output is in ``log_directory``, else
+    ``slurm-<id>.out`` in the submitting directory)."""
+    import time
+    cluster = conn.cluster
+    t0 = last = time.monotonic()
+    while not conn.n_workers():
+        now = time.monotonic()
+        ids = [getattr(j, "job_id", None) for j in list(cluster.workers.values())]
+        submitted = [j for j in ids if j]
+        if not submitted and now - t0 > JOB_SUBMIT_TIMEOUT:
+            raise ClusterError(f"no {conn.kind} worker job was submitted within {JOB_SUBMIT_TIMEOUT:g} s (the "
+                               "submit command failed; its error is logged above); check the job script "
+                               "(pipeline.cluster.jobqueue_cluster(cfg).job_script(), docs/cluster.md)")
+        queue = slurm_queue(submitted) if conn.kind == "slurm" and submitted else None
+        if queue is not None:
+            stuck = sorted(f"{j} {s} ({r})" for j, (s, r) in queue.items() if s == "PENDING" and r in HOPELESS)
+            if stuck and len(stuck) == len(queue):
+                raise ClusterError(f"the worker jobs can never start: squeue says {', '.join(stuck)}; ask "
+                                   f"dataset.cluster.jobqueue for what the partition allows ({job_request(cluster)})")
+            if not queue and len(submitted) >= min(jobs, len(ids)) and not conn.n_workers():
+                logs = (getattr(getattr(cluster, "_dummy_job", None), "log_directory", None)
+                        or "slurm-<job id>.out in the submitting directory")
+                raise ClusterError(f"the worker job(s) {', '.join(submitted)} ended before a worker joined; the "
+                                   f"job script failed (its output: {logs}); check python, the prologue and "
+                                   "that the scheduler's address is reachable from the nodes")
+        if now - last >= JOB_WAIT_NOTE or (last == t0 and now - t0 >= 5.0):
+            last = now
+            what = (", ".join(f"{j} {s}" + (f" ({r})" if r and r != "None" else "")
+                              for j, (s, r) in sorted(queue.items())) if queue
+                    else f"{len(submitted)} of {len(ids)} submitted")
+            say(f"cluster: waiting for the first worker of the {conn.kind} jobs ({now - t0:.0f} s so far; "
+                f"{what}); Ctrl-C stops", flush=True)
+        time.sleep(1.0)
+
+
+SCHEMES = ("tcp", "tls", "ucx", "ws", "wss", "inproc")
+
+
+def check_address(address: str, where: str = "--scheduler") -> str:
+    """``address`` as a scheduler address ``scheme://host:port`` (``tcp://`` added to a bare
+    ``host:port``); :class:`ConfigError` (exit 2, one line) for anything else."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    a = str(address).strip()
+    full = a if "://" in a else f"tcp://{a}"
+    try:
+        scheme, loc = parse_address(full)
+        host, port = parse_host_port(loc)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"{where} {address!r} is not a scheduler address ({e}); give scheme://host:port, "
+                          "e.g. tcp://head:8786") from None
+    if scheme not in SCHEMES or not host or not 0 < int(port) < 65536:
+        raise ConfigError(f"{where} {address!r} is not a scheduler address: give scheme://host:port with a "
+                          f"scheme of {list(SCHEMES)} and a port in 1..65535, e.g. tcp://head:8786")
+    return full
+
+
+def probe_scheduler(address: str, timeout: float, security=None) -> None:
+    """Connect to ``address`` and complete Dask's handshake within ``timeout`` seconds, else raise
+    :class:`ClusterError`. ``distributed.Client``'s own timeout covers the connection but not the
+    handshake: a port where something else listens (an HTTP server) hangs it for good."""
+    import asyncio
+
+    from distributed.comm import connect as comm_connect
+    kw = security.get_connection_args("client") if security is not None else {}
+
+    async def handshake():
+        comm = await comm_connect(address, timeout=timeout, **kw)
+        await comm.close()
+    try:
+        asyncio.run(asyncio.wait_for(handshake(), timeout + 1.0))
+    except asyncio.TimeoutError:
+        raise ClusterError(f"{address} accepts connections but does not answer as a Dask scheduler within "
+                           f"{timeout + 1.0:g} s (another service on that port?); check the address") from None
+    except (OSError, ValueError) as e:
+        raise ClusterError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s "
+                           f"({type(e).__name__}: {e}); is `dask scheduler` running there?") from None
 
 
 def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | None = None) -> Connection:
@@ -238,10 +602,12 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
         security = make_security(cfg.security)
         if "://" not in address:
             address = f"{'tls' if security is not None else 'tcp'}://{address}"
+        address = check_address(address, "--scheduler" if scheduler else "dataset.cluster.address")
         if security is not None and security.require_encryption and not address.startswith("tls://"):
             raise ConfigError(f"dataset.cluster.security requires encryption, but the scheduler address is "
                               f"{address}; use tls://{address.split('://', 1)[1]} (the scheduler started with "
                               "--tls-ca-file/--tls-cert/--tls-key), or set require_encryption: false")
+        probe_scheduler(address, cfg.connect_timeout, security)
         try:
             client = Client(address, timeout=cfg.connect_timeout, set_as_default=False, security=security)
         except (OSError, TimeoutError) as e:
@@ -250,9 +616,22 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
         return _prepared(Connection(client, None, "scheduler"))
     if cfg.kind in ("slurm", "pbs"):
         cluster = jobqueue_cluster(cfg)
-        cluster.scale(jobs=workers or cfg.jobs)
-        client = Client(cluster, set_as_default=False)
-        return _prepared(Connection(client, cluster, cfg.kind))
+        jobs = workers or cfg.jobs
+        try:
+            check_job_submission(cluster, cfg.kind)
+            cluster.scale(jobs=jobs)
+            cluster.denoise_keeper = JobKeeper(cluster, jobs)    # ended jobs are submitted again
+            client = Client(cluster, set_as_default=False)
+        except BaseException:
+            cluster.close()
+            raise
+        conn = _prepared(Connection(client, cluster, cfg.kind))
+        try:
+            wait_for_jobs(conn, jobs)          # jobqueue workers come late: the first one, or a clear error
+        except BaseException:
+            conn.close()
+            raise
+        return conn
     try:
         cluster = local_cluster(cfg, workers)
     except (OSError, TimeoutError) as e:

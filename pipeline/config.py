@@ -206,6 +206,8 @@ class ClusterConfig:
         _need(self.dashboard_address is None or isinstance(self.dashboard_address, str),
               f"{p}.dashboard_address", "null (no dashboard) or an address like '127.0.0.1:8787'",
               self.dashboard_address)
+        if self.dashboard_address is not None:
+            parse_dashboard(self.dashboard_address, f"{p}.dashboard_address")
         t = self.connect_timeout
         _need(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and 0 < t <= 3600,
               f"{p}.connect_timeout", "a number of seconds in (0, 3600]", t)
@@ -219,6 +221,20 @@ class ClusterConfig:
             for k in ("cores", "memory"):
                 _need(k in self.jobqueue, f"{p}.jobqueue.{k}", f"set for kind {self.kind!r} (dask-jobqueue needs it)",
                       self.jobqueue.get(k))
+
+
+def parse_dashboard(address: str, where: str = "dataset.cluster.dashboard_address") -> tuple[str, int]:
+    """``(host, port)`` of a dashboard address (``host:port``, ``:port`` or ``port``; host '' means
+    127.0.0.1, ``pipeline.cluster.dashboard_bind``); :class:`ConfigError` naming ``where`` otherwise."""
+    a = str(address).strip()
+    host, sep, port = a.rpartition(":")
+    if not sep:
+        host, port = "", a
+    host = host.strip("[]")
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(f"{where} must be host:port (or :port) with a port in 0..65535 (0: any free port), "
+                          f"got {address!r}")
+    return host, int(port)
 
 
 def balanced_splits(n: int, fractions: dict, seed: int) -> list[str]:
@@ -323,11 +339,12 @@ class DatasetConfig:
         _need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids)
         self.tasks.validate()
         self.cluster.validate()
+        lv = self.render.get("layer_levels", 6)     # a dataset's range (render-frame's starts at 0): one message
+        _need(_is_int(lv) and 1 <= lv <= 12, "dataset.render.layer_levels",
+              "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", lv)
         rc = self.render_config()   # the owners validate their sections (raise ConfigError naming the field)
         if rc.oracle_spp:
             raise ConfigError(f"dataset.render.oracle_spp must be 0 (the store has no oracle image), got {rc.oracle_spp}")
-        _need(rc.layer_levels >= 1, "dataset.render.layer_levels",
-              "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", rc.layer_levels)
         self.scene_gen_config()
         self.store_layout()
         # no memory check here: the workers are not known until the CLI has its --scheduler / --workers
@@ -343,10 +360,19 @@ class DatasetConfig:
                      else worker_memory(self.cluster, workers=workers))
         if have and need > have:
             W, H = self.resolution
+            fix = "lower the resolution or spp, or give workers more memory"
+            local = per_worker is None and self.cluster.kind == "local" and self.cluster.memory_limit in (None, "auto", 0)
+            n = workers or self.cluster.workers
+            if local and n:                   # the machine's memory split over more workers than fit
+                total = have * n
+                fits = total // need
+                if fits >= 1:
+                    fix = (f"use at most {fits} workers (--workers or cluster.workers; {n} asked), or lower the "
+                           "resolution or spp")
             raise ConfigError(
                 f"dataset.resolution {W}x{H} cannot be rendered: one frame needs about {_gib(need)} "
                 f"({need:,} bytes: its arrays of {_gib(frame_bytes(self))}, held twice while it is written), "
-                f"and a worker has {_gib(have)} ({src}); lower the resolution or spp, or give workers more memory")
+                f"and a worker has {_gib(have)} ({src}); {fix}")
 
     # -- derived -----------------------------------------------------------------------------------
     def render_config(self):
@@ -519,6 +545,8 @@ def frame_bytes(cfg: DatasetConfig) -> int:
 
 
 def _gib(n: float) -> str:
+    if n < 2 ** 20:
+        return f"{n / 2 ** 10:.1f} KiB"
     return f"{n / 2 ** 30:.1f} GiB" if n >= 2 ** 28 else f"{n / 2 ** 20:.1f} MiB"
 
 

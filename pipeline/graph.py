@@ -9,13 +9,14 @@ gives the same graph as a plain Dask task dict (``dask.get``, tests, visualisati
 
 Keys (stage first, because the dashboard's progress pane groups tasks by the key's prefix)::
 
-    spec-scene-000042@T                     scene_gen.sampling.sample_scene → SceneSpec JSON
+    spec-scene-000042@T                     scene_gen.sampling.sample_scene → SceneSpec JSON (stored once a clip)
     inputs-scene-000042/frame-3@T           per-sample inputs + guides       (split)
     layers-scene-000042/frame-3@T           sample layers                    (split)
     reference-scene-000042/frame-3@T        reference (+ resources, e.g. GPU) (split)
     render-scene-000042/frame-3@T           the whole frame                  (not split: the default)
-    write-scene-000042/frame-3@T            gathers the parts, writes the frame's store region
-                                            (with the scene's clip id, ``FrameRef.clip_id``)
+    write-scene-000042/frame-3@T            gathers the parts, writes the frame's image shards, returns its
+                                            record (with the scene's clip id, ``FrameRef.clip_id``), which
+                                            the client commits (``stores.writer``: metadata, status last)
 
 ``T`` is a short token of (dataset content, store path), so two datasets on one shared scheduler never
 share a key. Store writes: one task per frame gathers its parts and writes the frame's chunk-aligned
@@ -133,11 +134,14 @@ def spec_key(scene: int, token: str) -> str:
 
 
 def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | None = None, *,
-                functions: SimpleNamespace | None = None, token: str | None = None) -> DatasetGraph:
+                functions: SimpleNamespace | None = None, token: str | None = None,
+                generation: str = "") -> DatasetGraph:
     """The graph that renders and writes ``frames`` (default: all of ``cfg``'s) into ``store``.
 
-    Scene specs are made once per scene that has a frame to render. ``functions`` replaces the task
-    functions (same signatures as :func:`default_functions`'s).
+    Scene specs are made once per scene that has a frame to render, and each stores its SceneSpec JSON
+    at the scene's first frame (``pipeline.tasks.scene_spec``). ``functions`` replaces the task
+    functions (same signatures as :func:`default_functions`'s). ``generation``
+    (``stores.writer.generation``) lets each worker keep the store's writer open between frames.
     """
     fn = functions or default_functions()
     frames = list(cfg.frames() if frames is None else frames)
@@ -149,8 +153,10 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
     for ref in sorted(frames, key=lambda r: r.index):
         sk = spec_key(ref.scene, token)
         if sk not in g.nodes:
-            g.add(Node(sk, fn.make_spec, (ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), scene_gen)
-                       + ((ref.case,) if ref.case else ()), "spec"))      # a hard case (scene_gen.cases)
+            g.add(Node(sk, _tasks.scene_spec, (store, ref.index - ref.frame, ref.seed, ref.kind, ref.num_frames,
+                                               tuple(cfg.resolution), scene_gen)
+                       + ((ref.case,) if ref.case else ()), "spec",           # a hard case (scene_gen.cases)
+                       kwargs={"make": fn.make_spec, **({"generation": generation} if generation else {})}))
         spec = Ref(sk)
         if cfg.tasks.split:
             parts = (
@@ -165,6 +171,7 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
         wk = g.add(Node(frame_key("write", ref, token), fn.write_frame,
                         (store, ref.index, spec, ref.frame, *map(Ref, parts)), "write",
                         priority=WRITE_PRIORITY, frame_index=ref.index,
-                        kwargs={"clip_id": ref.clip_id} if ref.clip_id is not None else None))
+                        kwargs={**({"clip_id": ref.clip_id} if ref.clip_id is not None else {}),
+                                **({"generation": generation} if generation else {})} or None))
         g.writes[ref.index] = wk
     return g

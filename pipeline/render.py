@@ -511,6 +511,12 @@ def _sanitize_image(img: np.ndarray, max_value: float) -> tuple[np.ndarray, int]
 
 def _mi_render(fs: FrameScene, spp: int, seed: int) -> np.ndarray:
     img = fs.mi.render(fs.scene, spp=int(spp), seed=int(seed))
+    if fs.scene.integrator().should_stop():
+        # Mitsuba's SIGINT handler cancelled this render: what it returned may hold fewer samples than
+        # asked for. Fail the task (it is retried) rather than store a frame that is not what it says.
+        from pipeline.errors import RenderError
+        raise RenderError(f"the render of {spp} spp (seed {seed}) was cancelled by an interrupt signal before "
+                          "it finished; its result is not used")
     return np.asarray(img, np.float64)[..., :3]
 
 

@@ -11,8 +11,10 @@ changes no byte):
 - :func:`render_inputs`    → per-sample inputs + guides + camera matrices (``pipeline.render.inputs_part``)
 - :func:`render_layers`    → sample layers (``pipeline.render.layers_part``)
 - :func:`render_reference` → reference mean + standard error (``pipeline.render.reference_part``)
+- :func:`scene_spec`       → :func:`make_spec`, with the JSON stored once for the scene's clip (schema v3)
 - :func:`write_frame`      → gathers the three parts (``pipeline.render.assemble``), writes the frame's
-  region of the store (``status/complete`` last) and returns a small summary dict.
+  image shards and returns a small summary with the frame's record, which the client commits
+  (metadata, ``status/complete`` last: ``stores.writer``).
 
 :func:`render_whole_frame` renders the same three parts on one loaded scene
 (``pipeline.render.render_frame``).
@@ -38,10 +40,13 @@ import json
 import sys
 import threading
 import time
+import weakref
 from collections import OrderedDict
 
 SCENE_CACHE_SIZE = 1          # loaded scenes kept per worker process (a frame's three streams)
 _scenes: OrderedDict = OrderedDict()
+_loaded = weakref.WeakSet()   # every FrameScene this process loaded and that is still alive
+_in_flight = weakref.WeakSet()   # the ones running tasks hold right now (not to be freed)
 _scenes_lock = threading.Lock()
 _in_use = 0                   # scenes taken out of the cache by running tasks
 
@@ -98,8 +103,10 @@ class frame_scene:
                 self._release()
                 raise
             fs.load_seconds = time.perf_counter() - t0
+            _loaded.add(fs)
         else:
             fs.load_seconds = 0.0
+        _in_flight.add(fs)
         self.fs = fs
         return fs
 
@@ -112,6 +119,7 @@ class frame_scene:
     def __exit__(self, exc_type, exc, tb):
         global _in_use
         fs, self.fs = self.fs, None
+        _in_flight.discard(fs)
         if exc_type is not None:
             self._release()
             return False                    # a scene that failed mid-render is not reused
@@ -131,7 +139,11 @@ class frame_scene:
 
 def _evict_locked(*, flush_kernels: bool) -> None:
     _scenes.clear()
-    gc.collect()                            # a scene in a reference cycle (or a failed task's) would stay registered
+    # A scene in a reference cycle (or a failed task's, held by its traceback) would stay registered
+    # with drjit: collect cycles, but only when a scene outlived the clear (a full collection costs
+    # ~90 ms in a worker's large heap, more than rendering an 8x8 frame; most scenes go by refcount).
+    if any(True for fs in _loaded if fs not in _in_flight):
+        gc.collect()
     if flush_kernels and "drjit" in sys.modules:
         sys.modules["drjit"].flush_kernel_cache()
 
@@ -195,13 +207,50 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
     return _assemble(spec_json, frame, inputs, layers, reference)
 
 
-def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict, clip_id: int | None = None) -> dict:
-    """Write frame ``index`` of the store from one whole-frame dict or the three parts (inputs,
-    layers, reference); ``status/complete[index]`` is set last. ``clip_id`` (the scene's, from
-    ``pipeline.config``; default: the scene seed) goes to ``frames/clip_id`` and decides the split.
-    Returns a summary: index, frame, scene seed, render and write seconds, reference spp and
-    relative standard error, non-finite counts."""
+_writers: OrderedDict = OrderedDict()      # (store, generation) -> StoreWriter, a few per process
+_writers_lock = threading.Lock()
+
+
+def store_writer(store: str, generation: str = ""):
+    """This process's :class:`stores.writer.StoreWriter` of ``store``, opened once per ``generation``
+    (the client's :func:`stores.writer.generation` of the store: its id and frame count), not once per
+    frame: opening checks every array's metadata (tens of milliseconds), more than an 8x8 frame's write."""
     from stores.writer import StoreWriter
+    key = (str(store), str(generation))
+    with _writers_lock:
+        w = _writers.get(key) if generation else None
+        if w is None:
+            w = StoreWriter(store)
+            if generation:
+                _writers[key] = w
+                while len(_writers) > 4:
+                    _writers.popitem(last=False)
+        return w
+
+
+def scene_spec(store: str, first: int, seed: int, kind: str, num_frames: int, res: tuple[int, int],
+               scene_gen: dict, case: str = "", *, generation: str = "", make=None) -> str:
+    """:func:`make_spec` (or ``make``, the same signature), and the SceneSpec JSON stored once for the
+    scene's clip, at its first frame ``first`` (schema v3; ``frames/scene_json``), before any of its
+    frames is written: every frame task depends on this one. The same bytes on every run, so a resume
+    rewriting it changes nothing."""
+    spec_json = (make or make_spec)(seed, kind, num_frames, res, scene_gen, *((case,) if case else ()))
+    w = store_writer(store, generation)
+    if w.version >= 3:
+        w.write_scene_json(int(first), spec_json)
+    return spec_json
+
+
+def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict, clip_id: int | None = None,
+                generation: str = "") -> dict:
+    """Write frame ``index``'s data from one whole-frame dict or the three parts (inputs, layers,
+    reference): its image shards (``StoreWriter.write_frame_data``). ``clip_id`` (the scene's, from
+    ``pipeline.config``; default: the scene seed) goes into its record and decides the split. Returns a
+    summary (index, frame, scene seed, render and write seconds, reference spp and relative standard
+    error, non-finite counts, ``checked``: the frame's value problems, ``stores.fitness.check_values``
+    of what was written) with the frame's ``record``, which the client commits (``StoreWriter.commit``:
+    metadata, then ``status/complete``). In a schema v2 store the task commits the frame itself."""
+    from stores.fitness import check_values
     if len(parts) == 1:
         arrays = parts[0]
     elif len(parts) == 3:
@@ -211,9 +260,13 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
     if clip_id is not None:
         arrays = {**arrays, "meta": {**arrays["meta"], "clip_id": int(clip_id)}}
     t0 = time.perf_counter()
-    StoreWriter(store).write_frame(int(index), arrays)
+    w = store_writer(store, generation)
+    record = w.write_frame_data(int(index), arrays)
+    write_s = time.perf_counter() - t0
     meta = arrays["meta"]
+    problems = check_values({k: v for k, v in arrays.items() if k != "meta"}, w.layout).problems
     return {"index": int(index), "frame": int(frame), "scene_seed": int(meta["scene_seed"]),
-            "render_seconds": float(meta["render_seconds"]), "write_seconds": time.perf_counter() - t0,
+            "render_seconds": float(meta["render_seconds"]), "write_seconds": write_s,
             "reference_spp": int(meta["reference_spp"]), "reference_rel_stderr": float(meta["reference_rel_stderr"]),
-            "nonfinite": int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"])}
+            "nonfinite": int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"]),
+            "checked": problems, "record": record if w.version >= 3 else None, "done_at": time.time()}

@@ -7,11 +7,21 @@ Importing it, in the worker process's main thread:
 - imports pymeshlab there: pymeshlab (Qt plugins) imported first from a non-main thread corrupts the
   heap (glibc's ``malloc_consolidate(): unaligned fastbin chunk detected``), and Dask runs tasks in
   executor threads;
-- points drjit at a libLLVM >= 16 and keeps BLAS/OpenMP pools at one thread per worker thread.
+- points drjit at a libLLVM >= 16 and keeps BLAS/OpenMP pools at one thread per worker thread;
+- in the worker processes of a ``LocalCluster`` that ``pipeline.cluster`` starts (``$DENOISE_LOCAL_WORKER``
+  set through the nanny's environment), blocks SIGINT (:func:`ignore_interrupts`): a terminal's
+  Ctrl-C reaches the whole process group, and a worker that took it would close "gracefully", so its
+  nanny would not replace it and the run would wait for it forever; the client alone handles Ctrl-C
+  (it stops the run with exit code 130 and closes the workers). Workers started by ``dask worker``
+  or batch jobs keep their own signal handling. Those workers also leave out distributed's
+  "Compute Failed" tracebacks (:func:`quiet_task_failures`): the client prints each failed frame.
 """
 from __future__ import annotations
 
 import os
+import signal
+
+LOCAL_WORKER_ENV = "DENOISE_LOCAL_WORKER"
 
 
 def prepare_environment() -> None:
@@ -27,7 +37,30 @@ def prepare_environment() -> None:
         os.environ.setdefault(k, "1")
 
 
+def ignore_interrupts() -> None:
+    """Block SIGINT in this process's main thread (threads started later inherit the mask) and ignore it
+    process-wide: it is never delivered, so neither Python nor Mitsuba's render loop (which installs its
+    own SIGINT handler during ``mi.render`` and would cut the render short) sees it."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def quiet_task_failures() -> None:
+    """Drop distributed's "Compute Failed" log record (the task's whole traceback, once per attempt) in
+    this worker: the client that started it records each failed frame's error in the store
+    (``status/error``) and prints it in one line in its summary."""
+    import logging
+
+    class _NoComputeFailed(logging.Filter):
+        def filter(self, record):
+            return not str(record.msg).startswith("Compute Failed")
+    logging.getLogger("distributed.worker").addFilter(_NoComputeFailed())
+
+
 prepare_environment()
+if os.environ.get(LOCAL_WORKER_ENV) == "1":
+    ignore_interrupts()
+    quiet_task_failures()
 import pymeshlab  # noqa: E402,F401  (first import in this, the main, thread; see scene_gen.meshes._pymeshlab)
 
 

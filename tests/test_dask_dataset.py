@@ -136,8 +136,10 @@ def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
     from scene_gen.spec import SceneSpec
     from stores.schema import ARRAY_BY_SOURCE, layout_of
     from test_stores_synthetic import stored
+    from stores.reader import open_store
     g = zarr.open_group(str(local_store["out"]), mode="r")
-    spec = SceneSpec.from_json(str(g["frames/scene_json"][3]))
+    spec = SceneSpec.from_json(open_store(local_store["out"]).scene_json(3))
+    assert str(g["frames/scene_json"][2]) == spec.to_json() and str(g["frames/scene_json"][3]) == ""   # once a clip
     cfg = load_config(SMOKE)
     assert spec.to_json() == __import__("pipeline.tasks", fromlist=["x"]).make_spec(
         cfg.frames()[3].seed, "outdoor", 2, cfg.resolution, cfg.scene_gen)      # the spec is reproducible

@@ -148,12 +148,15 @@ def test_subset_of_frames_unsplit_and_tokens():
     assert build_graph(cfg.with_cluster(workers=7), "/a.zarr", frames).token == g.token
 
 
-def test_reference_resources_reach_the_scheduler(threaded_cluster):
+def test_reference_resources_reach_the_scheduler(threaded_cluster, tmp_path):
     """Annotations must survive to the scheduler (they can be lost in graph optimisation): submit with
     {GPU: 1} to workers without GPUs; references wait unassigned, everything else runs."""
     from distributed import Client
+    from stores.writer import open_or_create
     cfg = tiny_cfg(reference_resources={"GPU": 1})
-    g = build_graph(cfg, "/nonexistent.zarr", functions=fake_functions())
+    store = str(tmp_path / "t.zarr")                 # the spec tasks store each scene's JSON in it
+    open_or_create(store, cfg.store_layout(), cfg.content_dict())
+    g = build_graph(cfg, store, functions=fake_functions())
     refs = [k for k, n in g.nodes.items() if n.stage == "reference"]
     assert all(g.nodes[k].resources == {"GPU": 1} for k in refs)
     with Client(threaded_cluster, set_as_default=False) as c:

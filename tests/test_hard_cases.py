@@ -79,7 +79,7 @@ def test_graph_passes_the_case_only_when_set():
     cfg = DatasetConfig.from_dict({"scenes": [{"kind": "indoor", "count": 1},
                                               {"kind": "outdoor", "count": 1, "case": "thin"}]})
     specs = [n for n in build_graph(cfg, "/tmp/x.zarr").nodes.values() if n.stage == "spec"]
-    assert [len(n.args) for n in specs] == [5, 6] and specs[1].args[-1] == "thin"
+    assert [len(n.args) for n in specs] == [7, 8] and specs[1].args[-1] == "thin"   # (store, first frame, ...)
 
 
 def test_spec_without_case_is_unchanged_and_case_round_trips():

@@ -270,11 +270,11 @@ def test_resume_renders_a_complete_frame_again_when_a_shard_file_is_lost(killed_
 
 
 def test_resume_renders_a_frame_again_when_its_completion_flag_is_damaged(killed_in_creation):
-    """A flipped byte in ``status/complete`` of a complete frame: the next run re-renders that frame
-    (no traceback from the pre-flight store check)."""
+    """A flipped byte in the ``status/complete`` chunk (schema v3: one chunk holds 1024 frames' flags):
+    the next run re-renders the frames of that chunk (no traceback from the pre-flight store check)."""
     out, d = killed_in_creation["out"], killed_in_creation["dir"]
     assert killed_in_creation["c"].returncode == 0
-    flag = out / "status" / "complete" / "c" / "2"
+    flag = out / "status" / "complete" / "c" / "0"
     data = bytearray(flag.read_bytes())
     data[0] ^= 0x01                                                # fails its crc32c
     flag.write_bytes(bytes(data))
@@ -282,7 +282,7 @@ def test_resume_renders_a_frame_again_when_its_completion_flag_is_damaged(killed
                        timeout=600)
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stdout[-3000:] + r.stderr[-3000:]
     s = json.loads((d / "f.json").read_text())
-    assert s["rendered"] == 1 and s["complete"] == 4 and s["validation"]["ok"], s
+    assert s["rendered"] == 4 and s["complete"] == 4 and s["validation"]["ok"], s
     from stores.reader import open_store
     assert open_store(out).complete_frames() == [0, 1, 2, 3]
 
@@ -343,9 +343,10 @@ def _smoke() -> dict:
     return yaml.safe_load(SMOKE.read_text())
 
 
-def test_layer_levels_zero_is_refused():
+@pytest.mark.parametrize("levels", [0, 13, -1, 2.5])
+def test_layer_levels_out_of_range_is_refused_with_one_range(levels):
     d = _smoke()
-    d["render"]["layer_levels"] = 0
+    d["render"]["layer_levels"] = levels
     with pytest.raises(ConfigError, match=r"dataset.render.layer_levels must be an integer in \[1, 12\]"):
         DatasetConfig.from_dict(d)
 
@@ -401,7 +402,7 @@ def test_a_frame_that_cannot_fit_in_memory_is_refused(tmp_path, capsys):
     cfg = load_config(SMOKE)
     big = cfg.with_cluster(memory_limit="1PiB").with_overrides(resolution=(16384, 16384))   # fits a 1 PiB worker
     assert frame_bytes(big) > 170e9                                                  # the issue's ~170 GB
-    with pytest.raises(ConfigError, match=r"16x16 cannot be rendered.*a worker has 0.1 MiB \(the test's\)"):
+    with pytest.raises(ConfigError, match=r"16x16 cannot be rendered.*a worker has 97.7 KiB \(the test's\)"):
         cfg.check_memory(per_worker=100_000, where="the test's")
     cfg.check_memory(per_worker=2 ** 30)
 
