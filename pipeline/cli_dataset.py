@@ -184,6 +184,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
                         cluster="none (nothing to render)", validation=_validate_run(store, []))
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
     results: list[dict] = []
+    timings: dict = {}
     try:
         dashboard = conn.dashboard
         _print(f"cluster: {conn.kind} at {conn.address}, {conn.n_workers()} worker(s)")
@@ -200,11 +201,15 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         skipped = cfg.num_frames - len(frames)
         if skipped:
             _print(f"resume: {skipped} frame(s) already complete, {len(frames)} to render")
+        tb = time.perf_counter()
         graph = build_graph(cfg, store, frames, functions=functions, generation=generation(store))
+        timings["build_graph_s"] = time.perf_counter() - tb
+        committer = Committer(writer)
         results, failed = _execute(conn.client, graph, writer, progress, as_completed,
-                                   watch_workers=conn.kind == "local",
+                                   watch_workers=conn.kind == "local", committer=committer, timings=timings,
                                    on_disk_full=lambda left: store_full(store, "writing frames",
                                                                         space_needed(cfg, store, left)))
+        timings.update(commits=committer.commits, commit_latency_s=committer.latencies)
     except KeyboardInterrupt:
         _print(f"\ninterrupted: complete frames stay in {store}; run the same command again to resume")
         raise
@@ -212,8 +217,13 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         conn.close()
     validation = _validate_run(store, [r["index"] for r in results] + list(failed),
                                {r["index"]: r.get("checked") or [] for r in results})
-    return _summary(cfg, store, t0, results=results, failed=failed, skipped=skipped, dashboard=dashboard,
-                    cluster=conn.kind, validation=validation)
+    summary = _summary(cfg, store, t0, results=results, failed=failed, skipped=skipped, dashboard=dashboard,
+                       cluster=conn.kind, validation=validation)
+    lat = timings.pop("commit_latency_s", [])
+    summary["timings"] = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
+                          "commit_latency_max_s": float(np.max(lat)) if lat else None,
+                          "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
+    return summary
 
 
 def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
@@ -404,7 +414,8 @@ class Committer:
 
 
 def _execute(client, graph, writer, progress: bool, as_completed, *, watch_workers: bool = False,
-             on_disk_full=None, committer: Committer | None = None) -> tuple[list[dict], dict[int, str]]:
+             on_disk_full=None, committer: Committer | None = None,
+             timings: dict | None = None) -> tuple[list[dict], dict[int, str]]:
     """Submit ``graph``, wait for every write, commit the frames written (:class:`Committer`) and
     record those that failed. Returns (results, failures). ``watch_workers`` (a LocalCluster's run):
     raise :class:`WorkersLostError` when the cluster has had no worker for :data:`LOST_WORKERS_AFTER`
@@ -414,7 +425,10 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     re-run after freeing space resumes it. Whatever stops the run, the frames finished before are
     committed first (best effort), so the resume does not render them again."""
     import threading
+    ts = time.perf_counter()
     futures = graph.submit(client)
+    if timings is not None:
+        timings["submit_s"] = time.perf_counter() - ts
     by_future = {futures[k]: idx for idx, k in graph.writes.items()}
     # Hold only the writes: the scheduler then frees each render result once its write is done
     # (memory stays bounded by the frames in flight, not the dataset).

@@ -236,6 +236,7 @@ class Store:
             self._local = os.fspath(p)
         self._meta_cache = None
         self._clip_starts = None
+        self._scene_texts: dict[int, str] = {}
 
     def __getstate__(self):
         return {"path": self.path, "fast": self.fast, "threads": self.threads}
@@ -284,6 +285,8 @@ class Store:
         self._num_frames = None
         self._fast_readers = {}
         self._meta_cache = None
+        self._clip_starts = None
+        self._scene_texts = {}
 
     def _zarr_read(self, path: str, sel, frame: int | None = None) -> np.ndarray:
         """``root[path][sel]`` through zarr-python, with damage (a failed crc32c, a truncated or garbage
@@ -429,7 +432,10 @@ class Store:
         if self.version < 3:
             return str(t["scene_json"][i])
         f0 = self._clip_start(t, i)
-        return str(self._zarr_read("frames/scene_json", f0, f0))
+        text = self._scene_texts.get(f0)
+        if text is None:                    # a clip's frames share one JSON: read it once per Store
+            text = self._scene_texts[f0] = str(self._zarr_read("frames/scene_json", f0, f0))
+        return text
 
     def metadata_damage(self) -> dict[int, list[StoreCorruptionError]]:
         """Frames whose ``frames/*`` or ``status/*`` chunks are damaged or (v2, complete frames) missing,
@@ -458,13 +464,7 @@ class Store:
         a clip, is read clip by clip (:meth:`scene_json` reads one frame's)."""
         t = self._meta_table()
         if key == "scene_json" and key not in t:
-            texts: dict[int, str] = {}
-            out = []
-            for i in range(self.num_frames):
-                f0 = self._clip_start(t, i)
-                if f0 not in texts:
-                    texts[f0] = str(self._zarr_read("frames/scene_json", f0, f0))
-                out.append(texts[f0])
+            out = [self.scene_json(i) for i in range(self.num_frames)]
             return np.array(out, dtype=object).astype(str)
         return t[key].copy()
 
