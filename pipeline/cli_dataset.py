@@ -448,6 +448,15 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
 
     def full(e):
         return (on_disk_full or (lambda n: e))(len(by_future) - len(results))
+
+    def flush(how) -> None:
+        """A commit; the store's disk full is the run's StoreFullError."""
+        try:
+            how()
+        except OSError as e:
+            if not is_disk_full(e):
+                raise
+            raise full(e) from None
     finished = False
     try:
         for fut in as_completed(list(by_future), loop=client.loop):
@@ -465,23 +474,13 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
                 text = f"{type(exc).__name__}: {exc}"
                 failed[idx] = text
                 commit.fail(idx, text)
-            try:
-                commit.maybe_flush()
-            except OSError as e:
-                if not is_disk_full(e):
-                    raise
-                raise full(e) from None
+            flush(commit.maybe_flush)
             if bar is not None:
                 bar.update(1)
                 if failed:
                     bar.set_postfix(failed=len(failed))
             fut.release()
-        try:
-            commit.flush()
-        except OSError as e:
-            if not is_disk_full(e):
-                raise
-            raise full(e) from None
+        flush(commit.flush)
         finished = True
     finally:
         stop.set()

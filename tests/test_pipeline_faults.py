@@ -19,18 +19,11 @@ import pytest
 import yaml
 
 from procs import kill_group
+from test_pipeline_safety import _env
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
 PY = sys.executable
-
-
-def _env(**extra) -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env["PYTHONUNBUFFERED"] = "1"
-    env.update(extra)
-    return env
 
 
 def _dataset(out, *extra, config=SMOKE, timeout=600) -> subprocess.CompletedProcess:
