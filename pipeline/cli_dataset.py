@@ -463,8 +463,8 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
             idx = by_future[fut]
             if fut.status == "finished":
                 r = fut.result()
-                results.append(r)
                 commit.add(r)
+                results.append({k: v for k, v in r.items() if k != "record"})   # the committer holds it
             elif fut.status == "cancelled":
                 continue                    # the run is stopping (workers lost): the frame stays incomplete
             else:

@@ -143,8 +143,10 @@ class StoreWriter:
             if on_progress:
                 on_progress("frames")
             arr("status/complete")[index] = True
-        elif int(record["meta"]["frame"]) == 0:
-            self.write_scene_json(index, record["meta"]["scene_json"])
+        else:
+            scene_json = record["meta"].pop("scene_json")    # kept once a clip, never in the record: a
+            if int(record["meta"]["frame"]) == 0:             # long clip's JSON is as long as the clip
+                self.write_scene_json(index, scene_json)
         return record
 
     def write_scene_json(self, first: int, scene_json: str) -> None:

@@ -40,7 +40,8 @@ def test_cached_scene_gives_the_bytes_of_fresh_loads(mi):
     for k in FRAME_ARRAYS:
         assert a[k].tobytes() == b[k].tobytes() == whole[k].tobytes(), k
     assert a["meta"]["has_motion"] and a["meta"]["reference_spp"] == 32
-    assert {k: v for k, v in a["meta"].items() if k != "render_seconds"} == \
+    assert a["meta"]["scene_json"] == spec and "scene_json" not in whole["meta"]   # the write task has it
+    assert {k: v for k, v in a["meta"].items() if k not in ("render_seconds", "scene_json")} == \
         {k: v for k, v in whole["meta"].items() if k != "render_seconds"}
     assert np.abs(a["features"][..., 11:13]).max() > 0           # objects really moved
 
