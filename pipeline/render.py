@@ -660,9 +660,11 @@ def reference_part(fs: FrameScene) -> dict:
             "seconds": _time.perf_counter() - t0}
 
 
-def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
-    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts."""
-    spec = SceneSpec.from_json(spec_json)
+def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict, *,
+             spec: SceneSpec | None = None) -> dict:
+    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts. ``spec``: the
+    parsed ``spec_json``, when the caller has it (a clip's JSON grows with its length)."""
+    spec = SceneSpec.from_json(spec_json) if spec is None else spec
     out = {k: inputs[k] for k in INPUT_KEYS}
     out.update({k: layers[k] for k in LAYER_KEYS})
     out.update({k: reference[k] for k in REFERENCE_KEYS})
@@ -688,7 +690,7 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
 
 def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *,
                  on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None,
-                 scene: FrameScene | None = None) -> dict:
+                 scene: FrameScene | None = None, spec_json: str | None = None) -> dict:
     """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``,
     i.e. :func:`assemble` of :func:`inputs_part`, :func:`layers_part` and :func:`reference_part` on one
     loaded scene (the dataset graph's whole-frame task; split, its three tasks do it on up to three),
@@ -696,7 +698,8 @@ def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *
 
     ``on_scene_loaded(scene)`` may modify the freshly loaded ``mi.Scene`` (tests inject NaN emitters
     with it); ``sample_hook`` see :func:`render_inputs`; ``scene``: an already loaded
-    :class:`FrameScene` of this spec, frame and config. Raises ``RenderError`` / ``ConfigError``.
+    :class:`FrameScene` of this spec, frame and config; ``spec_json``: ``spec.to_json()`` when the caller
+    has it. Raises ``RenderError`` / ``ConfigError``.
     """
     cfg = cfg or RenderConfig()
     if not isinstance(cfg, RenderConfig):
@@ -708,7 +711,7 @@ def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *
     fs = scene if scene is not None else FrameScene(spec, frame, cfg, on_scene_loaded)
     load_seconds = _time.perf_counter() - t0
     parts = inputs_part(fs, sample_hook), layers_part(fs), reference_part(fs)
-    out = assemble(spec.to_json(), frame, *parts)
+    out = assemble(spec.to_json() if spec_json is None else spec_json, frame, *parts, spec=spec)
     out["meta"]["render_seconds"] += load_seconds
     if cfg.oracle_spp > 0:
         out["oracle"] = render_oracle(fs, cfg.oracle_spp)
