@@ -162,12 +162,14 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
             from stores.lock import describe
             _print(f"lock: took over the lock of a dead run ({describe(lock.took_over)})")
         elif not lock.supported:
-            _print("lock: none for URL stores; run one dataset command per store at a time")
+            _print(f"lock: none for {store.split('://', 1)[0]}:// stores (s3:// and local paths are locked); run "
+                   "one dataset command per store at a time")
         return _run_locked(cfg, store, scheduler=scheduler, workers=workers, progress=progress,
-                           functions=functions, overwrite=overwrite)
+                           functions=functions, overwrite=overwrite, lock=lock)
 
 
-def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress, functions, overwrite) -> dict:
+def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress, functions, overwrite,
+                lock=None) -> dict:
     from distributed import as_completed
 
     from pipeline import cluster as cl
@@ -204,7 +206,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         tb = time.perf_counter()
         graph = build_graph(cfg, store, frames, functions=functions, generation=generation(store))
         timings["build_graph_s"] = time.perf_counter() - tb
-        committer = Committer(writer)
+        committer = Committer(writer, check=lock.check if lock is not None else None)
         results, failed = _execute(conn.client, graph, writer, progress, as_completed,
                                    watch_workers=conn.kind == "local", committer=committer, timings=timings,
                                    on_disk_full=lambda left: store_full(store, "writing frames",
@@ -382,8 +384,8 @@ class Committer:
     between commits leaves those frames incomplete (the resume renders them again). ``latencies``: for
     each committed frame, seconds from its task's end to its commit."""
 
-    def __init__(self, writer, every: float = COMMIT_SECONDS):
-        self.writer, self.every = writer, every
+    def __init__(self, writer, every: float = COMMIT_SECONDS, check=None):
+        self.writer, self.every, self.check = writer, every, check     # check: raises if the store was lost
         self.records: dict[int, dict] = {}
         self.failures: dict[int, str] = {}
         self.done_at: dict[int, float] = {}
@@ -405,6 +407,8 @@ class Committer:
 
     def flush(self) -> None:
         if self.records or self.failures:
+            if self.check is not None:
+                self.check()                # an S3 lease another run took over: write nothing more
             self.writer.commit(self.records, self.failures)
             now = time.time()
             self.latencies += [now - self.done_at[i] for i in self.records]

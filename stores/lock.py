@@ -13,8 +13,16 @@ time and start time (JSON), with a kernel ``flock`` on it while the run lives::
   two runs racing for a stale lock cannot both win.
 - A lock from another host cannot be checked from here: it is refused, and the message says which
   file to delete if that run is known to be dead.
-- Stores at URLs (``s3://...``) have no lock (``StoreLock.supported`` is False): one run at a time is
-  then up to the user.
+- Stores at ``s3://`` URLs are locked by a **lease object** ``<store>/dataset.lock`` (:class:`S3Lease`):
+  created with a conditional PUT (``If-None-Match: *``), so of two runs exactly one creates it (S3
+  conditional writes are atomic and S3 reads are strongly consistent); the holder renews it (a PUT with
+  ``If-Match`` on its ETag) every ``LEASE_SECONDS / 3`` while it runs and deletes it at the end. A
+  lease not renewed for ``LEASE_SECONDS`` (its run was killed), or held by a dead process of this host,
+  is taken over with a PUT ``If-Match`` on
+  the ETag the taker read, so two runs racing for a dead lease cannot both win. A holder whose renewal
+  fails (it stalled past its lease and another run took over) knows it has lost the store: its next
+  commit raises (``StoreLock.check``). Other URL protocols have no lock (``StoreLock.supported`` False):
+  one run at a time is then up to the user.
 """
 from __future__ import annotations
 
@@ -85,12 +93,113 @@ def describe(holder: dict) -> str:
             + (f" ({holder.get('command')})" if holder.get("command") else ""))
 
 
+LEASE_SECONDS = 60.0        # an S3 lease not renewed for this long belongs to a dead run
+
+
+class S3Lease:
+    """The writer lock of a store at an ``s3://`` URL (module docstring): a lease object renewed while
+    the run lives. Endpoint and credentials come from the standard AWS environment and config files
+    (botocore), never from the store; messages name the URL and the holder, never a credential."""
+
+    def __init__(self, url: str, record: dict, lease: float = LEASE_SECONDS):
+        bucket_key = url.split("://", 1)[1].rstrip("/")
+        self.url = url.rstrip("/") + "/" + LOCK_NAME
+        self.bucket, _, prefix = bucket_key.partition("/")
+        self.key = f"{prefix}/{LOCK_NAME}" if prefix else LOCK_NAME
+        self.record, self.lease = dict(record), float(lease)
+        self.etag: str | None = None
+        self.took_over: dict | None = None
+        self.lost: str | None = None
+        self._stop = None
+        import boto3
+        self.s3 = boto3.client("s3")
+
+    def _body(self) -> bytes:
+        return json.dumps({**self.record, "expires": time.time() + self.lease, "lease_s": self.lease}).encode()
+
+    def _failed(self, e) -> bool:
+        """Whether ``e`` is a refused conditional write (another run's lease is there)."""
+        code = getattr(e, "response", {}).get("Error", {}).get("Code", "")
+        return code in ("PreconditionFailed", "412", "ConditionalRequestConflict")
+
+    def _holder(self) -> tuple[dict | None, str | None]:
+        try:
+            r = self.s3.get_object(Bucket=self.bucket, Key=self.key)
+        except self.s3.exceptions.NoSuchKey:
+            return None, None
+        try:
+            d = json.loads(r["Body"].read().decode())
+        except ValueError:
+            d = None
+        return (d if isinstance(d, dict) else {}), r["ETag"]
+
+    def acquire(self) -> "S3Lease":
+        for _ in range(5):
+            try:
+                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
+                                               IfNoneMatch="*")["ETag"]
+                break
+            except Exception as e:  # noqa: BLE001 - botocore's ClientError
+                if not self._failed(e):
+                    raise
+            holder, etag = self._holder()
+            if holder is None:
+                continue                        # released in between: try to create it again
+            left = float(holder.get("expires", 0)) - time.time()
+            dead_here = (holder.get("host") == socket.gethostname() and holder.get("pid") != os.getpid()
+                         and not pid_alive(holder.get("pid", -1), holder.get("proc_start")))
+            if left > 0 and not dead_here:      # alive, or on another host and within its lease
+                until = time.strftime("%H:%M:%SZ", time.gmtime(float(holder["expires"])))
+                raise StoreLockedError(
+                    f"the store {self.url.rsplit('/', 1)[0]} is in use by another dataset run: {describe(holder)}; "
+                    f"its lease object {self.url} runs until {until} and is renewed while that run lives "
+                    "(wait for it to finish, or stop it)", holder=holder)
+            try:                                # expired: take it over, unless another run does first
+                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
+                                               IfMatch=etag)["ETag"]
+                self.took_over = holder
+                break
+            except Exception as e:  # noqa: BLE001
+                if not self._failed(e):
+                    raise
+        else:
+            raise StoreLockedError(f"could not take the lease {self.url}: it kept changing under this run")
+        import threading
+        self._stop = threading.Event()
+        threading.Thread(target=self._renew, name="store-lease", daemon=True).start()
+        return self
+
+    def _renew(self) -> None:
+        while not self._stop.wait(self.lease / 3):
+            try:
+                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
+                                               IfMatch=self.etag)["ETag"]
+            except Exception as e:  # noqa: BLE001
+                if self._failed(e):
+                    self.lost = (f"the lease {self.url} was taken over by another run (this run did not renew "
+                                 f"it within {self.lease:g} s); this run stops writing the store")
+                    return
+                # a network error: try again next time; the lease lasts 3 renewal periods
+
+    def release(self) -> None:
+        if self._stop is not None:
+            self._stop.set()
+        if self.lost or self.etag is None:
+            return
+        holder, etag = self._holder()
+        if etag == self.etag:                   # still ours: delete it
+            self.s3.delete_object(Bucket=self.bucket, Key=self.key)
+        self.etag = None
+
+
 class StoreLock:
-    """The writer lock of the store at ``store`` (a local path; URLs are not locked)."""
+    """The writer lock of the store at ``store``: a lock file with ``flock`` for a local path, a lease
+    object for an ``s3://`` URL (:class:`S3Lease`); other URLs are not locked (``supported`` False)."""
 
     def __init__(self, store, command: str | None = None):
         self.store = os.fspath(store)
-        self.supported = "://" not in self.store
+        self._lease: S3Lease | None = None
+        self.supported = "://" not in self.store or self.store.startswith("s3://")
         self.path = os.path.join(self.store, LOCK_NAME)
         self.command = command
         self.took_over: dict | None = None       # the stale holder replaced, if any
@@ -139,7 +248,11 @@ class StoreLock:
 
     def acquire(self) -> "StoreLock":
         """Take the lock or raise StoreLockedError. Creates the store's folder if it is missing."""
-        if not self.supported or self._fd is not None:
+        if not self.supported or self._fd is not None or self._lease is not None:
+            return self
+        if "://" in self.store:
+            self._lease = S3Lease(self.store, self._record()).acquire()
+            self.took_over = self._lease.took_over
             return self
         if not os.path.isdir(self.store):
             try:
@@ -198,6 +311,10 @@ class StoreLock:
     def release(self) -> None:
         """Drop the lock and delete the lock file (only if it is still ours), and the store's folder
         if this lock made it and nothing else was put there (a run that stopped before creating)."""
+        if self._lease is not None:
+            lease, self._lease = self._lease, None
+            lease.release()
+            return
         fd, self._fd = self._fd, None
         if fd is None:
             return
@@ -212,7 +329,12 @@ class StoreLock:
 
     @property
     def held(self) -> bool:
-        return self._fd is not None
+        return self._fd is not None or self._lease is not None
+
+    def check(self) -> None:
+        """Raise StoreLockedError if this run lost the store (an S3 lease another run took over)."""
+        if self._lease is not None and self._lease.lost:
+            raise StoreLockedError(self._lease.lost)
 
     def __enter__(self) -> "StoreLock":
         return self.acquire()

@@ -237,6 +237,7 @@ class Store:
         self._meta_cache = None
         self._clip_starts = None
         self._scene_texts: dict[int, str] = {}
+        self._listed: dict[str, set | None] = {}     # URL stores: an array's chunk keys, from one listing
 
     def __getstate__(self):
         return {"path": self.path, "fast": self.fast, "threads": self.threads}
@@ -287,6 +288,7 @@ class Store:
         self._meta_cache = None
         self._clip_starts = None
         self._scene_texts = {}
+        self._listed = {}
 
     def _zarr_read(self, path: str, sel, frame: int | None = None) -> np.ndarray:
         """``root[path][sel]`` through zarr-python, with damage (a failed crc32c, a truncated or garbage
@@ -314,6 +316,15 @@ class Store:
         chunk, so a missing one is lost data, not zeros). Nothing to check in v1."""
         if self.version < 2 or not len(frames):
             return
+        if self._local is None and len(paths) == 1 and len(frames) == 1:      # a store at a URL: one listing
+            spec, i = self._specs[paths[0]], int(frames[0])                  # an array, not a request a read
+            key = schema.chunk_key(spec, i)
+            have = self._listed.get(spec.path)
+            if have is not None and key in have:
+                return
+            have = self._listed[spec.path] = schema._chunk_keys(self.root, spec)   # new since? list again
+            if have is not None and key in have:
+                return
         lost = schema.missing_chunks(self.root, frames, self.version, paths=paths)
         if lost:
             raise _missing_error(lost)

@@ -539,7 +539,32 @@ def chunk_file(root, spec: ArraySpec, frame: int) -> tuple[bool, str]:
         f = os.path.join(str(store.root), *key.split("/"))
         return os.path.isfile(f), f
     from zarr.core.sync import sync
-    return bool(sync(store.exists(key))), key
+    return bool(sync(store.exists(key))), _object_url(store, key)
+
+
+def _object_url(store, key: str) -> str:
+    """The URL of ``key`` in a store that is not local (``s3://bucket/x.zarr/guides/depth/c/1/0/0``),
+    as error messages name it; the key where the store has no URL."""
+    fs, path = getattr(store, "fs", None), getattr(store, "path", None)
+    if fs is None or path is None:
+        return key
+    proto = fs.protocol[0] if isinstance(fs.protocol, (tuple, list)) else fs.protocol
+    return f"{proto}://{path.rstrip('/')}/{key}"
+
+
+def _chunk_keys(root, spec: ArraySpec) -> set[str] | None:
+    """Every chunk key (``c/...``) of ``spec``'s array in a store that is not local, from one listing of
+    its prefix (a HEAD request a frame would cost in proportion to the store); None if it cannot list."""
+    from zarr.core.sync import sync
+    prefix = "/".join(p for p in (root.path.strip("/"), spec.path, "c") if p) + "/"
+    try:
+        async def keys():
+            return [k async for k in root.store.list_prefix(prefix)]
+        out = sync(keys())
+    except (NotImplementedError, AttributeError):
+        return None
+    cut = len(prefix) - 2                     # keep "c/..."
+    return {k[cut:] for k in out}
 
 
 def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> dict[int, list[tuple[str, str]]]:
@@ -556,12 +581,17 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
              and s.path not in absent and not s.clip_first]       # v3 scene JSON: at clip starts only
     frames = [int(i) for i in frames]
     out: dict[int, list[tuple[str, str]]] = {}
+    from zarr.storage import LocalStore
+    listed = not isinstance(root.store, LocalStore) and len(frames) > 8
     for spec in specs:
         names = _chunk_names_1d(root, spec) if len(frames) > 8 else None
+        keys = _chunk_keys(root, spec) if listed and names is None else None    # URL image shards: one listing
         seen: dict[int, tuple[bool, str]] = {}            # chunk index -> (exists, file): a chunk holds many frames
         for i in frames:
             c = i // spec.frame_chunk
             if names is not None and str(c) in names:
+                continue
+            if keys is not None and chunk_key(spec, i) in keys:
                 continue
             if c not in seen:
                 seen[c] = chunk_file(root, spec, i)
@@ -572,9 +602,15 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
 
 
 def _chunk_names_1d(root, spec: ArraySpec) -> set[str] | None:
-    """The chunk files of a one-dimensional array of a local store (names under ``c/``), else None."""
+    """The chunk files of a one-dimensional array (names under ``c/``) from one listing, else None (a
+    store that is neither local nor listable). At a URL, :func:`_chunk_keys` lists every array."""
     from zarr.storage import LocalStore
-    if len(spec.dims) != 1 or not isinstance(root.store, LocalStore):
+    if not isinstance(root.store, LocalStore):
+        keys = _chunk_keys(root, spec)
+        if keys is None or len(spec.dims) != 1:
+            return None
+        return {k.split("/", 1)[1] for k in keys if k.startswith("c/") and k.count("/") == 1}
+    if len(spec.dims) != 1:
         return None
     d = os.path.join(str(root.store.root), *(p for p in (root.path.strip("/"),) if p), *spec.path.split("/"), "c")
     try:
@@ -648,13 +684,28 @@ def _exists(path_or_url) -> bool:
         return False
 
 
+def url_fs(url: str):
+    """``(filesystem, path)`` of a store URL (``s3://bucket/x.zarr``, any fsspec protocol), with
+    credentials and endpoint from the standard environment and config files (``AWS_*`` for S3)."""
+    import fsspec
+    return fsspec.core.url_to_fs(url)
+
+
 def foreign_entries(path_or_url) -> list[str] | None:
     """What makes ``path_or_url`` something other than a store or an empty place to make one: None when
-    there is nothing (no path, an empty folder, a folder holding only our lock file) or a store (a
+    there is nothing (no path, an empty folder or prefix, one holding only our lock file) or a store (a
     root ``zarr.json``); else the names found there (sorted; ``['<file>']`` for a plain file)."""
     p = _zarr_store(path_or_url)
-    if _exists(p) or not _is_local(p):
+    if _exists(p):
         return None
+    if not _is_local(p):
+        fs, root = url_fs(p)
+        try:
+            names = sorted(e.rstrip("/").rsplit("/", 1)[-1] for e in fs.ls(root, detail=False))
+        except FileNotFoundError:
+            return None
+        names = [n for n in names if n != LOCK_NAME]
+        return names or None
     if not os.path.lexists(p):
         return None
     if not os.path.isdir(p):
@@ -677,9 +728,16 @@ def _clear(path_or_url) -> None:
     (:func:`refuse_link`), and links inside the folder are removed, never followed."""
     import shutil
     p = _zarr_store(path_or_url)
-    if not _is_local(p):
-        import zarr
-        zarr.open_group(p, mode="w")            # zarr clears the prefix
+    if not _is_local(p):                        # every object under the store's prefix but the lock
+        fs, root = url_fs(p)
+        try:
+            entries = fs.ls(root, detail=False)
+        except FileNotFoundError:
+            return
+        for e in entries:
+            if e.rstrip("/").rsplit("/", 1)[-1] != LOCK_NAME:
+                fs.rm(e, recursive=True)
+        fs.invalidate_cache()
         return
     refuse_link(p)
     if not os.path.lexists(p):                  # nothing there: nothing to clear

@@ -172,9 +172,14 @@ def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers:
     """DataLoader over batches ``start .. stop - 1`` (see the module docstring): with ``world`` > 1,
     rank ``rank``'s share of each global batch of ``batch`` items."""
     sampler = EpochBatches(len(dataset), batch, seed, start, stop, rank, world)
+    store = getattr(dataset, "store", None)
+    remote = workers and "://" in str(getattr(store, "path", ""))
+    # A store at a URL holds an async client (s3fs's, on zarr's event loop) that a forked worker cannot
+    # use: spawned workers open the store anew (``stores.reader.Store`` pickles as its path).
     return DataLoader(_ByEpoch(dataset), batch_sampler=sampler,
                       num_workers=workers, collate_fn=default_collate, worker_init_fn=_worker_init if workers else None,
-                      persistent_workers=False, prefetch_factor=2 if workers else None)
+                      persistent_workers=False, prefetch_factor=2 if workers else None,
+                      multiprocessing_context="spawn" if remote else None)
 
 
 def get_batch(dataset, seed: int, step: int, batch: int, rank: int = 0, world: int = 1) -> tuple[dict, int]:

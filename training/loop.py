@@ -117,7 +117,8 @@ def store_identity(store) -> dict:
     import hashlib
     import json
     cfg = json.dumps(store.config, sort_keys=True, default=str).encode()
-    return {"path": os.path.realpath(os.fspath(store.path)), "schema_version": store.schema_version,
+    path = os.fspath(store.path)
+    return {"path": path if "://" in path else os.path.realpath(path), "schema_version": store.schema_version,
             "layout": store.layout.to_dict(), "config_sha256": hashlib.sha256(cfg).hexdigest()}
 
 
