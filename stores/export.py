@@ -44,7 +44,7 @@ import sys
 
 import numpy as np
 
-from stores.contract import FEATURE_GROUPS
+from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS
 from stores.errors import ExportError, StoreError
 from stores.imageio import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
@@ -65,7 +65,7 @@ def export_exr(store: Store, frames: list[int], out: str) -> list[str]:
     """Write the ``exr`` format (module docstring). Returns the files written."""
     written = []
     for i in frames:
-        fr = store.read_frame(i)
+        fr = store.read_frame(i, [k for k in FRAME_ARRAYS if k not in ("camera_to_world", "world_to_clip")])
         d = os.path.join(out, f"frame_{i:06d}")
         os.makedirs(d, exist_ok=True)
         imgs = {"input_mean": fr["radiance"].mean(axis=2), "reference": fr["reference"],

@@ -167,7 +167,7 @@ def frame_problems(store, i: int, *, data: dict | None = None) -> list[str]:
     ``Store.read_frame``'s layout). Damage raises ``StoreCorruptionError``."""
     from stores.reader import Store, open_store
     st = store if isinstance(store, Store) else open_store(store)
-    meta = st.frames_meta(i)
+    meta = st.frames_meta(i, scene=False)
     if not meta["complete"]:
         return ["incomplete" + (f" (last error: {meta['error']})" if meta["error"] else "")]
     fr = data if data is not None else st.read_frame(i, FRAME_KEYS)

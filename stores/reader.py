@@ -507,16 +507,17 @@ class Store:
         why = f" (last error: {err})" if err else " (never finished, or its writer stopped mid-frame)"
         raise IncompleteFrameError(f"frame {i} of {os.fspath(self.path)!s} is incomplete{why}")
 
-    def frames_meta(self, i: int) -> dict:
+    def frames_meta(self, i: int, *, scene: bool = True) -> dict:
         """``FRAME_META`` of frame ``i`` plus ``clip_id``, ``complete``, ``error`` and the camera matrices
-        ``camera_to_world``/``world_to_clip`` (float64, 44). Python scalars."""
+        ``camera_to_world``/``world_to_clip`` (float64, 44). Python scalars. ``scene=False`` leaves out
+        ``scene_json`` (a long clip's JSON is long: callers that do not need it do not read it)."""
         i = self._check_index(i)
         t = self._frame_row(i)
         out = {}
         for key, typ in FRAME_META.items():
             if key in t:
                 out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
-            else:                                       # v3's scene JSON: once a clip
+            elif scene:                                 # v3's scene JSON: once a clip
                 out[key] = self.scene_json(i)
         out["clip_id"] = int(t["clip_id"][i])
         out["complete"] = bool(t["complete"][i])

@@ -222,7 +222,7 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
         for array, f in lost.get(i, []):
             damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
         try:
-            meta = store.frames_meta(i)
+            meta = store.frames_meta(i, scene=False)
         except StoreCorruptionError as e:       # a camera matrix, or the metadata damage listed above
             if i not in meta_damage and e.path not in missing:
                 damage(fr_rep, str(e))
