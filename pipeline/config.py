@@ -567,7 +567,9 @@ def worker_memory(cluster: ClusterConfig, *, workers: int | None = None) -> tupl
     if cluster.kind in ("slurm", "pbs"):
         try:
             mem = int(parse_bytes(str(cluster.jobqueue.get("memory"))))
-            procs = int(cluster.jobqueue.get("processes") or 1)
+            # as pipeline.cluster.job_settings sets it: one worker a threads_per_worker cores by default
+            procs = int(cluster.jobqueue.get("processes")
+                        or max(1, int(cluster.jobqueue.get("cores") or 1) // cluster.threads_per_worker))
             where = f"cluster.jobqueue memory {cluster.jobqueue.get('memory')} over {procs} processes"
             return mem // max(1, procs), where
         except (ValueError, TypeError):

@@ -238,3 +238,15 @@ def test_split_streams_default_follows_reference_resources(tmp_path):
     d["tasks"] = {"split_streams": "yes"}
     with pytest.raises(ConfigError, match="dataset.tasks.split_streams must be true, false or null"):
         load_config(write(tmp_path, d))
+
+
+def test_a_batch_jobs_memory_is_shared_by_the_workers_it_will_run():
+    """Without ``processes``, a job runs ``cores / threads_per_worker`` workers (pipeline.cluster.job_settings),
+    so the memory check before submitting divides the job's memory by that many."""
+    from pipeline.config import ClusterConfig, worker_memory
+    c = ClusterConfig(kind="slurm", jobqueue={"cores": 8, "memory": "32GiB"})
+    assert worker_memory(c)[0] == 4 * 2 ** 30
+    c = ClusterConfig(kind="slurm", threads_per_worker=2, jobqueue={"cores": 8, "memory": "32GiB"})
+    assert worker_memory(c)[0] == 8 * 2 ** 30
+    c = ClusterConfig(kind="pbs", jobqueue={"cores": 8, "processes": 2, "memory": "32GiB"})
+    assert worker_memory(c)[0] == 16 * 2 ** 30
