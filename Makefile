@@ -21,7 +21,7 @@ dataset: setup   ## build the dataset of CONFIG (default: configs/default.yaml) 
 	$(PY) -m pipeline dataset --config $(CONFIG) $(if $(OUT),--out $(OUT)) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(WORKERS),--workers $(WORKERS))
 
 test: setup      ## the whole test suite (TEST_JOBS processes)
-	$(PY) -m pytest -q -n $(TEST_JOBS) tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup tests
 
 estimate: setup  ## predict samples, core-hours, store bytes and wall time of CONFIG on WORKERS workers
 	$(PY) -m pipeline estimate --config $(CONFIG) $(if $(WORKERS),--workers $(WORKERS))

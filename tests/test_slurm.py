@@ -36,6 +36,9 @@ SCRIPT = ROOT / "scripts" / "local-slurm.sh"
 SMOKE = ROOT / "configs" / "smoke.yaml"
 SMOKE_SLURM = ROOT / "configs" / "smoke-slurm.yaml"
 PY = sys.executable
+# One test process runs them all (make test: --dist loadgroup): the cluster has this machine's cores, and
+# a test that needs both its jobs running would wait on another test's jobs holding them.
+pytestmark = pytest.mark.xdist_group("slurm")
 TIMING = {"frames/render_seconds"}           # a clock reading, not data
 
 
@@ -267,6 +270,20 @@ def _wait_for_frames(store: Path, proc: subprocess.Popen, n: int, timeout: float
     raise TimeoutError(f"no {n} complete frame(s) in {store} after {timeout} s")
 
 
+def _joined(logs: Path, name: str, n: int, timeout: float = 120) -> list[str]:
+    """The ids of ``n`` jobs named ``name`` whose workers have registered with the scheduler (their job
+    logs say so)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        jobs = [j for j, _ in _queue(name)]
+        joined = [j for j in jobs if (logs / f"{name}-{j}.err").exists()
+                  and "Registered to" in (logs / f"{name}-{j}.err").read_text(errors="replace")]
+        if len(joined) >= n:
+            return joined
+        time.sleep(0.2)
+    raise TimeoutError(f"no {n} worker(s) of jobs {name} joined after {timeout} s: {_queue(name)}")
+
+
 def _arrays(store: Path) -> dict[str, np.ndarray]:
     import zarr
     g = zarr.open_group(str(store), mode="r")
@@ -377,10 +394,9 @@ def test_cancelled_jobs_are_replaced_and_no_frame_is_lost(slurm_config, local_st
     p = subprocess.Popen(_cli(config, out), env=_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True, start_new_session=True)
     try:
-        done = _wait_for_frames(out, p, 1)
+        jobs = _joined(tmp_path / "slurm-logs", name, 2)      # (a job cancelled before its worker joined is
+        done = _wait_for_frames(out, p, 1)                     # not the case tested here)
         assert p.poll() is None and done.sum() < 4, "the run ended before its jobs could be cancelled"
-        jobs = [j for j, _ in _queue(name)]
-        assert len(jobs) == 2
         subprocess.run(["scancel", *jobs], check=True)
         log, _ = p.communicate(timeout=400)
     finally:
