@@ -8,7 +8,7 @@
 #   scripts/local-slurm.sh down     cancel every job, stop the daemons it started (by their pid files)
 #   scripts/local-slurm.sh status   the daemons, sinfo and squeue; exit 0 when up, 1 when not
 #
-# One node (this machine: `hostname -s`, $(nproc) CPUs, its memory from `slurmd -C`) in one default
+# One node (this machine: `hostname -s`, its CPUs and memory from `slurmd -C`) in one default
 # partition, `local`. A job asking for more CPUs or memory than that is refused by sbatch or never starts.
 # Everything it writes (slurm.conf, state, spool, logs, pid files) goes under $LOCAL_SLURM_DIR
 # (default /tmp/local-slurm); /etc/slurm/slurm.conf is made a link to that slurm.conf (so sbatch, squeue
@@ -88,7 +88,10 @@ start_munge() {
 
 write_conf() {
     local cpus mem
-    cpus=$(nproc)
+    # the hardware's CPUs as slurmd sees them, not `nproc`: that is the calling process's affinity mask,
+    # and a caller pinned to one core (a test process) wrote CPUs=1, so jobs ran one at a time
+    cpus=$(slurmd -C 2>/dev/null | sed -n 's/.* CPUs=\([0-9]*\).*/\1/p' | head -n 1)
+    [ -n "$cpus" ] || cpus=$(nproc --all)
     mem=$(slurmd -C 2>/dev/null | sed -n 's/.*RealMemory=\([0-9]*\).*/\1/p' | head -n 1)
     if [ -z "$mem" ]; then
         mem=$(awk '/^MemTotal:/ {print int($2 / 1024)}' /proc/meminfo)

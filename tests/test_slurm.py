@@ -117,6 +117,29 @@ def test_threads_memory_resources_python_and_prologue_reach_the_job_script(monke
     assert f"{PY} -m distributed.cli.dask_worker" in pbs              # python defaults to this venv's
 
 
+def test_gpu_jobs_ask_for_their_gpus_and_each_worker_keeps_one(monkeypatch):
+    pytest.importorskip("dask_jobqueue")
+    from pipeline.worker_init import GPU_SPLIT_ENV, gpu_for_worker
+    c = _cluster(threads_per_worker=4, jobqueue={"cores": 8, "processes": 2, "memory": "32GiB", "gpus_per_job": 2})
+    lines = _script_of(c).splitlines()
+    assert "#SBATCH --gres=gpu:2" in lines and f"export {GPU_SPLIT_ENV}=1" in lines, lines
+    assert "--nworkers 2" in lines[-1] and "--nthreads 4" in lines[-1] and "--resources GPU=1" in lines[-1]
+    own = _script_of(_cluster(jobqueue={"cores": 1, "memory": "4GiB", "gpus_per_job": 1,
+                                        "job_extra_directives": ["--gpus=1"]})).splitlines()
+    assert "#SBATCH --gpus=1" in own and not any("--gres" in ln for ln in own)     # the config's own request
+    # a job of N workers names them <job>-0 .. <job>-(N-1): worker i keeps the job's GPU i
+    assert [gpu_for_worker(f"SLURMCluster-3-{i}", "4,5") for i in range(3)] == ["4", "5", "4"]
+    assert gpu_for_worker("SLURMCluster-3", "0") is None and gpu_for_worker("w-1", None) is None
+    assert gpu_for_worker("name", "0,1") is None
+    from types import SimpleNamespace
+
+    from pipeline import worker_init
+    monkeypatch.setenv(GPU_SPLIT_ENV, "1")
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
+    worker_init.dask_setup(SimpleNamespace(name="SLURMCluster-3-1"))        # the preload hook, before CUDA
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "5"
+
+
 @pytest.mark.parametrize("tpw, jobqueue, message", [
     (1, {"cores": 4, "processes": 3}, "cores (4) must equal processes (3) x dataset.cluster.threads_per_worker (1)"),
     (2, {"cores": 4, "processes": 4}, "set processes: 2 or dataset.cluster.threads_per_worker: 1"),
@@ -130,6 +153,8 @@ def test_threads_memory_resources_python_and_prologue_reach_the_job_script(monke
     (1, {"cores": 1, "resources": {"GPU": 1}, "worker_extra_args": ["--resources", "GPU=1"]},
      "worker resources are given twice"),
     (1, {"cores": 1, "job_script_prologue": {"a": 1}}, "jobqueue.job_script_prologue must be a list of shell lines"),
+    (1, {"cores": 2, "gpus_per_job": 1}, "jobqueue.gpus_per_job must be an integer >= 1 equal to the job's workers"),
+    (1, {"cores": 1, "gpus_per_job": 0}, "jobqueue.gpus_per_job must be an integer >= 1"),
 ])
 def test_bad_job_settings_are_config_errors(tpw, jobqueue, message):
     pytest.importorskip("dask_jobqueue")
@@ -322,7 +347,9 @@ def test_local_slurm_is_up_and_up_again_is_harmless(slurm):
     r = _local_slurm("up", timeout=120)
     assert r.returncode == 0 and "already running" in r.stdout, r.stdout + r.stderr
     m = re.search(r"up: node (\S+) \((\w+)\), (\d+) CPUs, (\d+) MB memory", r.stdout)
-    assert m and int(m.group(3)) >= 1 and int(m.group(4)) > 0, r.stdout
+    # every CPU of the machine, whatever the affinity of the process that started it (a pinned test
+    # process once wrote CPUs=1, and two jobs could not run side by side)
+    assert m and int(m.group(3)) == os.cpu_count() and int(m.group(4)) > 0, r.stdout
     s = _local_slurm("status", timeout=60)
     assert s.returncode == 0 and "slurmctld: running" in s.stdout and "slurmd: running" in s.stdout, s.stdout
     assert re.search(rf"^{m.group(1)} (idle|mixed|allocated)", s.stdout, re.M), s.stdout
