@@ -189,7 +189,9 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
     timings: dict = {}
     try:
         dashboard = conn.dashboard
-        _print(f"cluster: {conn.kind} at {conn.address}, {conn.n_workers()} worker(s)")
+        gpus = getattr(conn.cluster, "gpus", None)
+        _print(f"cluster: {conn.kind} at {conn.address}, {conn.n_workers()} worker(s)"
+               + (f" (one per GPU: {', '.join(gpus)})" if gpus else ""))
         _print(f"dashboard: {dashboard or 'none'}")
         _check_worker_memory(cfg, conn)
         try:

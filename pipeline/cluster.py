@@ -212,20 +212,88 @@ def install_worker_init(client) -> None:
                            f"{type(e).__name__}: {e}") from e
 
 
-def local_cluster(cfg: ClusterConfig, workers: int | None = None):
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use: ``nvidia-smi -L``'s, within ``CUDA_VISIBLE_DEVICES`` when
+    it is set (its entries, indices or UUIDs, in its order); [] without a working driver or with
+    ``DENOISE_FORCE_CPU``."""
+    import subprocess
+    if os.environ.get("DENOISE_FORCE_CPU"):
+        return []
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    listed = [ln for ln in out.stdout.splitlines() if ln.startswith("GPU ")] if out.returncode == 0 else []
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is None:
+        return [str(i) for i in range(len(listed))]
+    return [d.strip() for d in env.split(",") if d.strip() and d.strip() != "-1"][:len(listed)]
+
+
+def render_gpus(cfg: ClusterConfig) -> list[str]:
+    """The GPUs a LocalCluster gives a worker each (``cluster.gpus``; :class:`ClusterConfig`)."""
+    g = cfg.gpus
+    if g is None or g == 0:
+        return []
+    have = visible_gpus()
+    if g == "auto":
+        return have
+    if (g > len(have)) if isinstance(g, int) else any(str(x) not in have for x in g):
+        raise ConfigError(f"dataset.cluster.gpus is {g!r} but this machine shows {len(have)} GPU(s) "
+                          f"({', '.join(have) or 'none'}: nvidia-smi -L, within CUDA_VISIBLE_DEVICES); use 'auto', "
+                          "or null for CPU workers")
+    return have[:g] if isinstance(g, int) else [str(x) for x in g]
+
+
+def _gpu_cluster_class():
+    from distributed import LocalCluster
+
+    class GPULocalCluster(LocalCluster):
+        """One worker process per GPU: the worker of GPU ``d`` has ``CUDA_VISIBLE_DEVICES=d`` (so drjit
+        and torch see it as device 0) and the worker resource ``GPU: 1``; a replaced worker takes a
+        GPU no other worker holds. dask-cuda's LocalCUDACluster does the same but needs NVML (pynvml)
+        and a GPU to start; this needs neither, so the CPU tests start it with pretended devices."""
+
+        def __init__(self, gpus: list[str], **kw):
+            self.gpus = list(gpus)
+            super().__init__(n_workers=0, **kw)
+            self.scale(len(self.gpus))
+
+        def new_worker_spec(self):
+            ((name, spec),) = super().new_worker_spec().items()
+            held = {w["options"].get("env", {}).get("CUDA_VISIBLE_DEVICES") for w in self.worker_spec.values()}
+            gpu = next((g for g in self.gpus if g not in held), self.gpus[0])
+            opts = dict(spec["options"])
+            opts["env"] = {**opts.get("env", {}), "CUDA_VISIBLE_DEVICES": gpu}
+            opts["resources"] = {**(opts.get("resources") or {}), "GPU": 1}
+            return {name: {**spec, "options": opts}}
+
+    return GPULocalCluster
+
+
+def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
     """A LocalCluster of ``workers`` (or ``cfg.workers``, or one per core) single-purpose processes on
-    127.0.0.1, its dashboard at :func:`dashboard_bind` of ``cfg.dashboard_address``."""
+    127.0.0.1, its dashboard at :func:`dashboard_bind` of ``cfg.dashboard_address``; where
+    :func:`render_gpus` finds GPUs, one worker per GPU instead (``GPULocalCluster``)."""
     from distributed import LocalCluster
     from pipeline import worker_init
     check_dashboard(cfg.dashboard_address)
     worker_init.prepare_environment()
-    n = workers or cfg.workers or max(1, machine_cores() // cfg.threads_per_worker)
+    gpus = render_gpus(cfg)
+    n = len(gpus) or workers or cfg.workers or max(1, machine_cores() // cfg.threads_per_worker)
+    kw = dict(threads_per_worker=cfg.threads_per_worker, processes=True,
+              memory_limit=cfg.memory_limit, dashboard_address=dashboard_bind(cfg.dashboard_address),
+              host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD], security=make_security(cfg.security),
+              env={worker_init.LOCAL_WORKER_ENV: "1"})    # its workers leave Ctrl-C to us
     try:
-        return LocalCluster(n_workers=n, threads_per_worker=cfg.threads_per_worker, processes=True,
-                            memory_limit=cfg.memory_limit, dashboard_address=dashboard_bind(cfg.dashboard_address),
-                            host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD],
-                            security=make_security(cfg.security),
-                            env={worker_init.LOCAL_WORKER_ENV: "1"})    # its workers leave Ctrl-C to us
+        if not gpus:
+            return LocalCluster(n_workers=n, **kw)
+        if workers or cfg.workers:
+            say(f"cluster: one worker per GPU ({n}: {', '.join(gpus)}); --workers / cluster.workers apply to CPU "
+                "workers (cluster.gpus: null for those)", flush=True)
+        cluster = _gpu_cluster_class()(gpus, **kw)
+        cluster.wait_for_workers(n, timeout=120)
+        return cluster
     except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
         cause = e.__cause__ or e
         raise ClusterError(f"cannot start a LocalCluster of {n} worker(s): {type(cause).__name__}: {cause}") from None
@@ -271,6 +339,9 @@ def job_settings(cfg: ClusterConfig) -> dict:
       ``.venv/bin/python`` is taken from the checkout (:func:`job_python`), not from where a job starts;
     - ``resources: {GPU: 1}`` (our key, not dask-jobqueue's) becomes ``--resources GPU=1`` on the worker
       command line: what ``tasks.reference_resources`` asks for; and ``--preload pipeline.worker_init``;
+    - ``gpus_per_job: G`` (ours too; G must equal ``processes``): SLURM's ``--gres=gpu:G`` (unless the
+      directives ask for GPUs already; PBS: ask in ``resource_spec``), ``GPU: 1`` for every worker, and
+      each of a job's workers keeps one of the job's GPUs (``worker_init.gpu_for_worker``);
     - the job script's prologue (``job_script_prologue``): ``cd`` to this directory (PBS starts jobs
       in $HOME; a relative ``--out`` must name the same store for the workers), BLAS/OpenMP pools of one
       thread, drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
@@ -284,6 +355,7 @@ def job_settings(cfg: ClusterConfig) -> dict:
 
     from dask.utils import parse_bytes
 
+    from pipeline import worker_init
     from scene_gen.variant import VariantError, find_libllvm
     where = "dataset.cluster.jobqueue"
     kw = dict(cfg.jobqueue)
@@ -326,6 +398,19 @@ def job_settings(cfg: ClusterConfig) -> dict:
         raise ConfigError(f"{where}.worker_extra_args must be a list of `dask worker` arguments, got {extra!r}")
     extra = [str(a) for a in extra]
     res = kw.pop("resources", None)
+    gpus = kw.pop("gpus_per_job", None)
+    if gpus is not None:
+        if not _count(gpus) or gpus != procs:
+            raise ConfigError(f"{where}.gpus_per_job must be an integer >= 1 equal to the job's workers (processes: "
+                              f"{procs}; one worker per GPU), got {gpus!r}; set processes and cores to match")
+        if cfg.kind == "slurm":
+            dirs = [str(d) for d in kw.get("job_extra_directives") or []]
+            if not any(d.startswith(("--gres=gpu", "--gpus")) for d in dirs):
+                kw["job_extra_directives"] = dirs + [f"--gres=gpu:{gpus}"]
+        res = {**(res or {}), "GPU": 1}
+        extra_env = [f"export {worker_init.GPU_SPLIT_ENV}=1"]
+    else:
+        extra_env = []
     if res is not None:
         if not (isinstance(res, dict) and res and all(
                 isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
@@ -350,6 +435,7 @@ def job_settings(cfg: ClusterConfig) -> dict:
         q = shlex.quote(os.path.abspath(lib))
         lines.append(f"if [ -f {q} ]; then export DRJIT_LIBLLVM_PATH={q}; fi")
     lines += [f"export {k}={shlex.quote(os.environ[k])}" for k in JOB_PASS_ENV if os.environ.get(k)]
+    lines += extra_env
     user = kw.pop("job_script_prologue", None) or kw.pop("env_extra", None) or []
     kw.pop("env_extra", None)
     if isinstance(user, str):

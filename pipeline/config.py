@@ -173,6 +173,13 @@ class ClusterConfig:
       ``jobqueue`` holds the keyword arguments of ``SLURMCluster`` / ``PBSCluster`` (cores, memory,
       walltime, queue, account, job_extra_directives, ...).
 
+    ``gpus`` (``local``): ``auto`` gives one worker per GPU that ``nvidia-smi -L`` lists (within the
+    ``CUDA_VISIBLE_DEVICES`` of the command), each seeing only its own (``CUDA_VISIBLE_DEVICES``) and
+    holding the worker resource ``GPU: 1``, and no CPU render workers (a dataset is rendered by one
+    backend, so its bytes do not depend on which worker took a frame); none: the CPU workers above.
+    ``null`` or 0: CPU workers even where GPUs are; an integer N: the first N GPUs; a list: those
+    device ids. Batch jobs ask for GPUs with ``jobqueue.gpus_per_job`` (``pipeline.cluster.job_settings``).
+
     ``dashboard_address`` without a host (``:8787``) binds to 127.0.0.1; ``security`` holds
     ``distributed.security.Security`` settings (``pipeline.cluster.make_security``) for TLS.
     """
@@ -186,6 +193,7 @@ class ClusterConfig:
     jobs: int = 1
     jobqueue: dict = field(default_factory=dict)
     security: dict | None = None
+    gpus: str | int | list | None = "auto"
 
     def validate(self) -> None:
         p = "dataset.cluster"
@@ -214,6 +222,11 @@ class ClusterConfig:
         _need(_is_int(self.jobs) and 1 <= self.jobs <= 100_000, f"{p}.jobs", "an integer in [1, 100000]", self.jobs)
         _need(isinstance(self.jobqueue, dict) and all(isinstance(k, str) for k in self.jobqueue),
               f"{p}.jobqueue", "a mapping of dask-jobqueue keyword arguments", self.jobqueue)
+        g = self.gpus
+        _need(g is None or g == "auto" or (_is_int(g) and 0 <= g <= 1024)
+              or (isinstance(g, list) and g and len(set(map(str, g))) == len(g)
+                  and all(_is_int(x) and 0 <= x < 1024 for x in g)),
+              f"{p}.gpus", "'auto', null, a count in [0, 1024] or a list of distinct device ids", g)
         if self.security is not None:
             from pipeline.cluster import check_security
             check_security(self.security, f"{p}.security")

@@ -509,15 +509,51 @@ def _sanitize_image(img: np.ndarray, max_value: float) -> tuple[np.ndarray, int]
     return img, n
 
 
+# drjit's arrays hold at most 2**32 - 1 entries (32-bit sizes; drjit-core issue 33), and Mitsuba renders
+# all of a call's samples as one wavefront: a 1920x1080 pass of 4096 spp (8.5e9 samples) cannot be one
+# launch. Memory is not the limit: the render loop is symbolic (its state lives in registers) and the
+# film accumulates by scatter, so a launch's memory grows with its pixels, not its samples.
+MAX_LAUNCH_SAMPLES = (1 << 32) - 1
+
+
+def launch_plan(pixels: int, spp: int, limit: int | None = None) -> list[int]:
+    """The spp of each ``mi.render`` launch that renders ``spp`` samples of ``pixels`` pixels: one launch
+    where ``pixels * spp`` fits ``limit`` (default :data:`MAX_LAUNCH_SAMPLES`), else the fewest that each
+    fit, the samples split as evenly as possible."""
+    limit = MAX_LAUNCH_SAMPLES if limit is None else limit
+    per = limit // pixels
+    if per < 1:
+        raise ValueError(f"one sample of each of {pixels} pixels exceeds {limit} samples a launch")
+    n = -(-spp // per)
+    base, extra = divmod(spp, n)
+    return [base + (i < extra) for i in range(n)]
+
+
+def launch_seed(seed: int, i: int) -> int:
+    """The seed of launch ``i`` of a split render: ``seed`` itself for the first (an unsplit render is
+    unchanged), independent 31-bit seeds for the others."""
+    return int(seed) if i == 0 else int(np.random.SeedSequence([int(seed), i]).generate_state(1)[0] >> 1)
+
+
 def _mi_render(fs: FrameScene, spp: int, seed: int) -> np.ndarray:
-    img = fs.mi.render(fs.scene, spp=int(spp), seed=int(seed))
-    if fs.scene.integrator().should_stop():
-        # Mitsuba's SIGINT handler cancelled this render: what it returned may hold fewer samples than
-        # asked for. Fail the task (it is retried) rather than store a frame that is not what it says.
-        from pipeline.errors import RenderError
-        raise RenderError(f"the render of {spp} spp (seed {seed}) was cancelled by an interrupt signal before "
-                          "it finished; its result is not used")
-    return np.asarray(img, np.float64)[..., :3]
+    """``mi.render`` of ``spp`` samples (float64 HWC), in as many launches as :func:`launch_plan` says,
+    weighted by their samples."""
+    W, H = fs.cfg.res
+    plan = launch_plan(W * H, int(spp))
+    acc = 0.0
+    for i, n in enumerate(plan):
+        img = fs.mi.render(fs.scene, spp=int(n), seed=launch_seed(seed, i))
+        if fs.scene.integrator().should_stop():
+            # Mitsuba's SIGINT handler cancelled this render: what it returned may hold fewer samples than
+            # asked for. Fail the task (it is retried) rather than store a frame that is not what it says.
+            from pipeline.errors import RenderError
+            raise RenderError(f"the render of {spp} spp (seed {seed}) was cancelled by an interrupt signal "
+                              "before it finished; its result is not used")
+        part = np.asarray(img, np.float64)[..., :3]
+        if len(plan) == 1:
+            return part
+        acc = acc + part * (n / spp)
+    return acc
 
 
 def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices: int | None = None) -> np.ndarray:

@@ -22,6 +22,20 @@ import os
 import signal
 
 LOCAL_WORKER_ENV = "DENOISE_LOCAL_WORKER"
+GPU_SPLIT_ENV = "DENOISE_GPU_PER_WORKER"    # set by job scripts of jobqueue.gpus_per_job
+
+
+def gpu_for_worker(name: str, visible: str | None) -> str | None:
+    """The ``CUDA_VISIBLE_DEVICES`` of worker ``name`` of a job whose GPUs are ``visible``: a job of N
+    workers names them ``<job>-0`` .. ``<job>-(N-1)`` (``dask worker --nworkers N``), and worker i keeps
+    the job's GPU i (mod the GPUs); None where there is nothing to split (one GPU, or none)."""
+    devices = [d for d in (visible or "").split(",") if d.strip()]
+    if len(devices) < 2:
+        return None
+    tail = str(name).rsplit("-", 1)[-1]
+    if not tail.isdigit():
+        return None
+    return devices[int(tail) % len(devices)].strip()
 
 
 def prepare_environment() -> None:
@@ -65,4 +79,9 @@ import pymeshlab  # noqa: E402,F401  (first import in this, the main, thread; se
 
 
 def dask_setup(worker) -> None:  # noqa: D401 - Dask's preload hook
-    """Nothing more to do per worker: importing this module did the work."""
+    """In the workers of a GPU job (``$DENOISE_GPU_PER_WORKER``): keep this worker's GPU only, before
+    anything initialises CUDA (:func:`gpu_for_worker`). Otherwise importing this module did the work."""
+    if os.environ.get(GPU_SPLIT_ENV) == "1":
+        gpu = gpu_for_worker(worker.name, os.environ.get("CUDA_VISIBLE_DEVICES"))
+        if gpu is not None:
+            os.environ["CUDA_VISIBLE_DEVICES"] = gpu

@@ -69,3 +69,84 @@ def test_missing_jobqueue_is_a_clear_error(monkeypatch):
     cfg = ClusterConfig(kind="slurm", jobqueue={"cores": 1, "memory": "1GiB"})
     with pytest.raises(cl.ClusterError, match="needs dask-jobqueue: pip install"):
         cl.connect(cfg)
+
+
+# ---- GPUs: one worker each (cluster.gpus) --------------------------------------------------------------
+def _fake_nvidia_smi(tmp_path, monkeypatch, n: int) -> None:
+    """An ``nvidia-smi`` on PATH that lists ``n`` GPUs, as the driver's does."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    lines = "\\n".join(f"GPU {i}: NVIDIA H200 (UUID: GPU-{i:08d})" for i in range(n))
+    (bin_dir / "nvidia-smi").write_text(f'#!/bin/sh\n[ "$1" = "-L" ] && printf "{lines}\\n"\n')
+    (bin_dir / "nvidia-smi").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}:{__import__('os').environ['PATH']}")
+    monkeypatch.delenv("DENOISE_FORCE_CPU", raising=False)
+
+
+def test_visible_gpus_are_nvidia_smis_within_cuda_visible_devices(tmp_path, monkeypatch):
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    assert cl.visible_gpus() == [] or cl.visible_gpus()            # this machine: whatever it has
+    _fake_nvidia_smi(tmp_path, monkeypatch, 3)
+    assert cl.visible_gpus() == ["0", "1", "2"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,0")
+    assert cl.visible_gpus() == ["2", "0"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
+    assert cl.visible_gpus() == []
+    monkeypatch.setenv("DENOISE_FORCE_CPU", "1")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert cl.visible_gpus() == []
+
+
+@pytest.mark.parametrize("gpus, want", [("auto", ["0", "1"]), (None, []), (0, []), (1, ["0"]), ([1], ["1"]),
+                                        ([1, 0], ["1", "0"])])
+def test_render_gpus_follow_the_config(monkeypatch, gpus, want):
+    monkeypatch.setattr(cl, "visible_gpus", lambda: ["0", "1"])
+    assert cl.render_gpus(ClusterConfig(gpus=gpus)) == want
+
+
+@pytest.mark.parametrize("gpus", [3, [2], [0, 5]])
+def test_more_gpus_than_the_machine_shows_is_a_config_error(monkeypatch, gpus):
+    from pipeline.errors import ConfigError
+    monkeypatch.setattr(cl, "visible_gpus", lambda: ["0", "1"])
+    with pytest.raises(ConfigError, match=r"dataset.cluster.gpus is .* but this machine shows 2 GPU\(s\) \(0, 1"):
+        cl.render_gpus(ClusterConfig(gpus=gpus))
+
+
+@pytest.mark.parametrize("gpus", [-1, "all", [0, 0], [], [True], 2.0])
+def test_bad_gpus_settings_are_refused(gpus):
+    from pipeline.errors import ConfigError
+    with pytest.raises(ConfigError, match="dataset.cluster.gpus"):
+        ClusterConfig(gpus=gpus).validate()
+
+
+def _gpu_env():
+    import os
+    return os.environ.get("CUDA_VISIBLE_DEVICES")
+
+
+def test_a_gpu_machine_gets_one_worker_per_gpu_each_seeing_its_own(monkeypatch):
+    """Two pretended GPUs (the workers render with the LLVM backend here: no driver): two workers, each
+    with its own CUDA_VISIBLE_DEVICES and the GPU resource; a task asking for a GPU runs on them; a
+    worker that is replaced takes the GPU no other worker holds."""
+    monkeypatch.setattr(cl, "visible_gpus", lambda: ["0", "1"])
+    conn = cl.connect(ClusterConfig(dashboard_address=None))
+    try:
+        info = conn.client.scheduler_info(n_workers=-1)["workers"]
+        assert len(info) == 2 and all(w["resources"] == {"GPU": 1} for w in info.values())
+        seen = conn.client.run(_gpu_env)
+        assert sorted(seen.values()) == ["0", "1"]
+        assert conn.client.submit(_gpu_env, resources={"GPU": 1}, pure=False).result() in ("0", "1")
+        assert conn.cluster.gpus == ["0", "1"]
+        gone = next(a for a, g in seen.items() if g == "1")
+        name = next(n for n, spec in conn.cluster.worker_spec.items()
+                    if spec["options"]["env"]["CUDA_VISIBLE_DEVICES"] == "1")
+        del conn.cluster.worker_spec[name]
+        conn.cluster.scale(2)
+        conn.client.wait_for_workers(2, timeout=60)
+        import time
+        t0 = time.monotonic()
+        while gone in conn.client.scheduler_info(n_workers=-1)["workers"] and time.monotonic() - t0 < 60:
+            time.sleep(0.2)
+        assert sorted(conn.client.run(_gpu_env).values()) == ["0", "1"]
+    finally:
+        conn.close()

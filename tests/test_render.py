@@ -610,3 +610,63 @@ def test_points_inside_the_near_plane_have_no_projection():
     assert np.isfinite(px[1]).all() and np.isfinite(px[3]).all() and np.abs(px[1]).max() > 1000
     d = cam_geom.project_pixels(m, np.array([[0.0, 0.0, 1.0]]), (64, 64), w=0.0)    # a direction: the centre
     np.testing.assert_allclose(d, [[32.0, 32.0]])
+
+
+# -------------------------------------------------------------------------------------------------
+# launches within drjit's 2**32 samples
+def test_launch_plan_splits_only_what_exceeds_2_to_the_32_samples():
+    from pipeline.render import MAX_LAUNCH_SAMPLES, launch_plan, launch_seed
+    assert MAX_LAUNCH_SAMPLES == 2 ** 32 - 1
+    px = 1920 * 1080
+    assert launch_plan(px, 128) == [128]                        # a pass of the default 32: one launch
+    assert launch_plan(px, 4096) == [2048, 2048]                # 8.5e9 samples: two
+    assert launch_plan(px, 2071) == [2071] and launch_plan(px, 2072) == [1036, 1036]
+    for pixels, spp in ((px, 65536), (3840 * 2160, 4096), (7, 10 ** 9), (1, 2 ** 33)):
+        plan = launch_plan(pixels, spp)
+        assert sum(plan) == spp and max(plan) * pixels <= MAX_LAUNCH_SAMPLES and max(plan) - min(plan) <= 1
+        assert len(plan) == -(-pixels * spp // (MAX_LAUNCH_SAMPLES // pixels * pixels))
+    with pytest.raises(ValueError, match="exceeds"):
+        launch_plan(10, 1, limit=9)
+    assert launch_seed(5, 0) == 5 and len({launch_seed(5, i) for i in range(100)}) == 100
+    assert all(0 <= launch_seed(2 ** 31 - 1, i) < 2 ** 31 for i in range(10))
+
+
+def test_a_render_split_into_launches_is_the_same_estimate(mi, monkeypatch):
+    """With the launch limit lowered to a few samples a pixel, a reference renders in several launches
+    per pass: its mean agrees with Mitsuba's own mi.render (z-test), and it is not the unsplit image."""
+    from pipeline import render
+    from pipeline.render import render_frame
+    spec = ball_scene()
+    c = cfg(spp=2, ref_spp=256, ref_passes=4, ref_min_passes=2, layer_levels=0)
+    whole = render_frame(spec, 0, c)
+    W, H = RES
+    monkeypatch.setattr(render, "MAX_LAUNCH_SAMPLES", W * H * 24)          # 64-spp passes: 3 launches each
+    assert render.launch_plan(W * H, 64) == [22, 21, 21]
+    split = render_frame(spec, 0, c)
+    assert split["meta"]["reference_spp"] == 256
+    assert split["reference"].tobytes() != whole["reference"].tobytes()
+    assert split["radiance"].tobytes() == whole["radiance"].tobytes()       # the input loop is not mi.render
+    ora, var_ora = oracle(mi, spec, 0, 1024, 4242, with_var=True)
+    var_split = split["reference_stderr"].astype(np.float64) ** 2          # variance of the pixel's mean
+    assert zmax(split["reference"].astype(np.float64), var_split, ora, var_ora / 1024) < 5
+
+
+@pytest.mark.gpu
+def test_cuda_and_llvm_estimates_of_one_scene_agree(tmp_path):
+    """The same generated scene rendered by Mitsuba's CUDA and LLVM variants (each in its own process,
+    scripts/device_check.py's estimate): the image and 4x4-block means agree within the z-test above."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parent.parent
+    est = {}
+    for v in ("cuda_ad_rgb", "llvm_ad_rgb"):
+        out = tmp_path / f"{v}.npz"
+        r = subprocess.run([sys.executable, str(root / "scripts" / "device_check.py"), "--estimate", str(out)],
+                           env={**os.environ, "MI_VARIANT": v, "PYTHONPATH": str(root)}, cwd=root,
+                           capture_output=True, text=True, timeout=900)
+        assert r.returncode == 0, r.stderr[-2000:]
+        est[v] = dict(np.load(out))
+    a, b = est["cuda_ad_rgb"], est["llvm_ad_rgb"]
+    assert zmax(a["mean"], a["var"], b["mean"], b["var"]) < 5
