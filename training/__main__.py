@@ -31,7 +31,8 @@ def _train(a) -> int:
     cfg = TrainConfig(model=a.model, model_cfg=_model_cfg(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
                       batch=a.batch, crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, val_split=a.val_split, checkpoint_every=a.checkpoint_every,
-                      device=a.device, workers=a.workers, skip_bad_frames=a.skip_bad_frames)
+                      device=a.device, precision=a.precision, workers=a.workers,
+                      skip_bad_frames=a.skip_bad_frames)
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress)
     if res.get("rank", 0) != 0:          # under torchrun: rank 0 speaks for the run
@@ -45,7 +46,7 @@ def _train(a) -> int:
 def _evaluate(a) -> int:
     from .evaluate import evaluate, write_json
     res = evaluate(a.checkpoint, a.store, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
-                   skip_bad_frames=a.skip_bad_frames)
+                   skip_bad_frames=a.skip_bad_frames, device=a.device, precision=a.precision, compile=a.compile)
     write_json(res, a.out)
     print(dumps({"method": res["method"], **res["mean"]}))
     return 0
@@ -61,7 +62,8 @@ def _report(a) -> int:
 
 def _bench(a) -> int:
     from .bench import run
-    res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn)
+    res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn,
+              device=a.device, precision=a.precision, compile=a.compile)
     if a.json:
         from .jsonio import write
         write(a.json, res)
@@ -122,7 +124,11 @@ def main(argv=None) -> int:
     t.add_argument("--workers", type=int, default=1,
                    help="DataLoader worker processes (default 1; 0 loads in the training process)")
     t.add_argument("--checkpoint-every", type=int, default=100, help="write checkpoint.pt every N steps")
-    t.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
+    t.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
+                                                     "PyTorch sees a GPU, else the CPU)")
+    t.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
+                   help="autocast precision of the forward pass, weights kept in fp32; fp16 scales the loss "
+                        "(default auto: bf16 on a GPU that has it, else fp32)")
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
     t.add_argument("--no-progress", action="store_true")
     t.add_argument("--skip-bad-frames", action="store_true",
@@ -143,6 +149,14 @@ def main(argv=None) -> int:
     e.add_argument("--skip-bad-frames", action="store_true",
                    help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
                         "references), with a warning naming them; default: refuse them")
+    e.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
+                                                     "PyTorch sees a GPU, else the CPU)")
+    e.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
+                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
+                        "fp32)")
+    e.add_argument("--compile", action="store_true",
+                   help="run the model through torch.compile (the first frame of each size compiles: tens of "
+                        "seconds on a CPU)")
     e.set_defaults(fn=_evaluate)
 
     r = sub.add_parser("report", help="evaluate runs and baselines; Markdown table, plot and crops")
@@ -185,6 +199,14 @@ def main(argv=None) -> int:
     b.add_argument("--repeats", type=int, default=3, help="timed forward passes; the best counts (default 3)")
     b.add_argument("--json", help='write {name: {"ms_per_mp": ...}} (with "oidn") to this file')
     b.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
+    b.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
+                                                     "PyTorch sees a GPU, else the CPU)")
+    b.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
+                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
+                        "fp32)")
+    b.add_argument("--compile", action="store_true",
+                   help="also time every model through torch.compile, with its speed-up and its largest "
+                        "difference from the eager output")
     b.set_defaults(fn=_bench)
 
     d = sub.add_parser("denoise", help="apply a trained checkpoint to your own render (EXR images, a store "
@@ -202,7 +224,14 @@ def main(argv=None) -> int:
     d.add_argument("--tile", type=int, default=0,
                    help="denoise in square tiles of this many pixels (with overlap) to bound memory; "
                         "0: automatic (whole image when it fits)")
-    d.add_argument("--device", default="cpu", help="cpu, cuda, ... (default cpu)")
+    d.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
+                                                     "PyTorch sees a GPU, else the CPU)")
+    d.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
+                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
+                        "fp32)")
+    d.add_argument("--compile", action="store_true",
+                   help="run the model through torch.compile (the first frame of each size compiles: tens of "
+                        "seconds on a CPU)")
     d.add_argument("--out", required=True, help="denoised radiance, written as OpenEXR")
     d.set_defaults(fn=_denoise)
 

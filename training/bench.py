@@ -6,7 +6,11 @@ declared input kind (per-sample frames for the layer family, per-pixel frames fo
 own default spp unless ``spp`` is given, and runs in its inference form (``for_inference``: WSKPN's
 RepVGG blocks fused). Speed does not depend on content. Times are the best of ``repeats`` forward
 passes under ``torch.no_grad`` after a warm-up; ``ms_per_720p`` scales ms/MP to a 1280x720 frame, the
-real-time papers' unit.
+real-time papers' unit. ``device`` (``auto``: CUDA where present) and ``precision`` (autocast; ``auto``:
+bf16 on a GPU that has it, else fp32) choose where and how; on CUDA each timed pass ends with a
+synchronisation. ``compile``: each model is also timed through ``torch.compile`` after its eager
+passes, adding ``compiled_ms_per_mp``, ``compile_speedup`` (eager / compiled wall time) and
+``compile_max_rel_diff`` (largest difference of the outputs over the eager output's largest value).
 """
 from __future__ import annotations
 
@@ -36,13 +40,26 @@ def _row(wall: float, cpu: float, mp: float, **extra) -> dict:
     return {"ms_per_mp": ms, "cpu_ms_per_mp": cpu * 1e3 / mp, "ms_per_720p": ms * MP_720P, **extra}
 
 
+def _forward(model, batch, stepwise: bool, state, device, precision: str):
+    """One timed call: a recurrent model's step with ``state``, else the forward pass."""
+    from .accel import autocast
+    with torch.no_grad(), autocast(device, precision):
+        out = model.step(batch, state)[0] if stepwise else model(batch)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return out
+
+
 def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, oidn: bool = True,
-        print_table: bool = True) -> dict:
+        print_table: bool = True, device: str = "cpu", precision: str = "fp32", compile: bool = False) -> dict:
+    from .accel import compile_model, pick_device, precision_for
     from .models import build, names
     from .models.common import flush_denormals
-    from .oidn import oidn_denoise
+    from .oidn import oidn_denoise, oidn_denoise_tensor
 
     flush_denormals()
+    dev = pick_device(device)
+    precision = precision_for(precision, dev)
     models = list(models) if models else names()
     mp = size * size / 1e6
     res = {}
@@ -54,33 +71,53 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
         stepwise = getattr(m, "stepwise", False)     # recurrent: one frame's step with a history
         frames = 1 if stepwise else spec.frames
         batch = spec.input_kind.example_batch(1, n, size, size, frames, torch.Generator().manual_seed(0))
-        fast = m.for_inference()
-        with torch.no_grad():
-            if stepwise:
+        batch = {k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in batch.items()}
+        fast = m.to(dev).for_inference()
+        state = None
+        if stepwise:
+            with torch.no_grad():
                 state = fast.step(batch, None)[1]
-                s, c = _best(lambda f=fast, st=state: f.step(batch, st), repeats)
-            else:
-                s, c = _best(lambda f=fast: f(batch), repeats)
-        res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count())
+        s, c = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
+        res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count(),
+                         device=str(dev), precision=precision)
+        if compile:
+            eager = _forward(fast, batch, stepwise, state, dev, precision).float()
+            fast = compile_model(fast)
+            cs, _ = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
+            diff = (_forward(fast, batch, stepwise, state, dev, precision).float() - eager).abs().max()
+            res[name].update(compiled_ms_per_mp=cs * 1e3 / mp, compile_speedup=s / cs,
+                             compile_max_rel_diff=float(diff / eager.abs().max().clamp_min(1e-12)))
         del m, fast
     if oidn:
         rng = np.random.default_rng(0)
         color = rng.random((size, size, 3), dtype=np.float32) * 4
         alb = rng.random((size, size, 3), dtype=np.float32)
         nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
-        s, c = _best(lambda: oidn_denoise(color, alb, nrm), repeats)
-        res["oidn"] = _row(s, c, mp, spp=None, fmas_per_pixel=None, params=None)
+        if dev.type == "cuda":                   # OIDN's CUDA device, on tensors already on the GPU
+            ct, at, nt = (torch.from_numpy(x).to(dev) for x in (color, alb, nrm))
+
+            def run_oidn():
+                oidn_denoise_tensor(ct, at, nt)
+                torch.cuda.synchronize(dev)
+        else:
+            def run_oidn():
+                oidn_denoise(color, alb, nrm)
+        s, c = _best(run_oidn, repeats)
+        res["oidn"] = _row(s, c, mp, spp=None, fmas_per_pixel=None, params=None, device=str(dev))
     if print_table:
-        print(f"inference at {size}x{size}, {torch.get_num_threads()} threads (best of {repeats})")
+        where = f"{torch.get_num_threads()} CPU threads" if dev.type == "cpu" else str(dev)
+        print(f"inference at {size}x{size}, {where}, {precision} (best of {repeats})")
         print(f"{'model':<16} {'spp':>4} {'ms/MP':>10} {'cpu ms/MP':>10} {'ms/720p':>9} {'kFMA/px':>8} {'params':>11}"
-              f" {'/ oidn':>7}")
+              f" {'/ oidn':>7}" + (f" {'compiled':>9} {'speedup':>8} {'rel diff':>9}" if compile else ""))
         ref = res.get("oidn", {}).get("ms_per_mp")
         for k, v in res.items():
             fm = "-" if v["fmas_per_pixel"] is None else f"{v['fmas_per_pixel'] / 1e3:.1f}"
             pc = "-" if v["params"] is None else f"{v['params']:,}"
             rel = f"{v['ms_per_mp'] / ref:.3f}" if ref else "-"
+            cm = (f" {v['compiled_ms_per_mp']:>9.0f} {v['compile_speedup']:>7.2f}x {v['compile_max_rel_diff']:>9.1e}"
+                  if "compiled_ms_per_mp" in v else "")
             print(f"{k:<16} {v['spp'] or '-':>4} {v['ms_per_mp']:>10.0f} {v['cpu_ms_per_mp']:>10.0f} "
-                  f"{v['ms_per_720p']:>9.1f} {fm:>8} {pc:>11} {rel:>7}")
+                  f"{v['ms_per_720p']:>9.1f} {fm:>8} {pc:>11} {rel:>7}" + cm)
         if "layer" in res and "layer-optimized" in res:
             r = {k: res["layer"][k] / res["layer-optimized"][k] for k in ("ms_per_mp", "cpu_ms_per_mp")}
             f = res["layer"]["fmas_per_pixel"] / res["layer-optimized"]["fmas_per_pixel"]

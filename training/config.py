@@ -29,7 +29,9 @@ class TrainConfig:
     loss at lr 1e-4 and WSKPN's SMAPE at lr 1e-3, without clamping or warm-up, and ``spp`` from its
     input declaration: 1 for the per-pixel models), else the layer family's values above; the
     resolved values are what a checkpoint records. ``workers`` is the number of DataLoader worker
-    processes (0: load in the training process); it does not change what is trained."""
+    processes (0: load in the training process); it does not change what is trained. ``device`` and
+    ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
+    on a GPU in bf16 resumes on a CPU in fp32)."""
 
     model: str = "layer"
     model_cfg: dict = field(default_factory=dict)
@@ -49,7 +51,8 @@ class TrainConfig:
     val_split: str = "val"
     log_every: int = 10
     checkpoint_every: int = 100
-    device: str = "cpu"
+    device: str = "auto"        # auto: CUDA where present, else the CPU (training.accel)
+    precision: str = "auto"     # auto: bf16 on a GPU that has it, else fp32; bf16, fp16 or fp32
     workers: int = 1            # DataLoader worker processes (0: in-process)
     skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
 
@@ -69,8 +72,9 @@ class TrainConfig:
         for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
             need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")
         need("model_cfg", isinstance(self.model_cfg, dict), "a dict of model settings")
-        need("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda"),
-             '"cpu" or "cuda[:N]"')
+        from .accel import check_device, check_precision
+        check_device(self.device)
+        check_precision(self.precision)
         from .losses import build_loss
         build_loss(self.loss)
 
@@ -99,6 +103,7 @@ class TrainConfig:
     def identity(self) -> dict:
         """Settings that must match to resume a run (everything except the step budget and logging)."""
         d = self.to_dict()
-        for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device", "workers"):
+        for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device", "precision",
+                  "workers"):
             d.pop(k)
         return d

@@ -50,8 +50,9 @@ GUIDES = ("albedo", "normal", "depth")
 # Loading
 
 
-def load_method(checkpoint: str, device: str = "cpu"):
-    """``(model in inference form, spec, train spp, name)``, or ``(None, None, None, "oidn")``."""
+def load_method(checkpoint: str, device: str = "cpu", compile: bool = False):
+    """``(model in inference form, spec, train spp, name)``, or ``(None, None, None, "oidn")``.
+    ``compile``: through ``torch.compile`` (:func:`training.accel.compile_model`)."""
     if checkpoint == "oidn":
         return None, None, None, "oidn"
     from . import checkpoint as ckpt
@@ -63,7 +64,11 @@ def load_method(checkpoint: str, device: str = "cpu"):
     model = ckpt.build_model(ck, device)
     spec = model.input_spec()
     spp = int(ck["train_config"].get("spp") or spec.default_spp)
-    return model.for_inference(), spec, spp, ck["model"]
+    fast = model.for_inference()
+    if compile:
+        from .accel import compile_model
+        fast = compile_model(fast)
+    return fast, spec, spp, ck["model"]
 
 
 def _finite(name: str, a: np.ndarray) -> np.ndarray:
@@ -235,12 +240,14 @@ def _run_oidn(item: dict) -> np.ndarray:
     return oidn_denoise(hwc(rad), hwc(item.get("albedo")), hwc(item.get("normal")))
 
 
-def run_sequence(model, items: list[dict], device: str = "cpu") -> np.ndarray:
-    """The model's output (HW3 float32) for the last item; a recurrent model steps through all of them."""
+def run_sequence(model, items: list[dict], device: str = "cpu", precision: str = "fp32") -> np.ndarray:
+    """The model's output (HW3 float32) for the last item; a recurrent model steps through all of them.
+    ``precision``: the forward pass's autocast (bf16, fp16 or fp32)."""
     if model is None:
         return _run_oidn(items[-1])
+    from .accel import autocast
     state = None
-    with torch.no_grad():
+    with torch.no_grad(), autocast(torch.device(device), precision):
         for item in items:
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items() if torch.is_tensor(v)}
             if getattr(model, "stepwise", False):
@@ -269,18 +276,19 @@ def _crop(items: list[dict], y0, y1, x0, x1) -> list[dict]:
             for it in items]
 
 
-def denoise(model, items: list[dict], tile: int = 0, device: str = "cpu", progress: bool = False) -> np.ndarray:
+def denoise(model, items: list[dict], tile: int = 0, device: str = "cpu", progress: bool = False,
+            precision: str = "fp32") -> np.ndarray:
     """Denoise the last of ``items`` (see :func:`run_sequence`), in tiles of ``tile`` px (0: automatic,
     the whole image up to :data:`AUTO_TILE_PIXELS`; < 0: never)."""
     H, W = _check_sizes(items)
     if tile == 0:
         tile = AUTO_TILE if H * W > AUTO_TILE_PIXELS else -1
     if tile < 0 or (tile >= H and tile >= W):
-        return run_sequence(model, items, device)
+        return run_sequence(model, items, device, precision)
     out = np.zeros((H, W, 3), np.float32)
     grid = list(tiles(H, W, tile))
     for i, ((y0, y1, x0, x1), (ky0, ky1, kx0, kx1)) in enumerate(grid):
-        part = run_sequence(model, _crop(items, y0, y1, x0, x1), device)
+        part = run_sequence(model, _crop(items, y0, y1, x0, x1), device, precision)
         out[ky0:ky1, kx0:kx1] = part[ky0 - y0:ky1 - y0, kx0 - x0:kx1 - x0]
         if progress:
             print(f"\rtile {i + 1}/{len(grid)}", end="", file=sys.stderr, flush=True)
@@ -303,7 +311,10 @@ def denoise_cli(a) -> int:
         raise ConfigError("a store frame brings its own guides; --albedo/--normal/--depth go with --input")
     if a.tile and a.tile < 2 * TILE_ALIGN:
         raise ConfigError(f"--tile {a.tile}: at least {2 * TILE_ALIGN} pixels (0: automatic)")
-    model, spec, train_spp, name = load_method(a.checkpoint, a.device)
+    from .accel import pick_device, precision_for
+    dev = pick_device(a.device)
+    device, precision = str(dev), precision_for(a.precision, dev)
+    model, spec, train_spp, name = load_method(a.checkpoint, device, compile=a.compile)
     stepwise = model is not None and getattr(model, "stepwise", False)
     t0 = time.perf_counter()
     if a.store is not None:
@@ -324,7 +335,7 @@ def denoise_cli(a) -> int:
         items = items_from_exr(spec, a)
         src = a.input
     H, W = _check_sizes(items)
-    out = denoise(model, items, tile=a.tile, device=a.device, progress=True)
+    out = denoise(model, items, tile=a.tile, device=device, progress=True, precision=precision)
     if not np.isfinite(out).all():
         raise DataError(f"{name} produced {int((~np.isfinite(out)).any(axis=-1).sum())} non-finite pixels on {src}")
     write_exr(a.out, out)

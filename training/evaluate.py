@@ -29,6 +29,7 @@ import torch
 
 from stores.fitness import reference_limits
 
+from . import accel
 from . import checkpoint as ckpt
 from . import metrics
 from .data import model_dataset, open_store
@@ -105,7 +106,7 @@ def frame_tags(store, idx: int) -> dict:
 def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
              with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
              threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels",
-             progress: bool = False) -> dict:
+             progress: bool = False, compile: bool = False, precision: str = "fp32") -> dict:
     """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
 
     The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
@@ -115,12 +116,18 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     negative values, a non-finite or negative reference standard error, NaN the renderer replaced;
     ``skip_bad_frames`` leaves them out, with a warning naming them). Models run in their inference form (``for_inference``). ``keep``: positions
     (in the split) of frames whose output images (float32 HW3) are returned under ``"images"`` (not
-    written to JSON). Times are wall-clock per frame after one warm-up frame."""
+    written to JSON). Times are wall-clock per frame after one warm-up frame. ``device``: ``auto`` is CUDA where present;
+    ``compile``: the model through ``torch.compile`` (the warm-up frame compiles); ``precision``: the
+    forward pass's autocast (``training.accel``; ``auto``: bf16 on a GPU that has it, else fp32),
+    metrics always in fp32."""
     if threads:
         torch.set_num_threads(int(threads))
     flush_denormals()
+    dev = accel.pick_device(device)
+    device, precision = str(dev), accel.precision_for(precision, dev)
     st = open_store(store)
-    info: dict = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads()}
+    info: dict = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads(),
+                  "device": device, "precision": precision, "compiled": bool(compile)}
     if isinstance(method, str) and method in BASELINES:
         spp = int(st.layout.spp if spp is None else spp)
         spec = baseline_spec(spp, baseline_input)
@@ -145,6 +152,8 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         info.update(params=model.param_count(), fmas_per_pixel=float(model.fmas_per_pixel(spp)),
                     model_config=model.config, input_kind=spec.kind)
         model = model.for_inference()
+        if compile:
+            model = accel.compile_model(model)
     stepwise = model is not None and getattr(model, "stepwise", False)
     if stepwise:                          # a recurrent model: single frames in clip order, carrying its state
         from .inputs import InputSpec
@@ -164,7 +173,7 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
             if method == "input":
                 return _hwc(rad), None, float(spp), None
             return oidn_denoise(_hwc(rad), _hwc(item["albedo"]), _hwc(item["normal"])), None, float(spp), None
-        with torch.no_grad():
+        with torch.no_grad(), accel.autocast(dev, precision):
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items()}
             if stepwise:
                 out, state, extra = model.step(batch, state)

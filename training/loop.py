@@ -32,8 +32,8 @@ import torch
 
 from stores.errors import SplitError
 
+from . import accel, distributed, metrics
 from . import checkpoint as ckpt
-from . import distributed, metrics
 from .config import TrainConfig
 from .data import batch_loader, batches_per_epoch, draws_per_epoch, model_dataset, open_store, to_device
 from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
@@ -45,50 +45,60 @@ DEFAULT_CROP = 128
 CSV_FIELDS = ("step", "epoch", "kind", "loss", "relmse", "smape", "psnr", "seconds")
 
 
-def pick_device(name: str) -> torch.device:
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f'"device" is {name!r} but no CUDA device is available')
-    return dev
-
-
 def warmup_lr(lr: float, warmup: int, step: int) -> float:
     """Learning rate of optimiser step ``step`` (0-based): linear warm-up over ``warmup`` steps."""
     return lr * min(1.0, (step + 1) / warmup) if warmup else lr
 
 
 def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
-               lr: float | None = None, target=None, dist: distributed.Dist = distributed.SINGLE) -> float:
+               lr: float | None = None, target=None, dist: distributed.Dist = distributed.SINGLE,
+               precision: str = "fp32", scaler: torch.amp.GradScaler | None = None) -> float:
     """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
     Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise.
     ``lr``: this step's learning rate (None: leave the optimiser's). ``target``: the reference the
     output is compared with (default ``batch["reference"]``; the input kind's ``target``).
     ``dist``: under torchrun ``model`` is DDP-wrapped and ``batch`` this rank's share; the returned
     loss is the global batch's (the ranks' means averaged), and every rank raises on a non-finite one,
-    so none is left waiting in the gradient all-reduce."""
+    so none is left waiting in the gradient all-reduce. ``precision``: the forward pass's
+    (:func:`training.accel.autocast` on the batch's device; fp32: none); ``scaler``: fp16's loss scaling (gradients are
+    unscaled before clamping; a step whose gradients overflowed is skipped by the scaler)."""
     if lr is not None:
         for group in optimizer.param_groups:
             group["lr"] = lr
     model.train()
     optimizer.zero_grad(set_to_none=True)
-    out = model(batch)
-    loss = loss_fn(out, batch["reference"] if target is None else target)
+    device = next(v.device for v in batch.values() if isinstance(v, torch.Tensor))
+    with accel.autocast(device, precision):
+        out = model(batch)
+    loss = loss_fn(out.float(), batch["reference"] if target is None else target)
     value = dist.mean(loss.detach())
     if not torch.isfinite(value):
         raise NonFiniteError(f"loss is {value.item()} (non-finite)")
-    loss.backward()
+    if scaler is None or not scaler.is_enabled():
+        loss.backward()
+        _clamp(model, clip_norm, clip_value)
+        optimizer.step()
+        return float(value)
+    scaler.scale(loss).backward()
+    scaler.unscale_(optimizer)
+    _clamp(model, clip_norm, clip_value)
+    scaler.step(optimizer)
+    scaler.update()
+    return float(value)
+
+
+def _clamp(model, clip_norm: float, clip_value: float) -> None:
     if clip_norm:
         torch.nn.utils.clip_grad_norm_(model.parameters(), clip_norm)
     if clip_value:
         torch.nn.utils.clip_grad_value_(model.parameters(), clip_value)
-    optimizer.step()
-    return float(value)
 
 
 @torch.no_grad()
 def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
-             dist: distributed.Dist = distributed.SINGLE) -> dict:
-    """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, fp32. ``kind``:
+             dist: distributed.Dist = distributed.SINGLE, precision: str = "fp32") -> dict:
+    """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, the model run in
+    ``precision`` (as trained) and every figure computed in fp32. ``kind``:
     the model's input kind (its ``target``); default: the item's ``reference``. ``dist``: under
     torchrun item i is judged on rank ``i mod N`` and the rows gathered in item order, so every rank
     returns the one-process figures (``model``: the unwrapped module)."""
@@ -97,7 +107,9 @@ def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
     rows = []
     for i in range(dist.rank, n, dist.world):
         item = to_device({k: v.unsqueeze(0) for k, v in dataset[i].items()}, device)
-        out = model(item).float()
+        with accel.autocast(torch.device(device), precision):
+            out = model(item)
+        out = out.float()
         ref = (item["reference"] if kind is None else kind.target(item)).float()
         if out.dim() == 5:                           # a recurrent model's window: judge its last frame
             out, ref = out[:, -1], ref[:, -1]
@@ -109,6 +121,38 @@ def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
         rows = sorted((r for part in dist.gather(rows) for r in part), key=lambda r: r["i"])
     rows = [{k: v for k, v in r.items() if k != "i"} for r in rows]
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+
+
+class _Feed:
+    """Whether the loader keeps up: the crops a second its processes can make (one process's rate, timed
+    on a few crops, times the workers) against the crops a second the steps consume, measured over the
+    first :attr:`STEPS` steps after the first (a starved GPU waits on the loader: raise --workers)."""
+    STEPS = 10
+
+    def __init__(self, dataset, batch: int, workers: int):
+        from .data import crops_per_second
+        self.batch, self.workers = batch, workers
+        self.make = crops_per_second(dataset) * max(workers, 1)
+        self.n, self.wait, self.busy = -1, 0.0, 0.0
+
+    def add(self, wait: float, busy: float) -> bool:
+        """Count one step (``wait``: seconds waiting for its batch; ``busy``: seconds of the step);
+        True once, when the line is due."""
+        self.n += 1
+        if self.n == 0:                     # the first batch waits for the workers to start
+            return False
+        self.wait, self.busy = self.wait + wait, self.busy + busy
+        return self.n == self.STEPS
+
+    def line(self) -> str:
+        use = self.n * self.batch / max(self.busy, 1e-9)
+        waited = self.wait / max(self.wait + self.busy, 1e-9)
+        who = f"{self.workers} worker process(es)" if self.workers else "the training process (--workers 0)"
+        msg = (f"data: the loader makes ~{self.make:.0f} crops/s ({who}); the steps consume {use:.0f} crops/s; "
+               f"{100 * waited:.0f}% of the time waiting for data")
+        if self.make < use:
+            msg += f": the steps are starved, raise --workers (about {use / self.make * max(self.workers, 1):.0f})"
+        return msg
 
 
 def store_identity(store) -> dict:
@@ -183,14 +227,15 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
     and none existed); under torchrun (module docstring) every rank returns it, with ``rank`` and
     ``world`` added.
     """
-    with distributed.session(cfg.device) as (dist, device_name):
+    with distributed.session(accel.device_name(cfg.device)) as (dist, device_name):
         return _train(cfg, store, out, dist, device_name, progress, stop_after)
 
 
 def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: str, progress: bool,
            stop_after: int | None) -> dict:
     out = _prepare_out(out, dist.rank)
-    device = pick_device(device_name)
+    device = accel.pick_device(device_name)
+    precision = accel.precision_for(cfg.precision, device)
     flush_denormals()
     store = open_store(store)
     if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
@@ -199,13 +244,14 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
     loss_fn = build_loss(cfg.loss)
 
     torch.manual_seed(cfg.seed)
-    model = build(cfg.model, **cfg.model_cfg).to(device)
+    model = accel.prepare(build(cfg.model, **cfg.model_cfg), device)
     spec = model.input_spec()
     kind = spec.input_kind
     if dist.enabled and cfg.batch % dist.world:
         raise ConfigError(f'"batch" {cfg.batch} is the global batch and must divide evenly over the '
                           f"{dist.world} ranks; use a multiple of {dist.world}")
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    scaler = accel.grad_scaler(device, precision)
     step = 0
     ck_path = out / "checkpoint.pt"
     if ck_path.exists():
@@ -219,6 +265,8 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
         model.load_state_dict(ck["state_dict"])
         optimizer.load_state_dict(ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])
+        if scaler.is_enabled() and ck.get("scaler"):
+            scaler.load_state_dict(ck["scaler"])
         step = int(ck["step"])
     module, model = model, distributed.wrap(model, dist, device)   # DDP under torchrun, else the model
 
@@ -239,7 +287,8 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
 
     def save():
         if dist.is_main:
-            ckpt.save(ck_path, model=module, optimizer=optimizer, step=step, cfg=cfg, store_info=store_info)
+            ckpt.save(ck_path, model=module, optimizer=optimizer, step=step, cfg=cfg, store_info=store_info,
+                      extra={"scaler": scaler.state_dict()} if scaler.is_enabled() else None)
 
     t0 = time.perf_counter()
     loss, val = float("nan"), {}
@@ -250,17 +299,26 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
         warnings.warn(f"--batch {cfg.batch} is larger than the {len(train_ds)} training items of the store: each "
                       f"epoch visits every item {draws} times, each visit its own crop and augmentation",
                       stacklevel=2)
+    say = print if dist.is_main else (lambda *a, **k: None)
+    say(f"train {cfg.model}: {accel.describe(device, precision)}", flush=True)
+    feed = _Feed(train_ds, cfg.batch // dist.world, cfg.workers) if todo > 0 and dist.is_main else None
     bar = None
     if progress and dist.is_main:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
+        t_step = time.perf_counter()
         for batch in batch_loader(train_ds, cfg.batch, cfg.seed, step, step + todo, cfg.workers,
-                                  dist.rank, dist.world):
+                                  dist.rank, dist.world, pin_memory=device.type == "cuda"):
             epoch = step // per_epoch
+            t_data = time.perf_counter()
             batch = to_device(batch, device)
             loss = train_step(model, optimizer, loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
-                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch), dist=dist)
+                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch), dist=dist,
+                              precision=precision, scaler=scaler)
+            if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
+                (bar.write if bar else say)(feed.line())
+            t_step = time.perf_counter()
             step += 1
             if bar:
                 bar.update(1)
@@ -268,7 +326,7 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
             if log and (step % cfg.log_every == 0 or step == cfg.steps):
                 log.write(step=step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
             if val_ds is not None and ((cfg.val_every and step % cfg.val_every == 0) or step == cfg.steps):
-                val = validate(module, val_ds, loss_fn, device, cfg.val_frames, kind, dist)
+                val = validate(module, val_ds, loss_fn, device, cfg.val_frames, kind, dist, precision)
                 if log:
                     log.write(step=step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:

@@ -1,0 +1,172 @@
+"""The GPU path as far as a CPU can test it (training.accel): ``--device auto``, ``--precision``
+(autocast with fp32 weights, fp16 loss scaling), the loader's rate against the steps', and
+``--compile`` giving the eager outputs. Tests marked ``gpu`` run the same on a CUDA device."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from training import accel
+from training import checkpoint as ckpt
+from training.config import TrainConfig
+from training.errors import ConfigError
+from training.loop import train, train_step
+from training.losses import build_loss
+from training.models import build, get, names
+
+from test_training import make_store
+
+ROOT = Path(__file__).resolve().parent.parent
+CUDA = torch.cuda.is_available()
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return make_store(tmp_path_factory.mktemp("store") / "tiny.zarr")
+
+
+def test_auto_device_and_precision_follow_the_machine(monkeypatch):
+    assert accel.device_name("auto") == ("cuda" if CUDA else "cpu")
+    assert accel.device_name("cuda:1") == "cuda:1" and accel.device_name("cpu") == "cpu"
+    assert accel.precision_for("auto", torch.device("cpu")) == "fp32"
+    assert accel.precision_for("bf16", torch.device("cpu")) == "bf16"
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: True)
+    assert accel.precision_for("auto", torch.device("cuda")) == "bf16"
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: False)
+    assert accel.precision_for("auto", torch.device("cuda")) == "fp32"
+    assert TrainConfig().device == "auto" and TrainConfig().precision == "auto"
+
+
+@pytest.mark.parametrize("bad", ["gpu", "cuda:x", "", 3, "tpu:0"])
+def test_bad_devices_and_precisions_are_config_errors(bad):
+    with pytest.raises(ConfigError, match='"device" must be'):
+        TrainConfig(device=bad)
+    with pytest.raises(ConfigError, match='"precision" must be one of auto, bf16, fp16, fp32'):
+        TrainConfig(precision=str(bad) or "fp8")
+
+
+@pytest.mark.skipif(CUDA, reason="this machine has a GPU")
+def test_cuda_without_a_gpu_is_a_one_line_error(store, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "training", "train", "--model", "nbg", "--store", store, "--out",
+                        str(tmp_path / "run"), "--steps", "1", "--device", "cuda", "--no-progress"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert err == ["error: ConfigError: \"device\" is 'cuda' but no CUDA device is available (--device auto or cpu)"]
+
+
+def _conv_dtypes(model) -> list:
+    seen = []
+    for m in model.modules():
+        if isinstance(m, torch.nn.Conv2d):
+            m.register_forward_hook(lambda mod, inp, out: seen.append(out.dtype))
+    return seen
+
+
+@pytest.mark.parametrize("name", names())
+@pytest.mark.parametrize("precision", ["bf16", "fp16"])
+def test_every_family_trains_a_step_in_reduced_precision_with_fp32_weights(name, precision):
+    """The convolutions run in the reduced precision, the loss is finite, the weights stay fp32 and move
+    (fp16: through the loss scaler)."""
+    torch.manual_seed(0)
+    model = accel.prepare(build(name, **get(name).tiny), torch.device("cpu"))
+    spec = model.input_spec()
+    batch = spec.input_kind.example_batch(2, 2, 16, 16, spec.frames, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        batch["reference"] = torch.rand_like(model(batch).float())
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    seen = _conv_dtypes(model)
+    dev = torch.device("cpu")
+    scaler = accel.grad_scaler(dev, precision)
+    assert scaler.is_enabled() == (precision == "fp16")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    loss = train_step(model, opt, build_loss(model.train_defaults.get("loss", "smape")), batch,
+                      target=spec.input_kind.target(batch), precision=precision, scaler=scaler)
+    assert torch.isfinite(torch.tensor(loss))
+    if seen:                                           # every family convolves; its convs ran reduced
+        assert set(seen) == {accel.DTYPES[precision]}, seen
+    assert all(p.dtype == torch.float32 for p in model.parameters())
+    moved = [k for k, v in model.state_dict().items() if v.is_floating_point() and not torch.equal(v, before[k])]
+    if precision == "bf16" or scaler.get_scale() == 65536.0:     # fp16's first steps may be skipped (overflow)
+        assert moved, "no weight moved"
+
+
+def test_fp16_training_checkpoints_its_loss_scale_and_resumes_exactly(store, tmp_path):
+    c = TrainConfig(model="nbg", steps=4, batch=2, crop=16, val_every=2, val_frames=1, val_crop=16,
+                    checkpoint_every=100, seed=1, precision="fp16", workers=0)
+    train(c, store, tmp_path / "a", progress=False)
+    train(c, store, tmp_path / "b", progress=False, stop_after=2)
+    assert "scaler" in ckpt.load(tmp_path / "b" / "checkpoint.pt")
+    train(c, store, tmp_path / "b", progress=False)
+    wa, wb = (ckpt.load(tmp_path / r / "checkpoint.pt") for r in "ab")
+    assert wa["scaler"] == wb["scaler"] and wa["scaler"]["scale"] > 0
+    assert all(torch.equal(wa["state_dict"][k], wb["state_dict"][k]) for k in wa["state_dict"])
+    # the precision may change on resumption (a GPU run finished on a CPU): it is not part of the identity
+    train(c.replace(precision="fp32", steps=6), store, tmp_path / "b", progress=False)
+    assert ckpt.load(tmp_path / "b" / "checkpoint.pt")["step"] == 6
+
+
+def test_train_says_where_it_runs_and_whether_the_loader_keeps_up(store, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "training", "train", "--model", "nbg", "--store", store, "--out",
+                        str(tmp_path / "run"), "--steps", "14", "--batch", "2", "--crop", "16", "--workers", "0",
+                        "--precision", "bf16", "--val-every", "0", "--no-progress"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "train nbg: device cpu, precision bf16" in r.stdout, r.stdout
+    line = next(ln for ln in (r.stdout + r.stderr).splitlines() if "data: the loader makes" in ln)
+    assert "crops/s (the training process (--workers 0)); the steps consume" in line, line
+    assert "% of the time waiting for data" in line
+    assert ckpt.load(tmp_path / "run" / "checkpoint.pt")["train_config"]["precision"] == "bf16"
+
+
+def test_compiled_inference_gives_the_eager_outputs(tmp_path):
+    """``bench --compile`` times each model compiled and states its largest difference from eager;
+    ``evaluate --compile`` writes the eager metrics (one model here; every family: the slow test)."""
+    from training.bench import run
+    res = run(size=32, repeats=1, models=["nbg"], oidn=False, print_table=False, device="cpu", compile=True)
+    r = res["nbg"]
+    assert r["compile_max_rel_diff"] < 1e-4 and r["compiled_ms_per_mp"] > 0 and r["compile_speedup"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", names())
+def test_every_family_compiles_to_its_eager_outputs(name):
+    from training.bench import run
+    r = run(size=32, repeats=1, models=[name], oidn=False, print_table=False, device="cpu", compile=True)[name]
+    assert r["compile_max_rel_diff"] < 1e-4, r
+
+
+def test_evaluate_and_denoise_take_device_precision_and_compile(store, tmp_path):
+    run = tmp_path / "run"
+    c = TrainConfig(model="nbg", steps=2, batch=2, crop=16, val_every=0, seed=1, workers=0)
+    train(c, store, run, progress=False)
+    outs = {}
+    for tag, extra in (("eager", []), ("compiled", ["--compile"])):
+        r = subprocess.run([sys.executable, "-m", "training", "evaluate", "--checkpoint", str(run / "checkpoint.pt"),
+                            "--store", store, "--out", str(tmp_path / f"{tag}.json"), "--no-flip",
+                            "--frames", "2", *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        outs[tag] = json.loads((tmp_path / f"{tag}.json").read_text())
+    assert outs["eager"]["device"] == "cpu" and outs["eager"]["precision"] == "fp32"
+    assert outs["compiled"]["compiled"] is True and outs["eager"]["compiled"] is False
+    for k in ("psnr", "relmse", "smape"):
+        assert outs["compiled"]["mean"][k] == pytest.approx(outs["eager"]["mean"][k], rel=1e-4), k
+    r = subprocess.run([sys.executable, "-m", "training", "denoise", "--checkpoint", str(run / "checkpoint.pt"),
+                        "--store", store, "--frame", "0", "--out", str(tmp_path / "d.exr"), "--precision", "bf16"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and (tmp_path / "d.exr").exists(), r.stderr
+
+
+@pytest.mark.gpu
+def test_cuda_training_in_bf16_matches_fp32_within_noise(store, tmp_path):
+    losses = {}
+    for p in ("fp32", "bf16"):
+        c = TrainConfig(model="nbg", steps=20, batch=2, crop=16, val_every=20, val_frames=2, val_crop=16, seed=1,
+                        device="cuda", precision=p, workers=0)
+        losses[p] = train(c, store, tmp_path / p, progress=False)["val"]["loss"]
+    assert abs(losses["bf16"] - losses["fp32"]) < 0.05 * losses["fp32"] + 1e-3, losses

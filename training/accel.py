@@ -1,0 +1,97 @@
+"""Where and in what precision a model runs: ``--device auto`` and ``--precision``, one place for both.
+
+``auto`` devices are CUDA when PyTorch sees one, else the CPU. ``auto`` precision is bf16 on a GPU that
+has it (``torch.cuda.is_bf16_supported``), else fp32. Reduced precision is autocast: the weights (and
+Adam's state) stay fp32, the convolutions and matrix products run in bf16 or fp16, and fp16 training
+scales the loss (``torch.amp.GradScaler``: a step whose gradients overflow is skipped and the scale
+lowered). Every loss and metric is computed in fp32 from the model's output.
+"""
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import torch
+
+from .errors import ConfigError
+
+DEVICES = ("auto", "cpu", "cuda")
+PRECISIONS = ("auto", "bf16", "fp16", "fp32")
+DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def check_device(name) -> None:
+    """ConfigError unless ``name`` is auto, cpu, cuda or cuda:N."""
+    ok = isinstance(name, str) and (name in DEVICES or (name.startswith("cuda:") and name[5:].isdigit()))
+    if not ok:
+        raise ConfigError(f'"device" must be "auto", "cpu" or "cuda[:N]", got {name!r}')
+
+
+def check_precision(name) -> None:
+    if name not in PRECISIONS:
+        raise ConfigError(f'"precision" must be one of {", ".join(PRECISIONS)}, got {name!r}')
+
+
+def device_name(name: str) -> str:
+    """``auto`` as ``cuda`` where PyTorch sees a CUDA device, else ``cpu``; other names unchanged."""
+    check_device(name)
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
+def pick_device(name: str) -> torch.device:
+    """The torch device of ``name`` (``auto`` resolved); ConfigError for CUDA where there is none."""
+    dev = torch.device(device_name(name))
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f'"device" is {name!r} but no CUDA device is available (--device auto or cpu)')
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ConfigError(f'"device" is {name!r} but this machine has {torch.cuda.device_count()} CUDA '
+                          "device(s)")
+    return dev
+
+
+def precision_for(name: str, device: torch.device) -> str:
+    """``auto`` as bf16 on a CUDA device that has it, else fp32; an explicit precision unchanged (bf16 and
+    fp16 run on the CPU too, through its autocast, slower than fp32 on most CPUs)."""
+    check_precision(name)
+    if name != "auto":
+        return name
+    if device.type == "cuda" and torch.cuda.is_bf16_supported():
+        return "bf16"
+    return "fp32"
+
+
+def autocast(device: torch.device, precision: str):
+    """The forward pass's context: autocast to bf16/fp16, or nothing for fp32."""
+    if precision == "fp32":
+        return nullcontext()
+    return torch.autocast(device.type, dtype=DTYPES[precision])
+
+
+def grad_scaler(device: torch.device, precision: str) -> torch.amp.GradScaler:
+    """Loss scaling for fp16 (a disabled scaler, which passes every call through, otherwise)."""
+    return torch.amp.GradScaler(device.type, enabled=precision == "fp16")
+
+
+def describe(device: torch.device, precision: str) -> str:
+    """One line: the device (with the GPU's name) and the precision."""
+    what = str(device)
+    if device.type == "cuda":
+        what += f" ({torch.cuda.get_device_name(device)})"
+    return f"device {what}, precision {precision}"
+
+
+def prepare(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
+    """``model`` on ``device`` with channels-last weights (the layout cuDNN's and oneDNN's convolutions
+    prefer, and the one the models' inputs are given in)."""
+    return model.to(device=device, memory_format=torch.channels_last)
+
+
+def compile_model(model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` (the same object) with its forward pass, and a recurrent model's ``step``, compiled by
+    ``torch.compile`` (Inductor: C++/OpenMP kernels on the CPU, Triton on CUDA). The first call of each
+    input shape compiles (tens of seconds on a CPU); later calls run the compiled code."""
+    model.compile()
+    if getattr(model, "stepwise", False):
+        model.step = torch.compile(model.step)
+    return model
