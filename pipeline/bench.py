@@ -32,6 +32,11 @@ TINY = {
 }
 
 
+# the full run's settings where a suite's defaults are not `make bench`'s: the models are also timed
+# through torch.compile (its speed-up per model, the first call of each compiling)
+FULL = {"models": {"compile": True}}
+
+
 def add_arguments(p) -> None:
     p.add_argument("--only", nargs="*", choices=sorted(SUITES),
                    help=f"run only these benchmark suites (default: {' '.join(DEFAULT_SUITES)}; scale takes "
@@ -52,7 +57,7 @@ def run(args) -> int:
         print(f"\n=== bench: {name} ({module}) ===", flush=True)
         t0 = time.perf_counter()
         try:
-            kwargs = TINY.get(name, {}) if args.tiny else {}
+            kwargs = TINY.get(name, {}) if args.tiny else FULL.get(name, {})
             if name == "scale" and getattr(args, "frames", None):
                 kwargs = {**kwargs, "frames": tuple(args.frames)}
             results[name] = importlib.import_module(module).run(**kwargs)

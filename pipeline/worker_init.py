@@ -60,14 +60,18 @@ def ignore_interrupts() -> None:
 
 
 def quiet_task_failures() -> None:
-    """Drop distributed's "Compute Failed" log record (the task's whole traceback, once per attempt) in
-    this worker: the client that started it records each failed frame's error in the store
-    (``status/error``) and prints it in one line in its summary."""
+    """Drop distributed's "Compute Failed" log record (the task's whole traceback, once per attempt), and
+    the failed heartbeat of a run's last moments, in this worker: the client that started it records
+    each failed frame's error in the store (``status/error``) and prints it in one line in its summary."""
     import logging
 
     class _NoComputeFailed(logging.Filter):
         def filter(self, record):
-            return not str(record.msg).startswith("Compute Failed")
+            # and the heartbeat that meets the scheduler already closed as the run ends (a traceback
+            # after the run's summary, now and then): the scheduler lives in the client's process, so
+            # a LocalCluster worker outliving it has nothing to tell anyone
+            return not str(record.msg).startswith(("Compute Failed",
+                                                   "Failed to communicate with scheduler during heartbeat"))
     logging.getLogger("distributed.worker").addFilter(_NoComputeFailed())
 
 

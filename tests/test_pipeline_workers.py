@@ -83,3 +83,24 @@ def test_plain_dask_workers_need_no_preload(plain_cluster):
     for w, r in got.items():
         assert r["vertices"] > 100 and not r["task_in_main_thread"], (w, r)
         assert r["init"]["main_thread"] and r["init"]["pymeshlab"], (w, r)     # setup ran in the main thread
+
+
+def test_local_workers_leave_out_failed_task_tracebacks_and_the_last_heartbeat():
+    """What a LocalCluster worker does not log (the client reports failed frames; a heartbeat meeting the
+    closed scheduler at the end of a run is no news), and what it still logs."""
+    import logging
+
+    from pipeline.worker_init import quiet_task_failures
+    log = logging.getLogger("distributed.worker")
+    before = list(log.filters)
+    try:
+        quiet_task_failures()
+        f = log.filters[-1]
+
+        def rec(msg):
+            return logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, msg, (), None)
+        assert not f.filter(rec("Compute Failed\nKey: frame-3"))
+        assert not f.filter(rec("Failed to communicate with scheduler during heartbeat."))
+        assert f.filter(rec("Worker exceeded 95% memory budget. Restarting..."))
+    finally:
+        log.filters[:] = before
