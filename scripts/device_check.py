@@ -443,6 +443,7 @@ def part_inference(state: dict, left) -> dict:
             out[name][f"{label}_bf16_compiled_ms"] = "skipped: out of time"
             continue
         try:
+            torch._dynamo.reset()                          # a fresh compile per model (training.bench)
             out[name][f"{label}_bf16_compiled_ms"] = _time_model(accel.compile_model(build(name).to(dev).for_inference()),
                                                                   dev, h, w, "bf16", ready=True)
         except Exception as e:  # noqa: BLE001

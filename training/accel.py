@@ -87,11 +87,18 @@ def prepare(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
     return model.to(device=device, memory_format=torch.channels_last)
 
 
+# Inductor's freezing folds the weights into the graph as constants (inference only: the weights may
+# not change after compiling). Measured at 128x128 on 2 CPU threads, compiled against eager: nbg 1.10x
+# -> 2.12x with it, wskpn 1.07x -> 1.31x, temporal-small 0.97x -> 1.70x, layer-optimized 1.20x -> 1.31x.
+COMPILE_OPTIONS = {"freezing": True}
+
+
 def compile_model(model: torch.nn.Module) -> torch.nn.Module:
-    """``model`` (the same object) with its forward pass, and a recurrent model's ``step``, compiled by
-    ``torch.compile`` (Inductor: C++/OpenMP kernels on the CPU, Triton on CUDA). The first call of each
-    input shape compiles (tens of seconds on a CPU); later calls run the compiled code."""
-    model.compile()
+    """``model`` (the same object, for inference: under ``torch.no_grad``, its weights fixed) with its
+    forward pass, and a recurrent model's ``step``, compiled by ``torch.compile`` (Inductor: C++/OpenMP
+    kernels on the CPU, Triton on CUDA; :data:`COMPILE_OPTIONS`). The first call of each input shape
+    compiles (tens of seconds on a CPU); later calls run the compiled code."""
+    model.compile(options=COMPILE_OPTIONS)
     if getattr(model, "stepwise", False):
-        model.step = torch.compile(model.step)
+        model.step = torch.compile(model.step, options=COMPILE_OPTIONS)
     return model

@@ -8,9 +8,10 @@ RepVGG blocks fused). Speed does not depend on content. Times are the best of ``
 passes under ``torch.no_grad`` after a warm-up; ``ms_per_720p`` scales ms/MP to a 1280x720 frame, the
 real-time papers' unit. ``device`` (``auto``: CUDA where present) and ``precision`` (autocast; ``auto``:
 bf16 on a GPU that has it, else fp32) choose where and how; on CUDA each timed pass ends with a
-synchronisation. ``compile``: each model is also timed through ``torch.compile`` after its eager
-passes, adding ``compiled_ms_per_mp``, ``compile_speedup`` (eager / compiled wall time) and
-``compile_max_rel_diff`` (largest difference of the outputs over the eager output's largest value).
+synchronisation. ``compile``: each model is also timed through ``torch.compile``, alternating with its eager passes
+(:func:`_compiled`), adding ``compiled_ms_per_mp``, ``eager_ms_per_mp_paired``, ``compile_speedup``
+(their ratio) and ``compile_max_rel_diff`` (largest difference of the outputs over the eager output's
+largest value).
 """
 from __future__ import annotations
 
@@ -50,9 +51,41 @@ def _forward(model, batch, stepwise: bool, state, device, precision: str):
     return out
 
 
+def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats: int, mp: float) -> dict:
+    """``model`` compiled (:func:`training.accel.compile_model`) against itself eager: the best of
+    ``repeats`` passes of each, alternating, so the load of a shared machine hits both alike (best-of-3
+    eager figures moved by 40% from run to run here); and the largest difference of the outputs."""
+    from .accel import compile_model
+    eager_step, eager_forward = (model.step if stepwise else None), model.forward
+    eager = _forward(model, batch, stepwise, state, dev, precision).float()
+    # models of one class share their forward's code: dynamo guards each on its instance, and past its
+    # recompile limit (8) it runs the code eagerly, unsaid; so each model starts afresh
+    torch._dynamo.reset()
+    compile_model(model)
+    out = _forward(model, batch, stepwise, state, dev, precision).float()         # compiles
+    diff = float((out - eager).abs().max() / eager.abs().max().clamp_min(1e-12))
+
+    def run_eager():
+        from .accel import autocast
+        with torch.no_grad(), autocast(dev, precision):
+            eager_step(batch, state) if stepwise else eager_forward(batch)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+    te = tc = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        run_eager()
+        te = min(te, time.perf_counter() - t)
+        t = time.perf_counter()
+        _forward(model, batch, stepwise, state, dev, precision)
+        tc = min(tc, time.perf_counter() - t)
+    return {"compiled_ms_per_mp": tc * 1e3 / mp, "eager_ms_per_mp_paired": te * 1e3 / mp,
+            "compile_speedup": te / tc, "compile_max_rel_diff": diff}
+
+
 def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, oidn: bool = True,
         print_table: bool = True, device: str = "cpu", precision: str = "fp32", compile: bool = False) -> dict:
-    from .accel import compile_model, pick_device, precision_for
+    from .accel import pick_device, precision_for
     from .models import build, names
     from .models.common import flush_denormals
     from .oidn import oidn_denoise, oidn_denoise_tensor
@@ -81,12 +114,7 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
         res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count(),
                          device=str(dev), precision=precision)
         if compile:
-            eager = _forward(fast, batch, stepwise, state, dev, precision).float()
-            fast = compile_model(fast)
-            cs, _ = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
-            diff = (_forward(fast, batch, stepwise, state, dev, precision).float() - eager).abs().max()
-            res[name].update(compiled_ms_per_mp=cs * 1e3 / mp, compile_speedup=s / cs,
-                             compile_max_rel_diff=float(diff / eager.abs().max().clamp_min(1e-12)))
+            res[name].update(_compiled(fast, batch, stepwise, state, dev, precision, max(repeats, 5), mp))
         del m, fast
     if oidn:
         rng = np.random.default_rng(0)
