@@ -7,11 +7,11 @@
 
 The machine it is made for has a GPU, python3 with torch (2.11 on the H200 machines lent to this project)
 and none of our packages; nothing can be downloaded there. What it lacks travels beside the checkout as
-wheels, in ``build/device-wheels`` (ignored by git; pass it as a carried path): drjit, and a Mitsuba wheel
+wheels, in ``build/device-wheels`` (ignored by git; pass it as a carried path): drjit, trimesh, and a Mitsuba wheel
 slimmed to the variants and plugins used (``cuda_ad_rgb``, ``llvm_ad_rgb``, ``scalar_rgb``; the plugins
 our scenes load, found by rendering them here and reading the process's mapped libraries), for the
 machine's Python (``--python``, default 3.12). Scenes are loaded with ``triangle_budget: 0`` (no
-decimation), so pymeshlab (106 MB) stays home. OIDN's wheel (pyoidn) does carry a CUDA device
+decimation) and without blob and boolean (CSG) meshes, so pymeshlab (106 MB) stays home. OIDN's wheel (pyoidn) does carry a CUDA device
 (``libOpenImageDenoise_device_cuda``) but is 87.6 MB, its core library alone 47 MB compressed: it does not
 fit beside Mitsuba in the carried 64 MiB, so OIDN is timed on the GPU only where the machine has pyoidn.
 
@@ -47,6 +47,13 @@ WHEELS = ROOT / "build" / "device-wheels"
 CARRY_LIMIT = 64 * 2 ** 20
 BUDGET_S = 450.0                       # of the 8 minutes: the rest is start-up and copying
 VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
+# what the check imports that a GPU machine's python3 lacks: carried as wheels (trimesh makes the
+# procedural meshes; pure Python)
+CARRIED = ("drjit", "mitsuba", "trimesh")
+# what it imports from the machine's own python3 (torch, and what torch pulls in, besides these);
+# setup checks them first and names any that is missing
+FROM_MACHINE = ("numpy", "scipy", "torch", "tqdm", "PIL")
+PYMESHLAB_KINDS = ("blob", "boolean")       # scene_gen.meshes' kinds made with pymeshlab
 SCENE_SEED, SCENE_KIND = 1, "indoor"
 AGREE_RES, AGREE_PASSES, AGREE_PASS_SPP = 48, 16, 64
 # the papers' training crops and batches (module docstring); frames: a sequence's length (temporal)
@@ -147,10 +154,10 @@ def build_wheels(python_version: str = "3.12") -> list[Path]:
     WHEELS.mkdir(parents=True, exist_ok=True)
     src = ROOT / "build" / "device-wheels-src"
     src.mkdir(parents=True, exist_ok=True)
-    pins = [f"drjit=={version('drjit')}", f"mitsuba=={version('mitsuba')}"]
+    pins = [f"{d}=={version(d)}" for d in CARRIED]
     tag = python_version.replace(".", "")
-    have = list(src.glob(f"*-cp{tag}-*.whl"))
-    if len(have) < 2:
+    have = list(src.glob(f"*-cp{tag}-*.whl")) + list(src.glob("*-py3-none-any.whl"))
+    if len(have) < len(CARRIED):
         cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version",
                python_version, "--platform", "manylinux_2_28_x86_64", "-d", str(src), *pins]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -158,11 +165,11 @@ def build_wheels(python_version: str = "3.12") -> list[Path]:
         old.unlink()
     plugins = used_plugins()
     out = []
-    for w in sorted(src.glob(f"*-cp{tag}-*.whl")):
-        if w.name.startswith("drjit-"):
-            out.append(Path(shutil.copy2(w, WHEELS / w.name)))
-        elif w.name.startswith("mitsuba-"):
+    for w in sorted(src.glob(f"*-cp{tag}-*.whl")) + sorted(src.glob("*-py3-none-any.whl")):
+        if w.name.startswith("mitsuba-"):
             out.append(slim_mitsuba(w, WHEELS, plugins))
+        elif w.name.split("-")[0] in CARRIED:
+            out.append(Path(shutil.copy2(w, WHEELS / w.name)))
     np_path = WHEELS / "llvm_estimate.npz"
     r = subprocess.run([sys.executable, str(Path(__file__)), "--estimate", str(np_path)], cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT), "MI_VARIANT": "llvm_ad_rgb"}, timeout=900)
@@ -177,15 +184,19 @@ def build_wheels(python_version: str = "3.12") -> list[Path]:
 # ---------------------------------------------------------------------------------------------------
 # scenes
 def check_scene(res: int):
-    """The generated scene of the check (indoor, seed 1) at ``res``, static, no decimation."""
+    """The generated scene of the check (indoor, seed 1) at ``res``: static, no decimation, and without
+    its blob and boolean (CSG) meshes: decimation, blobs and CSG are pymeshlab's, which stays home."""
     import dataclasses
 
     from scene_gen.sampling import sample_scene
 
     def full(mesh):
         return dataclasses.replace(mesh, triangle_budget=0, children=tuple(full(c) for c in mesh.children))
+
+    def csg(mesh) -> bool:
+        return mesh.kind in PYMESHLAB_KINDS or any(csg(c) for c in mesh.children)
     spec = sample_scene(SCENE_SEED, SCENE_KIND, num_frames=1, res=res)
-    objs = tuple(dataclasses.replace(o, mesh=full(o.mesh), velocity=None) for o in spec.objects)
+    objs = tuple(dataclasses.replace(o, mesh=full(o.mesh), velocity=None) for o in spec.objects if not csg(o.mesh))
     return dataclasses.replace(spec, objects=objs, shutter=0.0)
 
 
@@ -196,12 +207,9 @@ def _cornell(mi, res: int):
 
 
 def _render_all_scenes() -> None:
-    """Every scene and path of the check at a tiny size (to find the plugins they load)."""
+    """Every scene and render path of the check at a tiny size (to find the plugins they load)."""
     from pipeline import render as R
     cfg = R.RenderConfig(res=(16, 16), spp=2, ref_spp=8, ref_passes=2, ref_min_passes=2, layer_levels=1)
-    for kind in ("indoor", "outdoor"):
-        from scene_gen.sampling import sample_scene
-        R.render_frame(sample_scene(SCENE_SEED, kind, num_frames=2, res=16), 1, cfg)
     R.render_frame(check_scene(16), 0, cfg)
     fs = R.FrameScene(check_scene(16), 0, cfg)
     _cornell(fs.mi, 16)
@@ -301,6 +309,12 @@ def part_setup(state: dict) -> dict:
                         str(site), *map(str, missing)], check=True)
     state["pythonpath"] = os.pathsep.join([str(ROOT), str(site)])
     sys.path[:0] = [str(ROOT), str(site)]
+    import importlib
+    importlib.invalidate_caches()
+    lacking = [m for m in (*FROM_MACHINE, *CARRIED) if not _importable(m)]
+    if lacking:
+        raise RuntimeError(f"this machine's {sys.executable} lacks {', '.join(lacking)} (carried: "
+                           f"{', '.join(w.name for w in wheels) or 'no wheels: build/device-wheels is empty'})")
     import mitsuba as mi
     llvm = find_libllvm()
     state["libllvm"] = llvm

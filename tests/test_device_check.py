@@ -123,3 +123,56 @@ def test_every_part_of_the_check_runs_here_at_toy_sizes(tmp_path):
     assert all(v > 0 for name in names() for v in res["inference"][name].values()), res["inference"]
     assert res["ddp"]["backend"] == "gloo" and np.isfinite(res["ddp"]["loss"])
     assert res["carried_bytes"] > 0 and res["total_seconds"] < 600
+
+
+_CLOSURE = r"""
+import contextlib, io, json, runpy, sys, importlib.metadata as md
+sys.argv = ["device_check.py", "--render-child", "--res", "16"]
+with contextlib.redirect_stdout(io.StringIO()):
+    try:
+        runpy.run_path("scripts/device_check.py", run_name="__main__")
+    except SystemExit:
+        pass
+    sys.path.insert(0, "scripts")
+    import device_check as dc
+    dc.RUN.update(dc.SMOKE, sizes={"a": (16, 16)})
+    dc.part_training({}, lambda: 1e9)
+    dc.part_inference({}, lambda: 1e9)
+    dc.part_ddp({}, lambda: 1e9)
+    dc.estimate(8)
+pd = md.packages_distributions()
+print(json.dumps(sorted({d for t in {m.split(".")[0] for m in sys.modules} for d in pd.get(t, [])})))
+"""
+
+
+def _requirements(dist: str, seen: set) -> set:
+    """``dist`` and everything it requires, recursively (as installed here)."""
+    import importlib.metadata as md
+    import re
+    if dist.lower() in seen:
+        return seen
+    seen.add(dist.lower())
+    try:
+        reqs = md.requires(dist) or []
+    except md.PackageNotFoundError:
+        return seen
+    for r in reqs:
+        if "extra ==" not in r:
+            _requirements(re.split(r"[ ;<>=!~\[]", r, maxsplit=1)[0], seen)
+    return seen
+
+
+def test_the_check_imports_only_what_travels_or_the_gpu_machine_has():
+    """Run here, every part of the check imports only the carried distributions, its own checkout and
+    what it takes from the machine (torch with its requirements, numpy, scipy, tqdm, pillow): pymeshlab
+    stays home."""
+    r = subprocess.run([sys.executable, "-c", _CLOSURE], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                       env={**__import__("os").environ, "PYTHONPATH": str(ROOT), "MI_VARIANT": "llvm_ad_rgb"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    def norm(names):
+        return {n.lower().replace("_", "-") for n in names}
+    used = norm(json.loads(r.stdout.strip().splitlines()[-1]))
+    allowed = norm(dc.CARRIED) | {"denoise-datagen", "numpy", "scipy", "tqdm", "pillow"}
+    allowed |= norm(_requirements("torch", set()))
+    allowed |= {"setuptools", "charset-normalizer", "rtree"}     # torch's on Python 3.12; optional ones
+    assert "pymeshlab" not in used and used <= allowed, sorted(used - allowed)
