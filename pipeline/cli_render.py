@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ConfigError
+from scene_gen.checks import need
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,8 +49,8 @@ def _config(args):
     passes = args.ref_passes
     if passes is None:
         passes = 32 if args.ref_spp >= 32 * 16 else 16
-    if args.ref_spp and args.ref_spp % passes:
-        raise ConfigError(f"--ref-spp must be a multiple of the number of reference passes ({passes}), got {args.ref_spp}")
+    need(not args.ref_spp or args.ref_spp % passes == 0, "--ref-spp",
+         f"a multiple of the number of reference passes ({passes})", args.ref_spp, ConfigError)
     return RenderConfig(res=(args.res, args.res) if args.res > 0 else args.res, spp=args.spp,
                         layer_levels=args.layers, ref_spp=args.ref_spp, ref_passes=passes,
                         ref_min_passes=min(16, passes), ref_target_rel_stderr=args.ref_target,
@@ -89,10 +90,8 @@ def run(args) -> int:
     out_path = Path(args.out)
     if out_path.suffix != ".npz":
         raise ConfigError(f"--out must end in .npz, got {args.out!r}")
-    if args.res <= 0:
-        raise ConfigError(f"--res must be a positive number of pixels, got {args.res}")
-    if args.frame < 0:
-        raise ConfigError(f"--frame must be >= 0, got {args.frame}")
+    need(args.res > 0, "--res", "a positive number of pixels", args.res, ConfigError)
+    need(args.frame >= 0, "--frame", ">= 0", args.frame, ConfigError)
     num_frames = args.num_frames if args.num_frames is not None else args.frame + 1
     if args.frame >= num_frames:
         raise ConfigError(f"--frame {args.frame} is outside a clip of --num-frames {num_frames}")

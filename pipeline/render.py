@@ -80,13 +80,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import time as _time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from pipeline import camera as cam_geom
 from pipeline.errors import ConfigError, RenderError
+from scene_gen.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SceneSpec
 from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META, NUM_FEATURES
 
@@ -116,39 +117,34 @@ class RenderConfig:
 
     def __post_init__(self):
         res = self.res
-        if isinstance(res, int) and not isinstance(res, bool):
+        if is_int(res):
             res = (res, res)
-        if not (isinstance(res, (tuple, list)) and len(res) == 2 and all(isinstance(r, int) and r > 0 for r in res)):
-            raise ConfigError(f"render.res must be a positive int or (W, H) of positive ints, got {self.res!r}")
+        need(isinstance(res, (tuple, list)) and len(res) == 2 and all(is_int(r) and r > 0 for r in res),
+             "render.res", "a positive int or (W, H) of positive ints", self.res, ConfigError)
         object.__setattr__(self, "res", (int(res[0]), int(res[1])))
-
-        def need(name, ok, rng):
-            if not ok:
-                raise ConfigError(f"render.{name} must be {rng}, got {getattr(self, name)!r}")
-
-        def is_int(v):
-            return isinstance(v, int) and not isinstance(v, bool)
-
-        need("spp", is_int(self.spp) and 1 <= self.spp <= 4096, "an integer in [1, 4096]")
-        need("layer_levels", is_int(self.layer_levels) and 0 <= self.layer_levels <= 12, "an integer in [0, 12]")
-        need("ref_passes", is_int(self.ref_passes) and 2 <= self.ref_passes <= 65536, "an integer in [2, 65536]")
-        need("ref_spp", is_int(self.ref_spp) and self.ref_spp >= 0
-             and (self.ref_spp == 0 or (self.ref_spp >= self.ref_passes and self.ref_spp % self.ref_passes == 0)),
-             f"0 or a positive multiple of ref_passes ({self.ref_passes})")
-        need("ref_min_passes", is_int(self.ref_min_passes) and 2 <= self.ref_min_passes <= self.ref_passes,
-             f"an integer in [2, ref_passes={self.ref_passes}]")
+        need_int("render.spp", self.spp, 1, 4096, ConfigError)
+        need_int("render.layer_levels", self.layer_levels, 0, 12, ConfigError)
+        need_int("render.ref_passes", self.ref_passes, 2, 65536, ConfigError)
+        need(is_int(self.ref_spp) and (self.ref_spp == 0 or (self.ref_spp >= self.ref_passes
+                                                              and self.ref_spp % self.ref_passes == 0)),
+             "render.ref_spp", f"0 or a positive multiple of ref_passes ({self.ref_passes})", self.ref_spp,
+             ConfigError)
+        need(is_int(self.ref_min_passes) and 2 <= self.ref_min_passes <= self.ref_passes, "render.ref_min_passes",
+             f"an integer in [2, ref_passes={self.ref_passes}]", self.ref_min_passes, ConfigError)
         t = self.ref_target_rel_stderr
-        need("ref_target_rel_stderr", t is None or (isinstance(t, (int, float)) and math.isfinite(t) and t > 0),
-             "None or a number > 0")
-        need("time_slices", is_int(self.time_slices) and 1 <= self.time_slices <= 1024, "an integer in [1, 1024]")
-        need("ref_time_slices", is_int(self.ref_time_slices) and self.ref_time_slices >= 1
-             and self.ref_time_slices & (self.ref_time_slices - 1) == 0, "a power of two >= 1")
-        need("threads", is_int(self.threads) and 0 <= self.threads <= 1024, "an integer in [0, 1024] (0 = default)")
-        need("seed_offset", is_int(self.seed_offset) and self.seed_offset >= 0, "an integer >= 0")
-        need("max_value", isinstance(self.max_value, (int, float)) and math.isfinite(self.max_value)
-             and self.max_value > 0, "a finite number > 0")
-        need("oracle_spp", is_int(self.oracle_spp) and self.oracle_spp >= 0, "an integer >= 0")
-        need("max_wavefront", is_int(self.max_wavefront) and self.max_wavefront >= 1024, "an integer >= 1024")
+        need(t is None or (is_number(t, finite=True) and t > 0), "render.ref_target_rel_stderr",
+             "None or a number > 0", t, ConfigError)
+        need_int("render.time_slices", self.time_slices, 1, 1024, ConfigError)
+        s = self.ref_time_slices
+        need(is_int(s) and s >= 1 and s & (s - 1) == 0, "render.ref_time_slices", "a power of two >= 1", s,
+             ConfigError)
+        need(is_int(self.threads) and 0 <= self.threads <= 1024, "render.threads",
+             "an integer in [0, 1024] (0 = default)", self.threads, ConfigError)
+        need_int("render.seed_offset", self.seed_offset, 0, None, ConfigError)
+        need(is_number(self.max_value, finite=True) and self.max_value > 0, "render.max_value",
+             "a finite number > 0", self.max_value, ConfigError)
+        need_int("render.oracle_spp", self.oracle_spp, 0, None, ConfigError)
+        need_int("render.max_wavefront", self.max_wavefront, 1024, None, ConfigError)
 
     @property
     def width(self) -> int:
@@ -165,11 +161,7 @@ class RenderConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RenderConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ConfigError(f"render: unknown field(s) {sorted(unknown)}; known: {sorted(names)}")
-        d = dict(d)
+        d = known_keys(d, cls, "render", ConfigError, noun="field(s)")
         if isinstance(d.get("res"), list):
             d["res"] = tuple(d["res"])
         return cls(**d)

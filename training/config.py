@@ -1,7 +1,10 @@
-"""Training settings: a frozen, self-validating dataclass that round-trips through a dict."""
+"""Training settings: a frozen, self-validating dataclass that round-trips through a dict (checked with
+``scene_gen.checks``, the mechanism every config of the project shares)."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
+
+from scene_gen.checks import is_int, is_number, known_keys, need, need_int
 
 from .errors import ConfigError
 
@@ -59,19 +62,18 @@ class TrainConfig:
     def __post_init__(self):
         self._resolve_defaults()
 
-        def need(name, ok, rng):
-            if not ok:
-                raise ConfigError(f'"{name}" must be {rng}, got {getattr(self, name)!r}')
-        need("lr", self.lr > 0, "> 0")
-        need("grad_clip_norm", self.grad_clip_norm >= 0, ">= 0 (0: off)")
-        need("grad_clip_value", self.grad_clip_value >= 0, ">= 0 (0: off)")
+        # one line naming the setting, Mitsuba's style: "lr" must be > 0, got 0
+        need(is_number(self.lr) and self.lr > 0, '"lr"', "> 0", self.lr, ConfigError)
+        for name in ("grad_clip_norm", "grad_clip_value"):
+            v = getattr(self, name)
+            need(is_number(v) and v >= 0, f'"{name}"', ">= 0 (0: off)", v, ConfigError)
         if self.crop is not None:
-            need("crop", isinstance(self.crop, int) and self.crop >= 1, "an integer >= 1 (or None)")
+            need(is_int(self.crop) and self.crop >= 1, '"crop"', "an integer >= 1 (or None)", self.crop, ConfigError)
         for name in ("batch", "spp", "log_every", "checkpoint_every"):
-            need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 1, "an integer >= 1")
+            need_int(f'"{name}"', getattr(self, name), 1, None, ConfigError)
         for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
-            need(name, isinstance(getattr(self, name), int) and getattr(self, name) >= 0, "an integer >= 0")
-        need("model_cfg", isinstance(self.model_cfg, dict), "a dict of model settings")
+            need_int(f'"{name}"', getattr(self, name), 0, None, ConfigError)
+        need(isinstance(self.model_cfg, dict), '"model_cfg"', "a dict of model settings", self.model_cfg, ConfigError)
         from .accel import check_device, check_precision
         check_device(self.device)
         check_precision(self.precision)
@@ -91,11 +93,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"unknown training settings {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**d)
+        return cls(**known_keys(d, cls, "training", ConfigError, noun="setting(s)"))
 
     def replace(self, **kw) -> "TrainConfig":
         return TrainConfig.from_dict({**self.to_dict(), **kw})
