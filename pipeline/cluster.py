@@ -40,7 +40,7 @@ from typing import Any
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from pipeline.config import ClusterConfig, parse_dashboard
+from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
 
 
@@ -87,11 +87,6 @@ class Connection:
 
 
 LOCALHOST = "127.0.0.1"
-# cluster.security keys: distributed.security.Security's settings that a YAML file can hold
-SECURITY_FILES = ("tls_ca_file", "tls_client_cert", "tls_client_key", "tls_scheduler_cert",
-                  "tls_scheduler_key", "tls_worker_cert", "tls_worker_key")
-SECURITY_KEYS = ("require_encryption", *SECURITY_FILES, "tls_ciphers", "tls_min_version", "tls_max_version")
-TLS_VERSIONS = ("TLSv1_2", "TLSv1_3")
 
 
 def dashboard_bind(address: str | None) -> str | None:
@@ -121,33 +116,6 @@ def check_dashboard(address: str | None, where: str = "dataset.cluster.dashboard
     except OSError as e:
         raise ConfigError(f"{where} {address!r} cannot be served on this machine ({e.strerror or e}); name one "
                           f"of its interfaces, e.g. 127.0.0.1:8787, or null for no dashboard") from None
-
-
-def check_security(sec, where: str = "dataset.cluster.security") -> None:
-    """Check the shape of ``cluster.security`` (no file is opened): a mapping of ``SECURITY_KEYS`` with
-    ``tls_ca_file`` and ``tls_client_cert`` set. Raises :class:`ConfigError` naming the key."""
-    if not isinstance(sec, dict):
-        raise ConfigError(f"{where} must be a mapping of distributed TLS settings ({', '.join(SECURITY_KEYS)}), "
-                          f"got {sec!r}")
-    unknown = sorted(set(map(str, sec)) - set(SECURITY_KEYS))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {list(SECURITY_KEYS)}")
-    for k in SECURITY_FILES + ("tls_ciphers",):
-        v = sec.get(k)
-        if v is not None and not (isinstance(v, str) and v.strip()):
-            raise ConfigError(f"{where}.{k} must be a file path (a string), got {v!r}")
-    for k in ("tls_ca_file", "tls_client_cert"):
-        if not sec.get(k):
-            raise ConfigError(f"{where}.{k} must be set: a shared scheduler speaks mutual TLS, so the client "
-                              "needs the CA certificate (tls_ca_file) and its own certificate (tls_client_cert, "
-                              "plus tls_client_key unless the key is in that file)")
-    r = sec.get("require_encryption")
-    if r is not None and not isinstance(r, bool):
-        raise ConfigError(f"{where}.require_encryption must be true or false, got {r!r}")
-    for k in ("tls_min_version", "tls_max_version"):
-        v = sec.get(k)
-        if v is not None and v not in TLS_VERSIONS:
-            raise ConfigError(f"{where}.{k} must be one of {list(TLS_VERSIONS)}, got {v!r}")
 
 
 def make_security(sec, where: str = "dataset.cluster.security"):

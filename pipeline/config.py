@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
+from scene_gen.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SCENE_KINDS
 from stores.schema import StoreLayout
 
@@ -62,28 +63,6 @@ MAX_CLIP_ID_TRIES = 1_000_000
 CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
 MAX_RES = 16384
 STORE_KEYS = frozenset(StoreLayout.encoding_fields())   # what `dataset.store` may set
-
-
-def _is_int(v) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-
-def _need(ok: bool, name: str, rng: str, value) -> None:
-    if not ok:
-        raise ConfigError(f"{name} must be {rng}, got {value!r}")
-
-
-def _known(section: str, d: Any, cls) -> dict:
-    """Check ``d`` is a mapping with only ``cls``'s field names; returns it as a dict."""
-    if d is None:
-        return {}
-    if not isinstance(d, dict):
-        raise ConfigError(f"{section} must be a mapping, got {type(d).__name__}")
-    names = {f.name for f in fields(cls)}
-    unknown = sorted(set(map(str, d)) - names)
-    if unknown:
-        raise ConfigError(f"{section}: unknown key(s) {unknown}; known: {sorted(names)}")
-    return dict(d)
 
 
 def scene_seed(root_seed: int, index: int) -> int:
@@ -102,11 +81,9 @@ class SceneGroup:
     case: str | None = None
 
     def validate(self, where: str) -> None:
-        _need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind)
-        _need(_is_int(self.count) and 1 <= self.count <= 10_000_000, f"{where}.count",
-              "an integer in [1, 10000000]", self.count)
-        _need(_is_int(self.frames) and 1 <= self.frames <= 10_000, f"{where}.frames",
-              "an integer in [1, 10000]", self.frames)
+        need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind, ConfigError)
+        need_int(f"{where}.count", self.count, 1, 10_000_000, ConfigError, numpy=True)
+        need_int(f"{where}.frames", self.frames, 1, 10_000, ConfigError, numpy=True)
         if self.case is not None:
             from scene_gen.cases import check_kind
             from scene_gen.errors import SceneGenError
@@ -146,19 +123,19 @@ class TaskConfig:
         return bool(self.reference_resources) if self.split_streams is None else self.split_streams
 
     def validate(self) -> None:
-        _need(_is_int(self.retries) and 0 <= self.retries <= 100, "dataset.tasks.retries",
-              "an integer in [0, 100]", self.retries)
-        _need(self.split_streams is None or isinstance(self.split_streams, bool), "dataset.tasks.split_streams",
-              "true, false or null (split exactly when reference_resources is set)", self.split_streams)
+        p = "dataset.tasks"
+        need_int(f"{p}.retries", self.retries, 0, 100, ConfigError, numpy=True)
+        need(self.split_streams is None or isinstance(self.split_streams, bool), f"{p}.split_streams",
+             "true, false or null (split exactly when reference_resources is set)", self.split_streams, ConfigError)
         r = self.reference_resources
         if r is not None:
-            _need(isinstance(r, dict) and len(r) > 0 and all(
-                isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
-                for k, v in r.items()), "dataset.tasks.reference_resources",
-                "null or a mapping of resource name to a number > 0 (e.g. {GPU: 1})", r)
-            _need(self.split, "dataset.tasks.split_streams",
-                  "true when reference_resources is set (the reference must be its own task)",
-                  self.split_streams)
+            need(isinstance(r, dict) and len(r) > 0
+                 and all(isinstance(k, str) and is_number(v) and v > 0 for k, v in r.items()),
+                 f"{p}.reference_resources", "null or a mapping of resource name to a number > 0 (e.g. {GPU: 1})",
+                 r, ConfigError)
+            need(self.split, f"{p}.split_streams",
+                 "true when reference_resources is set (the reference must be its own task)",
+                 self.split_streams, ConfigError)
 
 
 @dataclass(frozen=True)
@@ -197,43 +174,71 @@ class ClusterConfig:
 
     def validate(self) -> None:
         p = "dataset.cluster"
-        _need(self.kind in CLUSTER_KINDS, f"{p}.kind", f"one of {CLUSTER_KINDS}", self.kind)
+        need(self.kind in CLUSTER_KINDS, f"{p}.kind", f"one of {CLUSTER_KINDS}", self.kind, ConfigError)
+        address_ok = isinstance(self.address, str) and "://" in self.address
         if self.kind == "scheduler":
-            _need(isinstance(self.address, str) and "://" in self.address, f"{p}.address",
-                  "a scheduler address like tcp://host:8786 when kind is 'scheduler'", self.address)
-        elif self.address is not None:
-            _need(isinstance(self.address, str) and "://" in self.address, f"{p}.address",
-                  "null or a scheduler address like tcp://host:8786", self.address)
-        _need(self.workers is None or (_is_int(self.workers) and 1 <= self.workers <= 4096), f"{p}.workers",
-              "null (one per core) or an integer in [1, 4096]", self.workers)
-        _need(_is_int(self.threads_per_worker) and 1 <= self.threads_per_worker <= 1024,
-              f"{p}.threads_per_worker", "an integer in [1, 1024]", self.threads_per_worker)
+            need(address_ok, f"{p}.address", "a scheduler address like tcp://host:8786 when kind is 'scheduler'",
+                 self.address, ConfigError)
+        else:
+            need(self.address is None or address_ok, f"{p}.address", "null or a scheduler address like tcp://host:8786",
+                 self.address, ConfigError)
+        need(self.workers is None or (is_int(self.workers, numpy=True) and 1 <= self.workers <= 4096), f"{p}.workers",
+             "null (one per core) or an integer in [1, 4096]", self.workers, ConfigError)
+        need_int(f"{p}.threads_per_worker", self.threads_per_worker, 1, 1024, ConfigError, numpy=True)
         m = self.memory_limit
-        _need((isinstance(m, str) and m != "") or (_is_int(m) and m >= 0), f"{p}.memory_limit",
-              "'auto', a size like '4GiB', or a number of bytes >= 0", m)
-        _need(self.dashboard_address is None or isinstance(self.dashboard_address, str),
-              f"{p}.dashboard_address", "null (no dashboard) or an address like '127.0.0.1:8787'",
-              self.dashboard_address)
+        need((isinstance(m, str) and m != "") or (is_int(m, numpy=True) and m >= 0), f"{p}.memory_limit",
+             "'auto', a size like '4GiB', or a number of bytes >= 0", m, ConfigError)
+        need(self.dashboard_address is None or isinstance(self.dashboard_address, str), f"{p}.dashboard_address",
+             "null (no dashboard) or an address like '127.0.0.1:8787'", self.dashboard_address, ConfigError)
         if self.dashboard_address is not None:
             parse_dashboard(self.dashboard_address, f"{p}.dashboard_address")
         t = self.connect_timeout
-        _need(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and 0 < t <= 3600,
-              f"{p}.connect_timeout", "a number of seconds in (0, 3600]", t)
-        _need(_is_int(self.jobs) and 1 <= self.jobs <= 100_000, f"{p}.jobs", "an integer in [1, 100000]", self.jobs)
-        _need(isinstance(self.jobqueue, dict) and all(isinstance(k, str) for k in self.jobqueue),
-              f"{p}.jobqueue", "a mapping of dask-jobqueue keyword arguments", self.jobqueue)
+        need(is_number(t, finite=True) and 0 < t <= 3600, f"{p}.connect_timeout", "a number of seconds in (0, 3600]",
+             t, ConfigError)
+        need_int(f"{p}.jobs", self.jobs, 1, 100_000, ConfigError, numpy=True)
+        need(isinstance(self.jobqueue, dict) and all(isinstance(k, str) for k in self.jobqueue), f"{p}.jobqueue",
+             "a mapping of dask-jobqueue keyword arguments", self.jobqueue, ConfigError)
         g = self.gpus
-        _need(g is None or g == "auto" or (_is_int(g) and 0 <= g <= 1024)
-              or (isinstance(g, list) and g and len(set(map(str, g))) == len(g)
-                  and all(_is_int(x) and 0 <= x < 1024 for x in g)),
-              f"{p}.gpus", "'auto', null, a count in [0, 1024] or a list of distinct device ids", g)
+        need(g is None or g == "auto" or (is_int(g, numpy=True) and 0 <= g <= 1024)
+             or (isinstance(g, list) and g and len(set(map(str, g))) == len(g)
+                 and all(is_int(x, numpy=True) and 0 <= x < 1024 for x in g)),
+             f"{p}.gpus", "'auto', null, a count in [0, 1024] or a list of distinct device ids", g, ConfigError)
         if self.security is not None:
-            from pipeline.cluster import check_security
             check_security(self.security, f"{p}.security")
         if self.kind in ("slurm", "pbs"):
             for k in ("cores", "memory"):
-                _need(k in self.jobqueue, f"{p}.jobqueue.{k}", f"set for kind {self.kind!r} (dask-jobqueue needs it)",
-                      self.jobqueue.get(k))
+                need(k in self.jobqueue, f"{p}.jobqueue.{k}", f"set for kind {self.kind!r} (dask-jobqueue needs it)",
+                     self.jobqueue.get(k), ConfigError)
+
+
+# cluster.security keys: distributed.security.Security's settings that a YAML file can hold
+SECURITY_FILES = ("tls_ca_file", "tls_client_cert", "tls_client_key", "tls_scheduler_cert",
+                  "tls_scheduler_key", "tls_worker_cert", "tls_worker_key")
+SECURITY_KEYS = ("require_encryption", *SECURITY_FILES, "tls_ciphers", "tls_min_version", "tls_max_version")
+TLS_VERSIONS = ("TLSv1_2", "TLSv1_3")
+
+
+def check_security(sec, where: str = "dataset.cluster.security") -> None:
+    """Check the shape of ``cluster.security`` (no file is opened; ``pipeline.cluster.make_security``
+    reads them): a mapping of ``SECURITY_KEYS`` with ``tls_ca_file`` and ``tls_client_cert`` set.
+    Raises :class:`ConfigError` naming the key."""
+    need(isinstance(sec, dict), where, f"a mapping of distributed TLS settings ({', '.join(SECURITY_KEYS)})", sec,
+         ConfigError)
+    known_keys(sec, SECURITY_KEYS, where, ConfigError)
+    for k in SECURITY_FILES + ("tls_ciphers",):
+        v = sec.get(k)
+        need(v is None or (isinstance(v, str) and v.strip() != ""), f"{where}.{k}", "a file path (a string)", v,
+             ConfigError)
+    for k in ("tls_ca_file", "tls_client_cert"):
+        if not sec.get(k):
+            raise ConfigError(f"{where}.{k} must be set: a shared scheduler speaks mutual TLS, so the client "
+                              "needs the CA certificate (tls_ca_file) and its own certificate (tls_client_cert, "
+                              "plus tls_client_key unless the key is in that file)")
+    r = sec.get("require_encryption")
+    need(r is None or isinstance(r, bool), f"{where}.require_encryption", "true or false", r, ConfigError)
+    for k in ("tls_min_version", "tls_max_version"):
+        v = sec.get(k)
+        need(v is None or v in TLS_VERSIONS, f"{where}.{k}", f"one of {list(TLS_VERSIONS)}", v, ConfigError)
 
 
 def parse_dashboard(address: str, where: str = "dataset.cluster.dashboard_address") -> tuple[str, int]:
@@ -323,38 +328,41 @@ class DatasetConfig:
     cluster: ClusterConfig = ClusterConfig()
 
     def __post_init__(self):
-        _need(isinstance(self.name, str) and self.name != "" and "/" not in self.name
-              and self.name.strip() == self.name, "dataset.name", "a non-empty file name without '/'", self.name)
-        _need(_is_int(self.seed) and 0 <= self.seed < 2 ** 63, "dataset.seed", "an integer in [0, 2**63)", self.seed)
-        _need(self.out is None or (isinstance(self.out, str) and self.out != ""), "dataset.out",
-              "null or a store path / URL", self.out)
+        need(isinstance(self.name, str) and self.name != "" and "/" not in self.name
+             and self.name.strip() == self.name, "dataset.name", "a non-empty file name without '/'", self.name,
+             ConfigError)
+        need(is_int(self.seed, numpy=True) and 0 <= self.seed < 2 ** 63, "dataset.seed", "an integer in [0, 2**63)",
+             self.seed, ConfigError)
+        need(self.out is None or (isinstance(self.out, str) and self.out != ""), "dataset.out",
+             "null or a store path / URL", self.out, ConfigError)
         res = self.resolution
-        if _is_int(res):
+        if is_int(res, numpy=True):
             res = (res, res)
-        _need(isinstance(res, (tuple, list)) and len(res) == 2 and all(_is_int(r) and 1 <= r <= MAX_RES for r in res),
-              "dataset.resolution", f"a positive int or [W, H] of ints in [1, {MAX_RES}]", self.resolution)
+        need(isinstance(res, (tuple, list)) and len(res) == 2
+             and all(is_int(r, numpy=True) and 1 <= r <= MAX_RES for r in res),
+             "dataset.resolution", f"a positive int or [W, H] of ints in [1, {MAX_RES}]", self.resolution, ConfigError)
         object.__setattr__(self, "resolution", (int(res[0]), int(res[1])))
-        _need(isinstance(self.scenes, (tuple, list)) and len(self.scenes) > 0, "dataset.scenes",
-              "a non-empty list of {kind, count, frames} groups", self.scenes)
+        need(isinstance(self.scenes, (tuple, list)) and len(self.scenes) > 0, "dataset.scenes",
+             "a non-empty list of {kind, count, frames} groups", self.scenes, ConfigError)
         object.__setattr__(self, "scenes", tuple(self.scenes))
         for i, g in enumerate(self.scenes):
             g.validate(f"dataset.scenes[{i}]")
         for n in ("render", "scene_gen", "store"):
-            _need(isinstance(getattr(self, n), dict), f"dataset.{n}", "a mapping", getattr(self, n))
+            need(isinstance(getattr(self, n), dict), f"dataset.{n}", "a mapping", getattr(self, n), ConfigError)
         if "res" in self.render:
             raise ConfigError("dataset.render.res is not allowed: set dataset.resolution (shared with scene_gen)")
         if self.split is not None:
             sp = self.split
-            _need(isinstance(sp, dict) and sp and set(sp) <= {"train", "val", "test"}
-                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in sp.values())
-                  and sum(sp.values()) > 0, "dataset.split",
-                  "null or a mapping of train/val/test to fractions >= 0 with a positive sum", sp)
-        _need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids)
+            need(isinstance(sp, dict) and sp and set(sp) <= {"train", "val", "test"}
+                 and all(is_number(v) and v >= 0 for v in sp.values()) and sum(sp.values()) > 0, "dataset.split",
+                 "null or a mapping of train/val/test to fractions >= 0 with a positive sum", sp, ConfigError)
+        need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids,
+             ConfigError)
         self.tasks.validate()
         self.cluster.validate()
         lv = self.render.get("layer_levels", 6)     # a dataset's range (render-frame's starts at 0): one message
-        _need(_is_int(lv) and 1 <= lv <= 12, "dataset.render.layer_levels",
-              "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", lv)
+        need(is_int(lv, numpy=True) and 1 <= lv <= 12, "dataset.render.layer_levels",
+             "an integer in [1, 12] (a store holds at least the 1-spp sample layer)", lv, ConfigError)
         rc = self.render_config()   # the owners validate their sections (raise ConfigError naming the field)
         if rc.oracle_spp:
             raise ConfigError(f"dataset.render.oracle_spp must be 0 (the store has no oracle image), got {rc.oracle_spp}")
@@ -405,10 +413,7 @@ class DatasetConfig:
     def store_layout(self):
         """The :class:`stores.schema.StoreLayout` of the dataset (``store`` holds its encoding fields)."""
         from stores.errors import StoreError
-        allowed = sorted(STORE_KEYS)
-        unknown = sorted(set(self.store) - STORE_KEYS)
-        if unknown:
-            raise ConfigError(f"dataset.store: unknown key(s) {unknown}; known: {allowed}")
+        known_keys(self.store, STORE_KEYS, "dataset.store", ConfigError)
         rc = self.render_config()
         try:
             return StoreLayout(num_frames=self.num_frames, height=self.resolution[1], width=self.resolution[0],
@@ -520,22 +525,22 @@ class DatasetConfig:
 
     @classmethod
     def from_dict(cls, d: Any) -> "DatasetConfig":
-        d = _known("dataset", d, cls)
+        d = known_keys(d, cls, "dataset", ConfigError)
         if "scenes" not in d:
             raise ConfigError("dataset.scenes is required: a list of {kind: indoor|outdoor, count: N, frames: F}")
         scenes = d["scenes"]
-        _need(isinstance(scenes, list) and len(scenes) > 0, "dataset.scenes",
-              "a non-empty list of {kind, count, frames} groups", scenes)
+        need(isinstance(scenes, list) and len(scenes) > 0, "dataset.scenes",
+             "a non-empty list of {kind, count, frames} groups", scenes, ConfigError)
         groups = []
         for i, g in enumerate(scenes):
-            gd = _known(f"dataset.scenes[{i}]", g, SceneGroup)
+            gd = known_keys(g, SceneGroup, f"dataset.scenes[{i}]", ConfigError)
             for k in ("kind", "count"):
                 if k not in gd:
                     raise ConfigError(f"dataset.scenes[{i}].{k} is required")
             groups.append(SceneGroup(**gd))
         d["scenes"] = tuple(groups)
-        d["tasks"] = TaskConfig(**_known("dataset.tasks", d.get("tasks"), TaskConfig))
-        cl = _known("dataset.cluster", d.get("cluster"), ClusterConfig)
+        d["tasks"] = TaskConfig(**known_keys(d.get("tasks"), TaskConfig, "dataset.tasks", ConfigError))
+        cl = known_keys(d.get("cluster"), ClusterConfig, "dataset.cluster", ConfigError)
         if cl.get("jobqueue") is None:
             cl.pop("jobqueue", None)
         d["cluster"] = ClusterConfig(**cl)
@@ -573,7 +578,7 @@ def worker_memory(cluster: ClusterConfig, *, workers: int | None = None) -> tupl
     m = cluster.memory_limit
     if m not in (None, "auto", 0):
         try:
-            v = int(m) if _is_int(m) else int(parse_bytes(m))
+            v = int(m) if is_int(m, numpy=True) else int(parse_bytes(m))
             return v, f"cluster.memory_limit {m}"
         except (ValueError, TypeError):
             pass
