@@ -33,54 +33,8 @@ import socket
 import time
 
 from stores.errors import StoreLockedError, StorePathError, is_disk_full, store_full
+from stores.procinfo import holder_record, pid_alive
 from stores.schema import LOCK_NAME
-
-
-def _proc_stat(pid: int) -> list[str] | None:
-    """The fields of ``/proc/<pid>/stat`` after "pid (comm)" (the state is the first), None if unknown."""
-    try:
-        with open(f"/proc/{int(pid)}/stat") as f:
-            text = f.read()
-    except OSError:
-        return None
-    return text[text.rindex(")") + 2:].split()
-
-
-def _proc_start(pid: int) -> int | None:
-    """Start time of ``pid`` in clock ticks since boot (``/proc/<pid>/stat`` field 22), None if unknown."""
-    rest = _proc_stat(pid)
-    try:
-        return int(rest[19]) if rest else None
-    except (IndexError, ValueError):
-        return None
-
-
-def _proc_state(pid: int) -> str | None:
-    rest = _proc_stat(pid)
-    return rest[0] if rest else None
-
-
-def pid_alive(pid: int, proc_start: int | None = None) -> bool:
-    """Whether process ``pid`` runs on this host (not a zombie, and, given ``proc_start``, the same
-    process rather than a later one that reused the pid). ``pid <= 0`` is never a process
-    (``os.kill(0 or -1, 0)`` would signal a process group or every process)."""
-    try:
-        if int(pid) <= 0:
-            return False
-        os.kill(int(pid), 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass                            # exists, owned by someone else
-    except (OverflowError, ValueError, TypeError):
-        return False
-    if _proc_state(pid) == "Z":
-        return False
-    if proc_start is not None:
-        now = _proc_start(pid)
-        if now is not None and now != int(proc_start):
-            return False
-    return True
 
 
 def _path_error(store: str, what: str, e: OSError) -> StorePathError:
@@ -208,8 +162,7 @@ class StoreLock:
 
     # ------------------------------------------------------------------------------------------------
     def _record(self) -> dict:
-        return {"host": socket.gethostname(), "pid": os.getpid(), "proc_start": _proc_start(os.getpid()),
-                "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": self.command}
+        return holder_record(command=self.command)
 
     @staticmethod
     def _read(fd: int) -> dict | None:

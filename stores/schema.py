@@ -32,6 +32,7 @@ from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
                            StoreExistsError, StoreLayoutError, StoreNotFoundError)
+from stores.procinfo import holder_record
 
 SCHEMA_VERSION = 3                 # what create_store writes
 READABLE_VERSIONS = (1, 2, 3)      # what open_group reads (and appends to, in its own layout)
@@ -754,17 +755,6 @@ def _clear(path_or_url) -> None:
             os.unlink(q)
 
 
-def _creation_record() -> dict:
-    """Who is creating the store: host, pid, the process's start time (``proc_start``, clock ticks
-    since boot: tells the creator from a later process that reused its pid) and the wall-clock start."""
-    import socket
-    import time
-
-    from stores.lock import _proc_start
-    return {"host": socket.gethostname(), "pid": os.getpid(), "proc_start": _proc_start(os.getpid()),
-            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-
-
 def _creation_hook() -> None:
     """Test hook: with ``$DENOISE_TEST_CREATE_PAUSE`` set to a file path, touch it and sleep (a test
     kills the process here, inside the creation window)."""
@@ -819,7 +809,7 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     # overwrite=False is the same "never replace a node" guarantee on the root.
     try:
         root = zarr.create_group(target, overwrite=False, attributes={
-            "kind": STORE_KIND, "schema_version": schema_version, CREATION_ATTR: _creation_record()})
+            "kind": STORE_KIND, "schema_version": schema_version, CREATION_ATTR: holder_record()})
     except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError) as e:
         raise StoreExistsError(f"a store appeared at {p!s} while it was being created: {e}") from e
     for g in GROUPS:

@@ -26,6 +26,7 @@ left to do.
 from __future__ import annotations
 
 import os
+import socket
 from typing import Callable
 
 import numpy as np
@@ -33,6 +34,7 @@ import numpy as np
 from stores import schema
 from stores.contract import FEATURE_NAMES, FRAME_ARRAYS, FRAME_META
 from stores.errors import FrameIndexError, StoreLayoutError, StoreValueError
+from stores.procinfo import pid_alive
 from stores.schema import ARRAY_BY_SOURCE, StoreLayout
 
 
@@ -338,8 +340,6 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
         root, have = schema.open_group(path, mode="r+")
     except IncompleteStoreError as e:
         c = e.creator
-        import socket
-        from stores.lock import pid_alive
         if (c.get("host") == socket.gethostname() and c.get("pid") != os.getpid()
                 and pid_alive(c.get("pid", -1), c.get("proc_start"))):
             raise StoreLockedError(f"{os.fspath(path)!s} is being created by pid {c.get('pid')} on {c.get('host')} "

@@ -184,7 +184,7 @@ def test_lock_refuses_records_it_cannot_prove_dead(tmp_path):
 
 
 def test_pid_alive_is_false_for_pids_that_are_not_one_process():
-    from stores.lock import pid_alive
+    from stores.procinfo import pid_alive
     for pid in (0, -1, -12345, None):               # os.kill(0 / -1, 0) would signal a group / everything
         assert pid_alive(pid) is False, pid
     assert pid_alive(os.getpid()) and pid_alive(os.getpid(), proc_start=None)
@@ -315,12 +315,12 @@ def test_half_created_store_whose_pid_was_reused_is_made_again(tmp_path):
     """The creation record's pid now belongs to a later process (its start time differs): not the
     creator, so the store is made again; the same pid with its own start time still hands off."""
     import zarr
-    from stores.lock import _proc_start
+    from stores.procinfo import process_start
     store = tmp_path / "r.zarr"
     schema.create_store(store, TINY)
     sleeper = subprocess.Popen(["sleep", "60"])
     try:
-        real = _proc_start(sleeper.pid)
+        real = process_start(sleeper.pid)
         root = zarr.open_group(str(store), mode="r+")
         for start, reused in ((real, False), (real - 1, True)):
             root.attrs["creating"] = {"host": socket.gethostname(), "pid": sleeper.pid, "proc_start": start,
