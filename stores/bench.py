@@ -3,7 +3,7 @@
 ``run() -> dict`` prints and returns:
 
 * ``crops_per_s``, ``mb_per_s``: random 128x128 crops with all 8 samples of radiance + 17 features
-  (what ``SampleDataset`` reads), from a store on local disk, through the reader's fast path; MB are
+  (what ``training.datasets.SampleFrames`` reads), from a store on local disk, through the reader's fast path; MB are
   float32 bytes delivered (128*128*8*20*4 = 10.5 MB a crop). ``zarr_*``: the same through zarr-python.
 * ``ceiling_*``: ``np.load`` of the same crop as one uncompressed float32 ``.npy`` file;
   ``fraction_of_ceiling`` = mb_per_s / ceiling_mb_per_s (target >= 0.5).
@@ -229,8 +229,12 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
                   int(rng.integers(0, lay.width - crop + 1))) for _ in range(crops)]
         mb = crop * crop * spp * 20 * 4 / 1e6
         zs = open_store(store, fast=False)
-        from stores.datasets import SampleDataset
-        ds = SampleDataset(s, split=None, spp=spp, crop=crop, augment=False)
+        import torch
+
+        def tensors(i, y, x):        # what training.datasets.SampleFrames makes of a crop: float32 tensors
+            for name in ("inputs/radiance", "inputs/features"):
+                a = s.read_array(name, i, (y, x, crop, crop), samples=spp)
+                torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32)
         t = lay.tile_y
         npy = os.path.join(tmp, "crop.npy")
         np.save(npy, np.zeros((spp, 20, crop, crop), np.float32))
@@ -242,7 +246,7 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         st2 = open_store(store, threads=2)
         ways = {"fast": lambda i, y, x: read(s, i, y, x), "zarr": lambda i, y, x: read(zs, i, y, x),
                 "threads2": lambda i, y, x: read(st2, i, y, x),
-                "tensors": lambda i, y, x: ds._samples(i, (y, x, crop, crop), spp),
+                "tensors": tensors,
                 "ceiling": lambda i, y, x: np.load(npy)}
         if lay.tile_x == t:
             ways["aligned"] = lambda i, y, x: read(s, i, (y // t) * t, (x // t) * t)
@@ -293,7 +297,7 @@ def format_report(r: dict) -> str:
              f"  store, 2 read threads {r['threads2_crops_per_s']:4.1f} crops/s {r['threads2_mb_per_s']:8.0f} MB/s",
              f"  store (zarr-python) {r['zarr_crops_per_s']:6.1f} crops/s {r['zarr_mb_per_s']:8.0f} MB/s",
              f"  as float32 tensors (S,C,h,w) {r['tensor_crops_per_s']:6.1f} crops/s {r['tensor_mb_per_s']:6.0f} MB/s"
-             f"  (SampleDataset's read)",
+             f"  (SampleFrames' read)",
              f"  tile-aligned crops {r.get('aligned_crops_per_s', float('nan')):7.1f} crops/s "
              f"{r.get('aligned_mb_per_s', float('nan')):8.0f} MB/s (crop_align = tile)",
              f"  np.load ceiling   {r['ceiling_crops_per_s']:8.1f} crops/s {r['ceiling_mb_per_s']:8.0f} MB/s",

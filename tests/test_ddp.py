@@ -177,7 +177,8 @@ def test_a_one_process_run_resumes_under_two_ranks(stores, ddp_runs, tmp_path):
 def test_the_ranks_crops_in_a_step_are_the_one_process_batch(stores, ddp_runs):
     """What each rank trained on (recorded in the nbg run): half the global batch each, together the
     one-process batch's frames and crop origins in order."""
-    from training.data import get_batch, model_dataset
+    from batches import get_batch
+    from training.data import model_dataset
     from training.inputs import InputSpec
     out, _ = ddp_runs
     c = nbg_cfg()
@@ -200,7 +201,8 @@ def test_resume_under_two_ranks_is_exact(ddp_runs):
 
 
 def test_each_rank_takes_its_slice_of_the_one_process_batch(stores):
-    from training.data import get_batch, model_dataset
+    from batches import get_batch
+    from training.data import model_dataset
     from training.inputs import InputSpec
     ds = model_dataset(InputSpec("samples", 1, 2), stores[0], "train", 2, 16, augment=True, seed=5)
     for step in (0, 3):                                          # step 3 is in the second epoch

@@ -28,14 +28,9 @@ def test_l2_l1_on_tonemapped():
     assert losses.build_loss("l1")(d, r).item() == pytest.approx((0 + tm1 + 1.0) / 3, rel=1e-5)
 
 
-def test_temporal_l1():
-    r = torch.rand(1, 3, 3, 4, 4)
-    assert losses.temporal_l1(r + 0.0, r).item() == 0.0
-    d = r.clone()
-    d[:, 1] += 0.5                                   # flicker in the middle frame
-    assert losses.temporal_l1(d, r).item() > 0.05
-    with pytest.raises(ConfigError):
-        losses.temporal_l1(r[:, 0], r[:, 0])
+def test_the_unused_temporal_l1_loss_is_gone():
+    """Only Hasselgren et al.'s l1-temporal remains (temporal-l1 was unused and easily confused with it)."""
+    assert "temporal-l1" not in losses.LOSSES and "l1-temporal" in losses.LOSSES
 
 
 @pytest.mark.parametrize("name", ["smape", "l2-tonemap", "l1"])

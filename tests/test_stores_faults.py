@@ -101,8 +101,8 @@ def test_missing_shard_is_named_by_validate_readers_dataset_and_resume(store, ca
             st.read_frame(2)
         st.read_frame(0)                                # the intact frame still reads
     torch = pytest.importorskip("torch")  # noqa: F841
-    from stores.datasets import SampleDataset
-    ds = SampleDataset(store, split=None, spp=S, crop=8, augment=False)
+    from training.datasets import SampleFrames
+    ds = SampleFrames(store, split=None, spp=S, crop=8, augment=False)
     with pytest.raises(MissingShardError):
         ds[ds.frames.index(2)]
     # resume: the writer side counts them as incomplete, so `pipeline dataset` re-renders them
@@ -254,9 +254,9 @@ def test_edited_zarr_json_is_refused(store, capsys, edit, expect):
     with pytest.raises(ArrayMetadataError):
         StoreWriter(store)
     torch = pytest.importorskip("torch")  # noqa: F841
-    from stores.datasets import SampleDataset
+    from training.datasets import SampleFrames
     with pytest.raises(ArrayMetadataError):
-        SampleDataset(store, split=None, spp=S, crop=8)
+        SampleFrames(store, split=None, spp=S, crop=8)
 
 
 def test_deleted_array_is_damage(store, capsys):
@@ -445,9 +445,9 @@ def test_missing_clip_id_chunk_is_not_clip_0(store_v2, capsys):
     code, text = _validate(store_v2, capsys)
     assert code == EXIT_DAMAGED and f"frames/clip_id: frame 1 is complete but its chunk file {f} is missing" in text
     torch = pytest.importorskip("torch")  # noqa: F841
-    from stores.datasets import SampleDataset
+    from training.datasets import SampleFrames
     with pytest.raises(MissingShardError, match="frames/clip_id: frame 1"):
-        SampleDataset(store_v2, split="train", spp=S, crop=8)
+        SampleFrames(store_v2, split="train", spp=S, crop=8)
 
 
 def test_missing_metadata_chunk_of_an_incomplete_frame_is_not_damage(tmp_path, capsys):

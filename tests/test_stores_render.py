@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from stores import validate
-from stores.datasets import PixelDataset, SampleDataset
+from training import adaptive
+from training.datasets import LayerFrames, SampleFrames
 from stores.reader import open_store
 from stores.schema import ARRAY_BY_SOURCE, StoreLayout
 from stores.writer import open_or_create
@@ -38,9 +39,11 @@ def test_real_frame_round_trip(rendered, tmp_path):
     np.testing.assert_array_equal(out["reference"], fr["reference"])
     np.testing.assert_array_equal(out["reference_stderr"], fr["reference_stderr"])
     assert out["meta"]["scene_json"] == fr["meta"]["scene_json"]
-    item = SampleDataset(tmp_path / "r.zarr", split=None, spp=4, crop=8, augment=True)[0]
+    item = SampleFrames(tmp_path / "r.zarr", split=None, spp=4, crop=8, augment=True)[0]
     assert item["radiance"].shape == (4, 3, 8, 8) and item["features"].shape == (4, 17, 8, 8)
-    px = PixelDataset(tmp_path / "r.zarr", split=None, spp=63, crop=None, augment=False)[0]
+    it = LayerFrames(tmp_path / "r.zarr", split=None, spp=63, crop=None, augment=False)[0]
+    layers_t = it["layers"].unsqueeze(0)
+    px = {"radiance": adaptive.compose(layers_t, adaptive.uniform_counts(layers_t[:, 0], 63))[0]}
     # 63 spp composed from all six layers: the mean of their 63 samples
     layers = stored("layers", fr["layers"], st_.layout)
     expect = sum(s * layers[n] for n, s in enumerate((1, 2, 4, 8, 16, 32))) / 63

@@ -126,12 +126,13 @@ def test_loss_decreases_on_the_store(store, tmp_path):
     """A few dozen steps of a tiny pixelgather on real (synthetic) frames lower the validation loss."""
     c = cfg(model="pixelgather", model_cfg={k: v for k, v in TINY.items() if k != "partition_hidden"},
             steps=60, warmup=5, val_every=60, checkpoint_every=60, batch=2, crop=24, val_crop=32, val_frames=2)
-    from training.data import sample_dataset
+    from training.data import model_dataset
+    from training.inputs import InputSpec
     from training.loop import validate
     from training.losses import build_loss
     from training.models import build
     torch.manual_seed(c.seed)
-    before = validate(build(c.model, **c.model_cfg), sample_dataset(store, "val", 2, 32, False, c.seed),
+    before = validate(build(c.model, **c.model_cfg), model_dataset(InputSpec("samples", 1, 2), store, "val", 2, 32, False, c.seed),
                       build_loss("smape"), torch.device("cpu"), 2)
     res = train(c, store, tmp_path / "p", progress=False)
     assert res["val"]["loss"] < before["loss"] * 0.9
@@ -189,7 +190,8 @@ def test_a_store_without_a_declared_array_is_refused_by_name(store, tmp_path):
 
 
 def test_dataloader_workers_give_the_batches_of_the_pure_order(store):
-    from training.data import batch_loader, get_batch, model_dataset
+    from batches import get_batch
+    from training.data import batch_loader, model_dataset
     from training.inputs import InputSpec
     ds = model_dataset(InputSpec("pixels", 1, 1), store, "train", 1, 16, augment=True, seed=5)
     inproc = [get_batch(ds, 5, s, 2)[0] for s in range(4)]

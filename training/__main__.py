@@ -113,8 +113,8 @@ def main(argv=None) -> int:
     t.add_argument("--warmup", type=int, default=None,
                    help="steps of linear learning-rate warm-up (default: 50 for the layer family, 0 otherwise)")
     t.add_argument("--loss", default=None,
-                   help="smape (eq. 9, linear radiance), l2-tonemap or l1 (tone-mapped, eq. 7), temporal-l1 "
-                        "(clips), l1-temporal (Hasselgren et al. eq. 4); default: the model's (smape; nbg: l1; "
+                   help="smape (eq. 9, linear radiance), l2-tonemap or l1 (tone-mapped, eq. 7), l1-temporal "
+                        "(Hasselgren et al. eq. 4, clips); default: the model's (smape; nbg: l1; "
                         "temporal: l1-temporal)")
     t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
     t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")

@@ -286,3 +286,16 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
+
+
+def find_runs(runs) -> list[Path]:
+    """Run directories holding a ``checkpoint.pt`` (a run folder or its checkpoint file; globs that matched
+    nothing are skipped)."""
+    found = []
+    for r in runs:
+        p = Path(r)
+        if (p / "checkpoint.pt").is_file():
+            found.append(p)
+        elif p.is_file() and p.suffix == ".pt":
+            found.append(p.parent)
+    return found

@@ -4,7 +4,7 @@ the dataset; batches come through a ``torch.utils.data.DataLoader`` with worker 
 The batch order is a pure function of (seed, epoch): epoch e visits the items in
 ``epoch_order(n, seed, e)`` in batches of ``batch`` (the last partial batch dropped), and every item
 is asked for as ``(index, epoch)`` so each worker's copy of the dataset draws that epoch's crop and
-augmentation (a function of (seed, epoch, frame), see ``stores.datasets``). A run resumed at step k
+augmentation (a function of (seed, epoch, frame), see :mod:`training.datasets`). A run resumed at step k
 starts the same sequence at batch k, so it sees exactly the batches an uninterrupted run would,
 whatever the number of workers.
 
@@ -81,12 +81,6 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
     warnings.warn(f"skipping {len(bad)} flagged frames of split {split!r} ({len(items) - len(keep)} items): "
                   f"{listed}", stacklevel=3)
     return len(bad)
-
-
-def sample_dataset(store, split: str, spp: int, crop: int | None, augment: bool, seed: int):
-    """Per-sample frames (kind ``samples``), e.g. for the noisy-input baselines' reference crops."""
-    from .inputs import InputSpec
-    return model_dataset(InputSpec("samples", 1, spp), store, split, spp, crop, augment, seed)
 
 
 def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:
@@ -194,13 +188,6 @@ def crops_per_second(dataset, n: int = 4) -> float:
     for i in range(n):
         items[((i + 1) % len(dataset), 0)]
     return n / max(time.perf_counter() - t0, 1e-9)
-
-
-def get_batch(dataset, seed: int, step: int, batch: int, rank: int = 0, world: int = 1) -> tuple[dict, int]:
-    """Batch number ``step`` of the run (rank ``rank``'s share of it), built in this process, and its
-    epoch (the same batches as :func:`batch_loader`)."""
-    keys = next(iter(EpochBatches(len(dataset), batch, seed, step, step + 1, rank, world)))
-    return default_collate([_ByEpoch(dataset)[k] for k in keys]), keys[0][1]
 
 
 def to_device(batch: dict, device) -> dict:

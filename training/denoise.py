@@ -100,25 +100,24 @@ def _chw(a: np.ndarray) -> torch.Tensor:
 
 
 def items_from_exr(spec, a) -> list[dict]:
-    """One item (channel-first tensors) from ``--input`` and the guide EXRs, for a per-pixel model (or
-    OIDN: ``spec`` None)."""
+    """One item (channel-first tensors) from ``--input`` and the guide EXRs, for a model whose input kind
+    reads per-pixel images (or OIDN: ``spec`` None, guides optional)."""
     rad = _read_image(a.input, "input", 3)
     H, W = rad.shape[:2]
-    kind = None if spec is None else spec.kind
-    if kind is not None and kind != "pixels":
-        raise ConfigError(f"this model reads {'sample layers' if kind == 'sampled-layers' else 'per-sample inputs'} "
-                          f"(input kind {kind!r}), which an EXR image does not hold: give the .npz of "
-                          "`python -m pipeline render-frame` as --input, or --store S --frame I")
-    if kind == "pixels" and spec.frames > 1:
+    kind = _kind(spec)
+    if not kind.reads_images:
+        raise ConfigError(f"this model reads {kind.holds} (input kind {kind.name!r}), which an EXR image does not "
+                          "hold: give the .npz of `python -m pipeline render-frame` as --input, or --store S --frame I")
+    if spec is not None and spec.frames > 1:
         raise ConfigError(f"this model accumulates {spec.frames} frames of a clip; denoise a store frame "
                           "(--store S --frame I) so that it gets the frames before it")
-    item = {"radiance": _chw(rad)}
-    need = GUIDES if kind == "pixels" else ("albedo", "normal")        # OIDN: optional albedo and normal
-    missing = [g for g in need if getattr(a, g) is None] if kind == "pixels" else []
+    need = GUIDES if spec is not None else ("albedo", "normal")
+    missing = [g for g in need if getattr(a, g) is None] if spec is not None else []
     if missing:
         raise ConfigError(f"this model was trained with the albedo, normal and depth guides; "
                           f"{', '.join('--' + g for g in missing)} missing (write them from your renderer's AOVs; "
                           "a made-up guide gives a plausible but wrong image)")
+    images = {"radiance": _chw(rad)}
     for g in need:
         path = getattr(a, g)
         if path is None:
@@ -126,48 +125,14 @@ def items_from_exr(spec, a) -> list[dict]:
         img = _read_image(path, g, 1 if g == "depth" else 3)
         if img.shape[:2] != (H, W):
             raise DataError(f"--{g} {path} is {img.shape[1]}x{img.shape[0]}; --input {a.input} is {W}x{H}")
-        item[g] = _chw(img)
-    if kind == "pixels":
-        item["motion"] = torch.zeros(2, H, W)
-    return [item]
+        images[g] = _chw(img)
+    return [kind.item_from_images(images)]
 
 
-def _npz_item(spec, z, spp: int) -> dict:
-    from .inputs import pixel_item_from_samples
-
-    def need(*keys):
-        missing = [k for k in keys if k not in z]
-        if missing:
-            raise DataError(f"the .npz has no {missing} (is it from `python -m pipeline render-frame`?)")
-
-    need("guides_albedo", "guides_normal", "guides_depth", "guides_motion")
-    dep = np.asarray(z["guides_depth"], np.float32)
-    guides = {"albedo": _chw(z["guides_albedo"]), "normal": _chw(z["guides_normal"]),
-              "depth": _chw(dep if dep.ndim == 3 else dep[..., None]), "motion": _chw(z["guides_motion"])}
-    kind = "pixels" if spec is None else spec.kind
-    if kind in ("pixels", "samples", "clips"):
-        need("radiance", "features")
-        rad = np.asarray(z["radiance"], np.float32)                     # H W S 3
-        S = rad.shape[2]
-        if not 1 <= spp <= S:
-            raise DataError(f"--spp {spp}: the .npz holds {S} samples per pixel")
-        r = torch.from_numpy(np.ascontiguousarray(rad[:, :, :spp].transpose(2, 3, 0, 1)))
-        f = torch.from_numpy(np.ascontiguousarray(np.asarray(z["features"], np.float32)[:, :, :spp]
-                                                  .transpose(2, 3, 0, 1)))
-        if kind == "samples":
-            return {"radiance": r, "features": f, **guides}
-        if kind == "clips":
-            return {"radiance": r[None], "features": f[None], **{k: v[None] for k, v in guides.items()}}
-        return {**guides, **pixel_item_from_samples(r, f), "motion": guides["motion"]}
-    need("layers")
-    layers = _chw(np.asarray(z["layers"], np.float32))                 # L H W 3 -> 3 L H W ...
-    layers = layers.permute(1, 0, 2, 3).contiguous()                   # ... -> L 3 H W
-    L = layers.shape[0]
-    top = 2 ** L - 1
-    if not 0 < spp <= top:
-        raise DataError(f"--spp {spp}: the .npz's {L} sample layers hold 1..{top} samples per pixel")
-    return {"layers": layers, "layer_spp": torch.tensor([2.0 ** n for n in range(L)]),
-            "spp": torch.tensor(float(spp)), **guides}
+def _kind(spec):
+    """The input kind of ``spec`` (None, OIDN: the per-pixel kind the baselines read)."""
+    from .inputs import KINDS
+    return KINDS["pixels"] if spec is None else spec.input_kind
 
 
 def items_from_npz(spec, path: str, spp: int) -> list[dict]:
@@ -176,7 +141,7 @@ def items_from_npz(spec, path: str, spp: int) -> list[dict]:
         raise ConfigError(f"--input {path}: no such file")
     try:
         with np.load(p, allow_pickle=False) as z:
-            item = _npz_item(spec, {k: z[k] for k in z.files}, spp)
+            item = _kind(spec).item_from_render({k: z[k] for k in z.files}, spp)
     except (ValueError, OSError) as e:
         raise DataError(f"--input {path} is not a readable .npz: {e}") from e
     for k, v in item.items():              # render-frame writes finite arrays (the NaN/Inf rule); an edited file may not
@@ -231,13 +196,9 @@ def _check_sizes(items: list[dict]) -> tuple[int, int]:
 
 
 def _run_oidn(item: dict) -> np.ndarray:
-    from .evaluate import _uniform_from_layers
     from .oidn import oidn_denoise
-    rad = item["radiance"] if "radiance" in item else _uniform_from_layers(item, int(item["spp"]))
-    if rad.dim() == 4:                       # per-sample radiance (S 3 H W): its mean
-        rad = rad.mean(dim=0)
-    hwc = lambda t: None if t is None else t.permute(1, 2, 0).numpy()   # noqa: E731
-    return oidn_denoise(hwc(rad), hwc(item.get("albedo")), hwc(item.get("normal")))
+    im = {k: v.permute(1, 2, 0).numpy() for k, v in _kind(None).noisy_image(item, 0).items()}
+    return oidn_denoise(im["radiance"], im.get("albedo"), im.get("normal"))
 
 
 def run_sequence(model, items: list[dict], device: str = "cpu", precision: str = "fp32") -> np.ndarray:

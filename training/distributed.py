@@ -173,7 +173,3 @@ def wrap(model: torch.nn.Module, dist: Dist, device) -> torch.nn.Module:
     ids = [dev] if dev.type == "cuda" else None
     return DDP(model, device_ids=ids, static_graph=True)
 
-
-def unwrap(model: torch.nn.Module) -> torch.nn.Module:
-    """The model inside a DDP wrapper (itself when not wrapped)."""
-    return getattr(model, "module", model)

@@ -17,11 +17,17 @@ its per-pixel counts, within half a sample of the asked budget; otherwise the co
 (null without clips). Recurrent models (``stepwise``, e.g. ``temporal``) are run clip by clip in frame
 order with :meth:`step`, carrying their state; a clip's first frame (or a frame after a gap) starts
 without history. Their ``sample_map`` is the count image of the last frame of the first clip.
+
+``ci95`` holds, beside ``mean``, the 95% interval of every mean (``{metric: [low, high]}``): a bootstrap
+over the frames with the frames of a clip resampled together (:mod:`training.stats`); null where it
+cannot be known (one clip, or a non-finite figure).
 """
 from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -31,14 +37,14 @@ from stores.fitness import reference_limits
 
 from . import accel
 from . import checkpoint as ckpt
-from . import metrics
+from . import metrics, stats
 from .data import model_dataset, open_store
 from .errors import ConfigError
+from .inputs import InputSpec
 from .models.common import flush_denormals
 from .oidn import oidn_denoise
 
 BASELINES = ("input", "oidn")
-KINDS = ("indoor", "outdoor", "defocus", "motion", "fireflies", "plain")   # the scene family, then the hard parts
 
 # A sample 16x brighter than its reference pixel (plus 0.05, for black pixels) alone doubles an 8-spp
 # mean; a frame "has fireflies" when at least 0.2% of its pixels hold one (test frames of
@@ -55,12 +61,22 @@ def firefly_share(radiance: torch.Tensor, reference: torch.Tensor) -> float:
     return float((s.amax(dim=0) > FIREFLY_RATIO * (r + 0.05)).float().mean())
 
 
+HARD_PARTS = ("defocus", "motion", "fireflies", "plain")
+
+
+@lru_cache(maxsize=1)
+def scene_families() -> tuple[str, ...]:
+    """The registered scene families (``scene_gen``), the first kind of a frame."""
+    from scene_gen.layout import family_names
+    return tuple(family_names())
+
+
 def frame_kinds(row: dict) -> list[str]:
-    """The kinds of an evaluated frame (``row`` from ``evaluate``): its scene family (indoor or outdoor)
-    and any of defocus, motion, fireflies, else plain."""
+    """The kinds of an evaluated frame (``row`` from ``evaluate``): its scene family (one of
+    :func:`scene_families`) and any of defocus, motion, fireflies, else plain."""
     kinds = [k for k, key in (("defocus", "has_defocus"), ("motion", "has_motion"),
                               ("fireflies", "has_fireflies")) if row.get(key)]
-    scene = [row["scene_kind"]] if row.get("scene_kind") in ("indoor", "outdoor") else []
+    scene = [row["scene_kind"]] if row.get("scene_kind") in scene_families() else []
     return scene + (kinds or ["plain"])
 
 
@@ -68,24 +84,32 @@ def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().permute(1, 2, 0).cpu().numpy()
 
 
-BASELINE_INPUTS = ("pixels", "sampled-layers")
-
-
 def baseline_spec(spp: int, kind: str = "pixels"):
-    """The baselines' input. ``pixels``: the mean of the first ``spp`` stored samples with those samples'
-    albedo and normal, the input a per-pixel model gets at that spp. ``sampled-layers``: ``spp`` samples
-    in every pixel composed from the sample layers, with the store's guides, the input of a sampler's
-    uniform baseline at that budget (``temporal``)."""
-    from .inputs import InputSpec
+    """The baselines' input: items of input kind ``kind`` (one of ``training.inputs.BASELINE_INPUTS``,
+    the ``baseline_input`` of the models' kinds) at ``spp``, seen through the kind's ``noisy_image``.
+    ``pixels``: the mean of the first ``spp`` stored samples with those samples' albedo and normal, the
+    input a per-pixel model gets at that spp. ``sampled-layers``: ``spp`` samples in every pixel
+    composed from the sample layers, with the store's guides, the input of a sampler's uniform
+    baseline at that budget (``temporal``)."""
+    from .inputs import BASELINE_INPUTS, InputSpec
     if kind not in BASELINE_INPUTS:
         raise ConfigError(f"baseline input must be one of {BASELINE_INPUTS}, got {kind!r}")
     return InputSpec(kind, frames=1, default_spp=spp)
 
 
-def _uniform_from_layers(item: dict, spp: int) -> torch.Tensor:
-    from . import adaptive
-    layers = adaptive.clean_layers(item["layers"]).unsqueeze(0)
-    return adaptive.compose(layers, adaptive.uniform_counts(layers[:, 0], spp))[0]
+def baseline_groups(evaluated: list[dict], default_spp: int) -> list[tuple[int, str, str]]:
+    """``(spp, baseline input, label tag)`` of each baseline evaluation the methods ``evaluated`` (their
+    ``evaluate`` results) need: one per spp and ``baseline_input`` of their kinds, so each model stands
+    beside the baselines at its own sample count, read as it reads (per-pixel means of stored samples,
+    or uniform counts composed from the sample layers). Without methods: the store's spp, per-pixel. The
+    tag names the spp and the kind's ``baseline_tag`` when there are several."""
+    from .inputs import KINDS
+    groups = sorted({(int(e["spp"]), KINDS[e["input_kind"]].baseline_input) for e in evaluated}) or \
+        [(int(default_spp), "pixels")]
+    several_spp = len({n for n, _ in groups}) > 1
+    several_bases = len({b for _, b in groups}) > 1
+    return [(n, b, (f" @{n}spp" if several_spp else "") + (KINDS[b].baseline_tag if several_bases else ""))
+            for n, b in groups]
 
 
 def frame_tags(store, idx: int) -> dict:
@@ -103,100 +127,100 @@ def frame_tags(store, idx: int) -> dict:
             "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
 
 
-def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
-             with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
-             threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels",
-             progress: bool = False, compile: bool = False, precision: str = "fp32") -> dict:
-    """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
+# --------------------------------------------------------------------------------------------
+# The method: a model or a baseline, and how it is run on one item
 
-    The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
-    ``spp``, windows of a clip ending on each frame). ``spp`` None: the checkpoint's training spp, the
-    model's declared default, or for a baseline the store's full sample count; a count the store does
-    not hold is refused, and so are frames ``validate`` would flag (``stores.fitness``: non-finite or
-    negative values, a non-finite or negative reference standard error, NaN the renderer replaced;
-    ``skip_bad_frames`` leaves them out, with a warning naming them). Models run in their inference form (``for_inference``). ``keep``: positions
-    (in the split) of frames whose output images (float32 HW3) are returned under ``"images"`` (not
-    written to JSON). Times are wall-clock per frame after one warm-up frame. ``device``: ``auto`` is CUDA where present;
-    ``compile``: the model through ``torch.compile`` (the warm-up frame compiles); ``precision``: the
-    forward pass's autocast (``training.accel``; ``auto``: bf16 on a GPU that has it, else fp32),
-    metrics always in fp32."""
-    if threads:
-        torch.set_num_threads(int(threads))
-    flush_denormals()
-    dev = accel.pick_device(device)
-    device, precision = str(dev), accel.precision_for(precision, dev)
-    st = open_store(store)
-    info: dict = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads(),
-                  "device": device, "precision": precision, "compiled": bool(compile)}
+
+@dataclass
+class Method:
+    """What ``evaluate`` runs: ``model`` (None for a baseline) in its inference form, its input ``spec``,
+    the ``spp`` it is fed, and what the result records of it (``info``)."""
+
+    name: str
+    model: torch.nn.Module | None
+    spec: object
+    spp: int
+    info: dict
+
+    @property
+    def stepwise(self) -> bool:
+        return self.model is not None and bool(getattr(self.model, "stepwise", False))
+
+
+def load_method(method, st, spp: int | None, device: str, compile: bool, baseline_input: str) -> Method:
+    """``method``: a checkpoint path, a loaded model, or a baseline name (:data:`BASELINES`)."""
     if isinstance(method, str) and method in BASELINES:
         spp = int(st.layout.spp if spp is None else spp)
-        spec = baseline_spec(spp, baseline_input)
-        info.update(method=method, params=0, fmas_per_pixel=0.0 if method == "input" else None,
-                    input_kind=baseline_input)
-        model = None
+        return Method(method, None, baseline_spec(spp, baseline_input), spp,
+                      dict(method=method, params=0, fmas_per_pixel=0.0 if method == "input" else None,
+                           input_kind=baseline_input))
+    if isinstance(method, (str, Path)):
+        ck = ckpt.load(method, map_location=device)
+        ckpt.check_store(ck, st.schema_version, method)
+        model = ckpt.build_model(ck, device)
+        spp = int(ck["train_config"].get("spp") or model.input_spec().default_spp) if spp is None else spp
+        info = dict(method=ck["model"], checkpoint=str(method), train_steps=ck["step"], train_config=ck["train_config"])
+    elif isinstance(method, torch.nn.Module):
+        model = method.to(device).eval()
+        spp = model.input_spec().default_spp if spp is None else spp
+        info = dict(method=getattr(model, "name", type(model).__name__))
     else:
-        if isinstance(method, (str, Path)):
-            ck = ckpt.load(method, map_location=device)
-            ckpt.check_store(ck, st.schema_version, method)
-            model = ckpt.build_model(ck, device)
-            spp = int(ck["train_config"].get("spp") or model.input_spec().default_spp) if spp is None else spp
-            info.update(method=ck["model"], checkpoint=str(method), train_steps=ck["step"],
-                        train_config=ck["train_config"])
-        elif isinstance(method, torch.nn.Module):
-            model = method.to(device).eval()
-            spp = model.input_spec().default_spp if spp is None else spp
-            info.update(method=getattr(model, "name", type(model).__name__))
-        else:
-            raise ConfigError(f"method must be a checkpoint path, a model or one of {BASELINES}, got {method!r}")
-        spec = model.input_spec()
-        info.update(params=model.param_count(), fmas_per_pixel=float(model.fmas_per_pixel(spp)),
-                    model_config=model.config, input_kind=spec.kind)
-        model = model.for_inference()
-        if compile:
-            model = accel.compile_model(model)
-    stepwise = model is not None and getattr(model, "stepwise", False)
-    if stepwise:                          # a recurrent model: single frames in clip order, carrying its state
-        from .inputs import InputSpec
-        spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
-    ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False,
-                       skip_bad_frames=skip_bad_frames, progress=progress)
-    kind = spec.input_kind
-    n = len(ds) if not max_frames else min(int(max_frames), len(ds))
-    info["spp"] = spp
-    clip_of = st.meta_column("clip_id")
-    in_clip = st.meta_column("frame")
+        raise ConfigError(f"method must be a checkpoint path, a model or one of {BASELINES}, got {method!r}")
+    spec = model.input_spec()
+    info.update(params=model.param_count(), fmas_per_pixel=float(model.fmas_per_pixel(spp)),
+                model_config=model.config, input_kind=spec.kind)
+    fast = model.for_inference()
+    return Method(info["method"], accel.compile_model(fast) if compile else fast, spec, int(spp), info)
+
+
+def runner(m: Method, dev: torch.device, precision: str):
+    """``run(item, state) -> (output HW3, new state, achieved mean spp, counts HW or None)`` for one item
+    (no batch axis). A baseline sees the kind's ``noisy_image``; a recurrent model steps once, carrying
+    ``state``; ``counts`` is an adaptive sampler's count image (``extra["counts"]`` of its step)."""
+    kind = m.spec.input_kind
 
     def run(item, state=None):
-        """-> (output HW3, new state, achieved mean spp, counts HW or None)."""
-        if model is None:
-            rad = item["radiance"] if "radiance" in item else _uniform_from_layers(item, spp)
-            if method == "input":
-                return _hwc(rad), None, float(spp), None
-            return oidn_denoise(_hwc(rad), _hwc(item["albedo"]), _hwc(item["normal"])), None, float(spp), None
+        if m.model is None:
+            im = {k: _hwc(v) for k, v in kind.noisy_image(item, m.spp).items()}
+            out = im["radiance"] if m.name == "input" else oidn_denoise(im["radiance"], im.get("albedo"), im.get("normal"))
+            return out, None, float(m.spp), None
         with torch.no_grad(), accel.autocast(dev, precision):
-            batch = {k: v.unsqueeze(0).to(device) for k, v in item.items()}
-            if stepwise:
-                out, state, extra = model.step(batch, state)
-                counts = extra["counts"][0, 0]
-                achieved, counts = float(counts.float().mean()), counts.cpu().numpy()
+            batch = {k: v.unsqueeze(0).to(dev) for k, v in item.items()}
+            counts = None
+            if m.stepwise:
+                out, state, extra = m.model.step(batch, state)
+                counts = extra.get("counts")
             else:
-                out, achieved, counts = model(batch), float(spp), None
+                out = m.model(batch)
             if out.is_cuda:
                 torch.cuda.synchronize()
-            return _hwc(out[0]), state, achieved, counts
+        if counts is None:
+            return _hwc(out[0]), state, float(m.spp), None
+        counts = counts[0, 0]
+        return _hwc(out[0]), state, float(counts.float().mean()), counts.cpu().numpy()
+    return run
 
-    frames, images = [], {}
-    state, prev_idx, runs, current = None, None, [], []        # runs: consecutive frames of one clip
-    sample_map = None
+
+# --------------------------------------------------------------------------------------------
+# Frames, in clip order
+
+
+def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> dict:
+    """Run ``m`` on the first ``n`` items of ``ds`` in order: per-frame rows (metrics, times, tags,
+    the reference's limits), runs of consecutive frames of one clip (``(output, reference)`` pairs, for
+    tPSNR), the kept images and a sampler's count image (the last frame of the first clip). A clip's
+    first frame, or a frame after a gap, starts a recurrent model without history."""
+    kind = m.spec.input_kind
+    clip_of, in_clip = st.meta_column("clip_id"), st.meta_column("frame")
+    rows, runs, images, sample_map = [], [], {}, None
+    state, prev, current = None, None, []
     for pos in range(n):
         item = ds[pos]
         idx = int(item["index"].reshape(-1)[-1])
-        follows = (prev_idx is not None and clip_of[idx] == clip_of[prev_idx]
-                   and int(in_clip[idx]) == int(in_clip[prev_idx]) + 1)
+        follows = prev is not None and clip_of[idx] == clip_of[prev] and int(in_clip[idx]) == int(in_clip[prev]) + 1
         if not follows:                                          # a clip starts (or a gap): no history
             state = None
-            if len(current) >= 2:
-                runs.append(current)
+            runs.append(current)
             current = []
         if pos == 0:
             run(item)                                            # warm-up (allocations, OIDN init)
@@ -204,45 +228,119 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
         out, state, achieved, counts = run(item, state)
         ms = (time.perf_counter() - t) * 1e3
         ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
-        h, w = ref.shape[:2]
-        row = {"index": idx, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6), "spp": achieved,
-               **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
-        se = item.get("stderr")
-        if se is not None:                        # what the reference's own noise lets a metric resolve
-            ceiling, floor = reference_limits(ref, _hwc(se[-1] if se.dim() == 4 else se))
-            row.update(ref_psnr_ceiling=ceiling, ref_relmse_floor=floor)
-        frames.append(row)
+        rows.append(frame_row(st, idx, int(clip_of[idx]), out, ref, item.get("stderr"), ms, achieved, with_flip))
         current.append((out, ref))
         if counts is not None and (sample_map is None or (follows and sample_map["clip"] == int(clip_of[idx]))):
-            sample_map = {"index": idx, "clip": int(clip_of[idx]), "counts": counts}   # last frame of the first clip
+            sample_map = {"index": idx, "clip": int(clip_of[idx]), "counts": counts}
         if pos in keep:
             images[pos] = out
-        prev_idx = idx
-    if len(current) >= 2:
-        runs.append(current)
-    keys = [k for k, v in frames[0].items() if k != "index" and not k.startswith(("has_", "ref_"))
+        prev = idx
+    runs = [r for r in runs + [current] if len(r) >= 2]
+    return {"frames": rows, "runs": runs, "images": images, "sample_map": sample_map}
+
+
+def frame_row(st, idx: int, clip: int, out, ref, stderr, ms: float, achieved: float, with_flip: bool) -> dict:
+    h, w = ref.shape[:2]
+    row = {"index": idx, "clip": clip, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6), "spp": achieved,
+           **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
+    if stderr is not None:                        # what the reference's own noise lets a metric resolve
+        ceiling, floor = reference_limits(ref, _hwc(stderr[-1] if stderr.dim() == 4 else stderr))
+        row.update(ref_psnr_ceiling=ceiling, ref_relmse_floor=floor)
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+
+def metric_keys(frames: list[dict]) -> list[str]:
+    """The numeric per-frame figures that are averaged (not the frame's index, clip, tags or limits)."""
+    return [k for k, v in frames[0].items() if k not in ("index", "clip") and not k.startswith(("has_", "ref_"))
             and not isinstance(v, str)] if frames else []
-    info["frames"] = frames
-    info["mean"] = {k: float(np.mean([f[k] for f in frames])) for k in keys}
-    info["by_kind"] = {}
-    for kind_name in KINDS:                                     # frames of each kind (they overlap)
-        sel = [f for f in frames if kind_name in frame_kinds(f)]
-        if sel:
-            info["by_kind"][kind_name] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
-    # temporal PSNR over each run of consecutive frames of one clip, averaged over the runs (None: no clips)
+
+
+def summarize(frames: list[dict], runs: list) -> dict:
+    """``mean`` and ``ci95`` of every figure (:mod:`training.stats`: a bootstrap over clips), the means
+    by kind of frame, tPSNR over the runs of one clip, and the reference's limits."""
+    keys = metric_keys(frames)
+    clips = [f["clip"] for f in frames]
+    out = {"mean": {k: float(np.mean([f[k] for f in frames])) for k in keys},
+           "ci95": {k: stats.mean_ci([f[k] for f in frames], clips) for k in keys},
+           "by_kind": by_kind(frames, keys)}
     tp = [metrics.tpsnr(np.stack([o for o, _ in r]), np.stack([g for _, g in r])) for r in runs]
-    info["mean"]["tpsnr"] = float(np.mean(tp)) if tp else None
-    info["clips"] = len(runs)
+    out["mean"]["tpsnr"] = float(np.mean(tp)) if tp else None
+    out["ci95"]["tpsnr"] = stats.mean_ci(tp) if tp else None        # one value a clip: clips resampled whole
+    out["clips"] = len(runs)
+    ref = reference_summary(frames)
+    if ref:
+        out["reference"] = ref
+    out["ms_per_megapixel"] = out["mean"].get("ms_per_megapixel")
+    return out
+
+
+def by_kind(frames: list[dict], keys: list[str]) -> dict:
+    """Means over the frames of each kind (:func:`frame_kinds`; a frame may have several): the scene
+    families first, then the hard parts."""
+    tags = [frame_kinds(f) for f in frames]
+    order = [k for k in scene_families() if any(k in t for t in tags)] + list(HARD_PARTS)
+    out = {}
+    for kind in order:
+        sel = [f for f, t in zip(frames, tags) if kind in t]
+        if sel:
+            out[kind] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
+    return out
+
+
+def reference_summary(frames: list[dict]) -> dict:
     ceil = [f["ref_psnr_ceiling"] for f in frames if np.isfinite(f.get("ref_psnr_ceiling", np.nan))]
-    if ceil:
-        floor = [f["ref_relmse_floor"] for f in frames if "ref_relmse_floor" in f]
-        info["reference"] = {"psnr_ceiling_median": float(np.median(ceil)), "psnr_ceiling_lowest": float(np.min(ceil)),
-                             "relmse_floor_median": float(np.median(floor)), "relmse_floor_highest": float(np.max(floor))}
-    info["ms_per_megapixel"] = info["mean"].get("ms_per_megapixel")
-    if sample_map is not None:
-        info["sample_map"] = sample_map
+    if not ceil:
+        return {}
+    floor = [f["ref_relmse_floor"] for f in frames if "ref_relmse_floor" in f]
+    return {"psnr_ceiling_median": float(np.median(ceil)), "psnr_ceiling_lowest": float(np.min(ceil)),
+            "relmse_floor_median": float(np.median(floor)), "relmse_floor_highest": float(np.max(floor))}
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate
+
+
+def evaluate(method, store, split: str = "test", spp: int | None = None, max_frames: int = 0,
+             with_flip: bool = True, keep: tuple[int, ...] = (), device: str = "cpu",
+             threads: int | None = None, skip_bad_frames: bool = False, baseline_input: str = "pixels",
+             progress: bool = False, compile: bool = False, precision: str = "fp32") -> dict:
+    """``method``: a checkpoint path, a loaded model, or a baseline name (``input``/``oidn``).
+
+    The model's input declaration chooses the frames it sees (per-sample frames, per-pixel frames at
+    ``spp``, windows of a clip ending on each frame; a recurrent model single frames in clip order).
+    ``spp`` None: the checkpoint's training spp, the model's declared default, or for a baseline the
+    store's full sample count; a count the store does not hold is refused, and so are frames
+    ``validate`` would flag (``stores.fitness``: non-finite or negative values, a non-finite or
+    negative reference standard error, NaN the renderer replaced; ``skip_bad_frames`` leaves them out,
+    with a warning naming them). Models run in their inference form (``for_inference``). ``keep``:
+    positions (in the split) of frames whose output images (float32 HW3) are returned under
+    ``"images"`` (not written to JSON). Times are wall-clock per frame after one warm-up frame.
+    ``device``: ``auto`` is CUDA where present; ``compile``: the model through ``torch.compile`` (the
+    warm-up frame compiles); ``precision``: the forward pass's autocast (``training.accel``; ``auto``:
+    bf16 on a GPU that has it, else fp32), metrics always in fp32."""
+    if threads:
+        torch.set_num_threads(int(threads))
+    flush_denormals()
+    dev = accel.pick_device(device)
+    precision = accel.precision_for(precision, dev)
+    st = open_store(store)
+    m = load_method(method, st, spp, str(dev), compile, baseline_input)
+    spec = InputSpec(m.spec.kind, frames=1, default_spp=m.spec.default_spp) if m.stepwise else m.spec
+    ds = model_dataset(spec, st, split, m.spp, None, augment=False, seed=0, full_windows=False,
+                       skip_bad_frames=skip_bad_frames, progress=progress)
+    n = len(ds) if not max_frames else min(int(max_frames), len(ds))
+    done = evaluate_frames(m, ds, st, n, runner(m, dev, precision), with_flip, keep)
+    info = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads(), "device": str(dev),
+            "precision": precision, "compiled": bool(compile), **m.info, "spp": m.spp, "frames": done["frames"],
+            **summarize(done["frames"], done["runs"])}
+    if done["sample_map"] is not None:
+        info["sample_map"] = done["sample_map"]
     if keep:
-        info["images"] = images
+        info["images"] = done["images"]
     return info
 
 

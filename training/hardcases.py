@@ -38,7 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .checkpoint import find_runs
+from .data import open_store
 from .errors import ConfigError, DataError
+from .evaluate import baseline_groups, evaluate
 from .jsonio import write
 
 OUTLIER_FACTOR = 10.0
@@ -55,7 +58,6 @@ def frame_cases(store) -> list[str]:
     """The hard-case tag of every frame of ``store`` ('' for ordinary frames): ``frames/case`` when the
     store has that column, else the ``case`` of the frame's SceneSpec (stores made before ``frames/case``
     existed, or before cases existed at all, read as '')."""
-    from .data import open_store
     st = open_store(store)
     try:
         column = [str(c) for c in st.meta_column("case")]
@@ -76,7 +78,6 @@ def frame_cases(store) -> list[str]:
 def store_flags(store) -> list[dict]:
     """Store-stage problems of every complete frame: the renderer's replaced NaN/Inf (``frames/nonfinite_*``)
     and non-finite values in a stage's stored arrays. Each: ``{stage, method: 'store', frame, case, detail}``."""
-    from .data import open_store
     st = open_store(store)
     cases = frame_cases(st)
     out = []
@@ -107,8 +108,6 @@ def evaluate_frames(method, store, *, label: str, spp=None, baseline_input: str 
     """``training.evaluate.evaluate`` of ``method`` on every split of ``store`` (all frames), with each
     frame's output finiteness: ``{label, method, spp, input_kind, frames: [row + finite + split]}``.
     Frames ``evaluate`` refuses are left out (with a warning); :func:`hard_case_report` lists them."""
-    from .data import open_store
-    from .evaluate import evaluate
     st = open_store(store)
     rows, info = [], {}
     for split in _splits_with_frames(st):
@@ -221,21 +220,15 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
     """Evaluate the runs (folders holding ``checkpoint.pt``), the noisy input and OIDN (at each spp and
     input kind the runs use; the store's spp without runs) on every frame of ``store``; write
     ``out/hard-cases.md`` and ``out/hard-cases.json``. Returns :func:`summarize`'s dict plus ``markdown``."""
-    from .data import open_store
     st = open_store(store)
-    from .report import find_runs
     run_dirs = find_runs(runs)
     if runs and not run_dirs:
         raise ConfigError(f"none of the runs {list(map(str, runs))} holds a checkpoint.pt")
     cases = frame_cases(st)
     evals = [evaluate_frames(d / "checkpoint.pt", st, label=d.name, max_frames=max_frames, with_flip=with_flip,
                              progress=progress) for d in run_dirs]
-    base_of = lambda e: "sampled-layers" if e.get("input_kind") == "sampled-layers" else "pixels"   # noqa: E731
-    groups = sorted({(int(e["spp"]), base_of(e)) for e in evals}) or [(int(st.layout.spp), "pixels")]
-    several = len(groups) > 1
     for name in ("input",) + (("oidn",) if oidn else ()):
-        for n, b in groups:
-            tag = f" @{n}spp" + (" layers" if b == "sampled-layers" else "") if several else ""
+        for n, b, tag in baseline_groups(evals, st.layout.spp):
             evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
                                          with_flip=with_flip, progress=progress))
     from stores.fitness import check_frames

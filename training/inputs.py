@@ -1,27 +1,33 @@
 """What a denoiser consumes: the input kinds, one declaration per model, and the datasets they build.
 
 Every registered model declares an :class:`InputSpec` (``model.input_spec()``): a kind, the number of
-consecutive frames it reads, and its default samples per pixel. ``train``, ``evaluate``, ``report`` and
-``bench`` take from the kind the dataset, the training target, the arrays a store must hold, the
-largest sample count a store allows, and a random batch for timing; none of them branches on a model
-name. The kinds:
+consecutive frames it reads, and its default samples per pixel. ``train``, ``evaluate``, ``report``,
+``bench``, ``denoise`` and ``hard-cases`` take from the kind the dataset, how the model is run over an
+item (:meth:`InputKind.forward`, the time axis included), the training target, the arrays a store must
+hold, the largest sample count a store allows, the baselines' noisy image, the item of a rendered frame
+or of EXR images, and a random batch for timing; none of them branches on a kind's or a model's name.
+The kinds:
 
 * ``samples``: per-sample frames (the layer family): ``radiance (S,3,h,w)``, ``features (S,17,h,w)``
-  plus the per-pixel guides (``stores.datasets.SampleDataset``).
+  plus the per-pixel guides (:class:`training.datasets.SampleFrames`); the model's ``denoise(radiance,
+  features)`` gives ``(B,3,h,w)``.
 * ``pixels``: per-pixel frames at N spp made from the stored per-sample inputs (nbg, wskpn): the mean
   ``radiance (3,h,w)`` of the first N samples and the per-pixel mean of those same samples' albedo,
   normal and depth (real N-spp features, noisy under defocus and motion; not the 8-spp guides), plus
   the stored per-pixel ``motion`` for reprojection. With ``frames = T > 1`` an item is a window of T
   consecutive frames of one clip (leading T axis) and the target is the last frame's reference.
-* ``clips``: T consecutive per-sample frames of one clip (``stores.datasets.ClipDataset``); the target
-  is the whole clip's reference ``(T,3,h,w)``.
+* ``clips``: T consecutive per-sample frames of one clip (every ``samples`` key with a leading T axis).
+  The model is recurrent and sees one frame at a time: it implements ``step(frame, state) -> (output
+  (B,3,h,w), state, extra)``, and the kind unrolls it over the window (``forward``: ``(B,T,3,h,w)``,
+  trained against every frame's reference) or, in evaluation, over each clip in order. The time axis
+  is handled here, once.
 * ``sampled-layers``: the sample layers ``layers (L,3,h,w)`` of each frame (or of T frames) with the
   guides, for a model whose sampler chooses per-pixel counts and composes the layers itself; the
   average budget per pixel is ``spp`` (at most the sum of the stored layers).
 
 Items are dicts of float32 tensors, channel-first, with ``index`` (int64: the store frame, or (T,)
 for windows) and ``origin`` (int64, 2). Crop origin, augmentation and sample choice are functions of
-(seed, epoch, frame) only (see ``stores.datasets``), so the data a run sees does not depend on the
+(seed, epoch, frame) only (see :mod:`training.datasets`), so the data a run sees does not depend on the
 number of DataLoader workers or their order.
 """
 from __future__ import annotations
@@ -32,10 +38,8 @@ import numpy as np
 import torch
 
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
-from stores.datasets import (ClipDataset, SampleDataset, _StoreDataset, _tensor32, apply_augment,
-                             draw_augment)
-from stores.errors import SampleCountError, SplitError
 
+from .datasets import LayerFrames, PixelFrames, SampleFrames, pixel_item_from_samples
 from .errors import ConfigError, DataError
 
 GUIDE_ARRAYS = ("reference/radiance", "reference/stderr", "guides/albedo", "guides/normal", "guides/depth",
@@ -65,128 +69,26 @@ class InputSpec:
 
 
 # --------------------------------------------------------------------------------------------
-# Per-pixel frames from the per-sample inputs
-
-
-def pixel_item_from_samples(radiance: torch.Tensor, features: torch.Tensor) -> dict:
-    """``radiance (..., S, 3, h, w)`` and ``features (..., S, 17, h, w)`` -> per-pixel means over the S
-    samples: ``radiance (..., 3, h, w)``, ``albedo``, ``normal`` (3), ``depth`` (1). NaN/Inf samples stay
-    in (the models clean their inputs); features are finite by the store's contract."""
-    g = FEATURE_GROUPS
-    mean = features.mean(dim=-4)
-    return {"radiance": radiance.mean(dim=-4), "albedo": mean[..., g["albedo"], :, :],
-            "normal": mean[..., g["normal"], :, :], "depth": mean[..., g["depth"], :, :]}
-
-
-class _WindowFrames(_StoreDataset):
-    """Items of one frame, or windows of ``frames = T > 1`` consecutive frames of one clip (same crop
-    and augmentation, every key with a leading T axis). ``full_windows=False`` (evaluation) also gives
-    each frame near a clip's start, and each still, a shorter window that ends on it, so every frame of
-    the split is evaluated once; training batches need equal shapes and use full windows only.
-    Subclasses implement ``_frame(i, region) -> dict`` and set ``spp``."""
-
-    def __init__(self, store, split, crop, augment, seed, frames: int, full_windows: bool, crop_align: int):
-        super().__init__(store, split, crop, augment, seed, crop_align)
-        self.T = int(frames)
-        self.windows = _windows(self.store, split, self.T, full_windows)
-
-    def __len__(self) -> int:
-        return len(self.windows)
-
-    def _frame(self, i: int, region) -> dict:
-        raise NotImplementedError
-
-    def __getitem__(self, idx: int) -> dict:
-        win = self.windows[idx]
-        rng = self._rng(win[-1])
-        oy, ox = self._origin(rng)
-        region = self._region(oy, ox)
-        per_t = [self._frame(i, region) for i in win]
-        out = per_t[0] if self.T == 1 else {k: torch.stack([d[k] for d in per_t]) for k in per_t[0]}
-        if self.augment:
-            out = apply_augment(out, draw_augment(rng))
-        out["index"] = torch.tensor(win[-1] if self.T == 1 else win, dtype=torch.int64)
-        out["origin"] = torch.tensor([oy, ox], dtype=torch.int64)
-        return out
-
-
-class PixelFrames(_WindowFrames):
-    """Per-pixel frames at ``spp`` samples from the stored per-sample inputs (kind ``pixels``): see
-    :func:`pixel_item_from_samples`, plus ``reference``, ``stderr`` and ``motion``."""
-
-    def __init__(self, store, split="train", spp: int = 1, crop=128, augment=True, seed=0, frames: int = 1,
-                 full_windows: bool = True, crop_align: int = 1):
-        super().__init__(store, split, crop, augment, seed, frames, full_windows, crop_align)
-        S = self.store.layout.spp
-        if not 1 <= int(spp) <= S:
-            raise SampleCountError(f"asked for {spp} samples per pixel; the store holds 1..{S}")
-        self.spp = int(spp)
-
-    def _frame(self, i, region):
-        item = pixel_item_from_samples(**self._samples(i, region, self.spp))
-        g = self._guides(i, region)
-        item.update(reference=g["reference"], stderr=g["stderr"], motion=g["motion"])
-        return item
-
-
-class LayerFrames(_WindowFrames):
-    """The sample layers of each frame with the guides (kind ``sampled-layers``): ``layers (L,3,h,w)``,
-    ``layer_spp (L,)``, ``spp`` (the average budget per pixel, a scalar) and the :class:`SampleDataset`
-    guide keys."""
-
-    def __init__(self, store, split="train", spp: int = 4, crop=128, augment=True, seed=0, frames: int = 1,
-                 full_windows: bool = True, crop_align: int = 1):
-        super().__init__(store, split, crop, augment, seed, frames, full_windows, crop_align)
-        top = int(sum(self.store.layout.layer_spp))
-        if not 0 < float(spp) <= top:
-            raise SampleCountError(f"asked for an average of {spp} samples per pixel; the layers hold 1..{top}")
-        self.spp = spp
-
-    def _frame(self, i, region):
-        item = {"layers": _tensor32(self.store.read_array("layers/radiance", i, region))}
-        item.update(self._guides(i, region))
-        return item
-
-    def __getitem__(self, idx: int) -> dict:
-        out = super().__getitem__(idx)
-        out["layer_spp"] = torch.tensor(self.store.layout.layer_spp, dtype=torch.float32)
-        out["spp"] = torch.tensor(float(self.spp), dtype=torch.float32)     # the average budget per pixel
-        return out
-
-
-def _windows(store, split, T: int, full_windows: bool) -> list[tuple[int, ...]]:
-    """Windows of up to ``T`` consecutive frames of one clip, one ending on each frame, ordered by that
-    frame's index; only the full ones when ``full_windows``."""
-    in_clip = store.meta_column("frame")
-    out, longest = [], 0
-    for _, idxs in store.clips(split).items():
-        for end in range(len(idxs)):
-            start = end
-            while start > 0 and end - start + 1 < T and int(in_clip[idxs[start - 1]]) + 1 == int(in_clip[idxs[start]]):
-                start -= 1
-            longest = max(longest, end - start + 1)
-            if end - start + 1 == T or not full_windows:
-                out.append(tuple(idxs[start:end + 1]))
-    if not out:
-        if T == 1:
-            raise SplitError(f"split {split!r} of {store.path!s} has no complete frame")
-        raise SplitError(f"split {split!r} of {store.path!s} has no run of {T} consecutive complete frames in one "
-                         f"clip (the longest is {longest}): the model reads windows of {T} frames; train on a "
-                         "store with longer clips, or shorten the model's window (e.g. --model-cfg "
-                         "'{\"frames\": N}' for temporal)")
-    return sorted(out, key=lambda w: w[-1])          # by the frame they end on: store order, as SampleDataset
-
-
-# --------------------------------------------------------------------------------------------
 # The kinds
 
 
 class InputKind:
-    """One kind of model input. Subclasses set ``name`` and ``arrays`` and implement ``dataset``,
-    ``max_spp`` and ``example_batch``."""
+    """One kind of model input. Subclasses set ``name``, ``arrays`` (what a store must hold),
+    ``baseline_input`` (the kind whose items the ``input`` and ``oidn`` baselines read beside this kind's
+    models; ``baseline_tag`` marks those baselines' labels beside others), ``holds`` (what an item is
+    made of, for messages), ``stepwise`` (models of the kind are
+    recurrent: evaluated frame by frame in clip order with ``step``) and ``reads_images`` (an item can
+    be made of per-pixel images, e.g. EXR files: :meth:`item_from_images`), and implement ``dataset``,
+    ``example_batch`` and ``item_from_render``; ``forward``, ``target`` and ``noisy_image`` where the
+    defaults do not fit."""
 
     name = "?"
     arrays: tuple[str, ...] = GUIDE_ARRAYS
+    baseline_input = "pixels"
+    holds = "per-sample inputs"
+    stepwise = False
+    reads_images = False
+    baseline_tag = ""
 
     def check_store(self, store) -> None:
         """Raise :class:`DataError` naming every array this kind needs that the store lacks."""
@@ -214,9 +116,30 @@ class InputKind:
                 full_windows: bool = True):
         raise NotImplementedError
 
+    def forward(self, model, batch: dict) -> torch.Tensor:
+        """The model's output for ``batch`` (what ``Denoiser.forward`` runs unless a model defines its own)."""
+        raise ConfigError(f"model {model.name!r} reads input kind {self.name!r} and must define forward(batch)")
+
     def target(self, batch: dict) -> torch.Tensor:
-        """The reference the model's output is compared with."""
+        """The reference the model's output is compared with (the same shape)."""
         return batch["reference"]
+
+    def noisy_image(self, item: dict, spp: int) -> dict:
+        """What the baselines see of one item (no batch axis; a window's last frame): ``radiance``,
+        ``albedo`` and ``normal`` ``(3, h, w)``. Only kinds that are some kind's ``baseline_input``
+        define it."""
+        raise ConfigError(f"the baselines do not read input kind {self.name!r}; they read {self.baseline_input!r}")
+
+    def item_from_render(self, arrays: dict, spp: int) -> dict:
+        """The item (no batch axis) of one rendered frame: ``arrays`` as ``python -m pipeline render-frame``
+        writes them (``radiance (H,W,S,3)``, ``features (H,W,S,17)``, ``layers (L,H,W,3)``,
+        ``guides_albedo`` ...; channel-last numpy arrays), ``spp`` the samples to feed."""
+        raise NotImplementedError
+
+    def item_from_images(self, images: dict) -> dict:
+        """The item of per-pixel images (``radiance``, ``albedo``, ``normal``, ``depth`` as (C, H, W)
+        tensors, e.g. EXR files), for kinds that ``reads_images``."""
+        raise ConfigError(f"input kind {self.name!r} reads {self.holds}, which an image does not hold")
 
     def example_batch(self, b: int, spp: int, h: int, w: int, frames: int = 1, generator=None) -> dict:
         """A random batch of this kind (for timing and the model contract tests)."""
@@ -231,6 +154,41 @@ def _lead(b: int, frames: int) -> tuple[int, ...]:
     return (b,) if frames == 1 else (b, frames)
 
 
+def _chw(a) -> torch.Tensor:
+    """A channel-last array (H, W, C) as a float32 (C, H, W) tensor."""
+    return torch.from_numpy(np.ascontiguousarray(np.moveaxis(np.asarray(a, np.float32), -1, 0)))
+
+
+def _need(arrays: dict, *keys) -> None:
+    missing = [k for k in keys if k not in arrays]
+    if missing:
+        raise DataError(f"the rendered frame has no {missing} (is it from `python -m pipeline render-frame`?)")
+
+
+def _render_guides(arrays: dict) -> dict:
+    _need(arrays, "guides_albedo", "guides_normal", "guides_depth", "guides_motion")
+    dep = np.asarray(arrays["guides_depth"], np.float32)
+    return {"albedo": _chw(arrays["guides_albedo"]), "normal": _chw(arrays["guides_normal"]),
+            "depth": _chw(dep if dep.ndim == 3 else dep[..., None]), "motion": _chw(arrays["guides_motion"])}
+
+
+def _render_samples(arrays: dict, spp: int) -> dict:
+    """``radiance (S,3,H,W)`` and ``features (S,17,H,W)``: the first ``spp`` samples of a rendered frame."""
+    _need(arrays, "radiance", "features")
+    rad = np.asarray(arrays["radiance"], np.float32)                     # H W S 3
+    S = rad.shape[2]
+    if not 1 <= spp <= S:
+        raise DataError(f"--spp {spp}: the rendered frame holds {S} samples per pixel")
+    feat = np.asarray(arrays["features"], np.float32)
+    return {"radiance": torch.from_numpy(np.ascontiguousarray(rad[:, :, :spp].transpose(2, 3, 0, 1))),
+            "features": torch.from_numpy(np.ascontiguousarray(feat[:, :, :spp].transpose(2, 3, 0, 1)))}
+
+
+def _last(t: torch.Tensor, dims: int) -> torch.Tensor:
+    """A window's last frame of ``t`` (a single frame has ``dims`` dimensions)."""
+    return t[-1] if t.dim() > dims else t
+
+
 class SamplesKind(InputKind):
     name = "samples"
     arrays = SAMPLE_ARRAYS + GUIDE_ARRAYS
@@ -238,7 +196,13 @@ class SamplesKind(InputKind):
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
         if frames != 1:
             raise ConfigError("input kind 'samples' reads single frames; use 'clips' for windows")
-        return SampleDataset(store, split=split, spp=spp, crop=crop, augment=augment, seed=seed)
+        return SampleFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed)
+
+    def forward(self, model, batch):
+        return model.denoise(batch["radiance"], batch["features"])
+
+    def item_from_render(self, arrays, spp):
+        return {**_render_samples(arrays, spp), **_render_guides(arrays)}
 
     def example_batch(self, b, spp, h, w, frames=1, generator=None):
         feat = _rand(b, spp, NUM_FEATURES, h, w, generator=generator)
@@ -249,6 +213,8 @@ class SamplesKind(InputKind):
 class PixelsKind(InputKind):
     name = "pixels"
     arrays = SAMPLE_ARRAYS + GUIDE_ARRAYS
+    holds = "per-pixel images"
+    reads_images = True
 
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
         return PixelFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed, frames=frames,
@@ -257,6 +223,17 @@ class PixelsKind(InputKind):
     def target(self, batch):
         ref = batch["reference"]
         return ref[:, -1] if ref.dim() == 5 else ref
+
+    def noisy_image(self, item, spp):
+        return {k: _last(item[k], 3) for k in ("radiance", "albedo", "normal") if k in item}
+
+    def item_from_render(self, arrays, spp):
+        guides = _render_guides(arrays)
+        return {**guides, **pixel_item_from_samples(**_render_samples(arrays, spp))}
+
+    def item_from_images(self, images):
+        h, w = images["radiance"].shape[-2:]
+        return {**images, "motion": torch.zeros(2, h, w)}        # a single image: no motion
 
     def example_batch(self, b, spp, h, w, frames=1, generator=None):
         lead = _lead(b, frames)
@@ -268,22 +245,47 @@ class PixelsKind(InputKind):
                 "motion": _rand(*lead, 2, h, w, generator=g, scale=2.0) - 1.0}
 
 
+def frame_at(batch: dict, t: int) -> dict:
+    """Frame ``t`` of a batch of windows (every key but ``origin`` has the T axis second)."""
+    return {k: (v if k == "origin" else v[:, t]) for k, v in batch.items()}
+
+
 class ClipsKind(InputKind):
     name = "clips"
     arrays = SAMPLE_ARRAYS + GUIDE_ARRAYS
+    stepwise = True
 
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
-        return ClipDataset(store, split=split, frames=frames, spp=spp, crop=crop, augment=augment, seed=seed,
-                           stride=1 if full_windows else frames)
+        return SampleFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed, frames=frames,
+                            full_windows=full_windows)
+
+    def forward(self, model, batch):
+        """A window ``radiance (B,T,S,3,h,w)``: the model stepped through its frames, carrying its state,
+        ``(B,T,3,h,w)``; a single frame ``(B,S,3,h,w)``: its first step, ``(B,3,h,w)``."""
+        if batch["radiance"].dim() == 5:
+            return model.step(batch, None)[0]
+        outs, state = [], None
+        for t in range(batch["radiance"].shape[1]):
+            out, state, _ = model.step(frame_at(batch, t), state)
+            outs.append(out)
+        return torch.stack(outs, dim=1)
+
+    def item_from_render(self, arrays, spp):
+        return SamplesKind.item_from_render(self, arrays, spp)
 
     def example_batch(self, b, spp, h, w, frames=1, generator=None):
         batch = SamplesKind().example_batch(b * frames, spp, h, w, generator=generator)
-        return {k: v.view(b, frames, *v.shape[1:]) for k, v in batch.items()}
+        guides = PixelsKind().example_batch(b * frames, spp, h, w, generator=generator)
+        batch.update({k: v for k, v in guides.items() if k != "radiance"})
+        return batch if frames == 1 else {k: v.view(b, frames, *v.shape[1:]) for k, v in batch.items()}
 
 
 class SampledLayersKind(InputKind):
     name = "sampled-layers"
     arrays = ("layers/radiance",) + GUIDE_ARRAYS
+    baseline_input = "sampled-layers"
+    baseline_tag = " layers"             # "input layers": the baseline composed from the layers
+    holds = "sample layers"
 
     def max_spp(self, store) -> int:
         return int(sum(store.layout.layer_spp))
@@ -291,6 +293,25 @@ class SampledLayersKind(InputKind):
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
         return LayerFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed, frames=frames,
                            full_windows=full_windows)
+
+    def noisy_image(self, item, spp):
+        """``spp`` samples in every pixel composed from the layers, with the store's guides: the input of
+        a sampler's uniform baseline at that budget."""
+        from . import adaptive
+        layers = adaptive.clean_layers(_last(item["layers"], 4)).unsqueeze(0)
+        rad = adaptive.compose(layers, adaptive.uniform_counts(layers[:, 0], spp))[0]
+        return {"radiance": rad, "albedo": _last(item["albedo"], 3), "normal": _last(item["normal"], 3)}
+
+    def item_from_render(self, arrays, spp):
+        _need(arrays, "layers")
+        layers = torch.from_numpy(np.ascontiguousarray(np.asarray(arrays["layers"], np.float32)
+                                                       .transpose(0, 3, 1, 2)))     # L H W 3 -> L 3 H W
+        L = layers.shape[0]
+        top = 2 ** L - 1
+        if not 0 < spp <= top:
+            raise DataError(f"--spp {spp}: the rendered frame's {L} sample layers hold 1..{top} samples per pixel")
+        return {"layers": layers, "layer_spp": torch.tensor([2.0 ** n for n in range(L)]),
+                "spp": torch.tensor(float(spp)), **_render_guides(arrays)}
 
     def example_batch(self, b, spp, h, w, frames=1, generator=None):
         lead = _lead(b, frames)
@@ -306,3 +327,4 @@ class SampledLayersKind(InputKind):
 
 
 KINDS: dict[str, InputKind] = {k.name: k for k in (SamplesKind(), PixelsKind(), ClipsKind(), SampledLayersKind())}
+BASELINE_INPUTS = tuple(sorted({k.baseline_input for k in KINDS.values()}))

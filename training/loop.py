@@ -70,7 +70,9 @@ def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, c
     device = next(v.device for v in batch.values() if isinstance(v, torch.Tensor))
     with accel.autocast(device, precision):
         out = model(batch)
-    loss = loss_fn(out.float(), batch["reference"] if target is None else target)
+    target = batch["reference"] if target is None else target
+    check_output(out, target)
+    loss = loss_fn(out.float(), target)
     value = dist.mean(loss.detach())
     if not torch.isfinite(value):
         raise NonFiniteError(f"loss is {value.item()} (non-finite)")
@@ -85,6 +87,15 @@ def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, c
     scaler.step(optimizer)
     scaler.update()
     return float(value)
+
+
+def check_output(out: torch.Tensor, target: torch.Tensor) -> None:
+    """Refuse an output whose shape is not its target's: the loss would broadcast one against the other
+    and train on nonsense without a word (e.g. one frame's output against a clip's references)."""
+    if out.shape != target.shape:
+        raise ConfigError(f"the model's output is {tuple(out.shape)} but the reference it is trained against is "
+                          f"{tuple(target.shape)}: a model of its input kind must output the kind's target "
+                          "(training.inputs)")
 
 
 def _clamp(model, clip_norm: float, clip_value: float) -> None:
@@ -111,6 +122,7 @@ def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
             out = model(item)
         out = out.float()
         ref = (item["reference"] if kind is None else kind.target(item)).float()
+        check_output(out, ref)
         if out.dim() == 5:                           # a recurrent model's window: judge its last frame
             out, ref = out[:, -1], ref[:, -1]
         d = out[0].permute(1, 2, 0).cpu().numpy()
@@ -240,103 +252,139 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
     store = open_store(store)
     if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
         cfg = cfg.replace(crop=min(DEFAULT_CROP, store.layout.height, store.layout.width))
-    store_info = store_identity(store)
-    loss_fn = build_loss(cfg.loss)
-
-    torch.manual_seed(cfg.seed)
-    model = accel.prepare(build(cfg.model, **cfg.model_cfg), device)
-    spec = model.input_spec()
-    kind = spec.input_kind
     if dist.enabled and cfg.batch % dist.world:
         raise ConfigError(f'"batch" {cfg.batch} is the global batch and must divide evenly over the '
                           f"{dist.world} ranks; use a multiple of {dist.world}")
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    scaler = accel.grad_scaler(device, precision)
-    step = 0
-    ck_path = out / "checkpoint.pt"
-    if ck_path.exists():
-        ck = ckpt.load(ck_path, map_location=device)
+    run = _Run(cfg, store, out, device, precision, dist)
+    train_ds, val_ds = _datasets(cfg, run.module.input_spec(), store)
+    todo = max(cfg.steps - run.step, 0) if stop_after is None else max(min(cfg.steps - run.step, stop_after), 0)
+    t0 = time.perf_counter()
+    loss, val = _loop(run, train_ds, val_ds, todo, progress, t0)
+    dist.barrier()                              # rank 0's checkpoint is written before any rank returns
+    res = {"step": run.step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
+           "checkpoint": str(run.ck_path) if run.ck_path.exists() else None}
+    return {**res, "rank": dist.rank, "world": dist.world} if dist.enabled else res
+
+
+class _Run:
+    """A run's state: the model (``module``; ``model`` DDP-wrapped under torchrun), its optimiser and
+    loss scaler resumed from ``out/checkpoint.pt`` if there is one, the step, and the metrics log."""
+
+    def __init__(self, cfg: TrainConfig, store, out: Path, device, precision: str, dist: distributed.Dist):
+        self.cfg, self.store, self.device, self.precision, self.dist = cfg, store, device, precision, dist
+        self.store_info = store_identity(store)
+        self.loss_fn = build_loss(cfg.loss)
+        torch.manual_seed(cfg.seed)
+        self.module = accel.prepare(build(cfg.model, **cfg.model_cfg), device)
+        self.kind = self.module.input_spec().input_kind
+        self.optimizer = torch.optim.Adam(self.module.parameters(), lr=cfg.lr)
+        self.scaler = accel.grad_scaler(device, precision)
+        self.ck_path = out / "checkpoint.pt"
+        self.step = self._resume() if self.ck_path.exists() else 0
+        self.model = distributed.wrap(self.module, dist, device)    # DDP under torchrun, else the module
+        self.log = _Log(out / "metrics.csv", self.step) if dist.is_main else None
+
+    def _resume(self) -> int:
+        """Load the checkpoint after checking it was trained with these settings on this store."""
+        cfg, path = self.cfg, self.ck_path
+        ck = ckpt.load(path, map_location=self.device)
         prev = TrainConfig.from_dict(ck["train_config"])
         if prev.identity() != cfg.identity():
             diff = {k: (prev.identity()[k], v) for k, v in cfg.identity().items() if prev.identity()[k] != v}
-            raise CheckpointError(f"{ck_path} was trained with other settings (setting: (checkpoint, now)): {diff}")
-        ckpt.check_store(ck, store.schema_version, ck_path)
-        check_same_store(ck, store_info, ck_path)
-        model.load_state_dict(ck["state_dict"])
-        optimizer.load_state_dict(ck["optimizer"])
+            raise CheckpointError(f"{path} was trained with other settings (setting: (checkpoint, now)): {diff}")
+        ckpt.check_store(ck, self.store.schema_version, path)
+        check_same_store(ck, self.store_info, path)
+        self.module.load_state_dict(ck["state_dict"])
+        self.optimizer.load_state_dict(ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])
-        if scaler.is_enabled() and ck.get("scaler"):
-            scaler.load_state_dict(ck["scaler"])
-        step = int(ck["step"])
-    module, model = model, distributed.wrap(model, dist, device)   # DDP under torchrun, else the model
+        if self.scaler.is_enabled() and ck.get("scaler"):
+            self.scaler.load_state_dict(ck["scaler"])
+        return int(ck["step"])
 
+    def save(self) -> None:
+        if self.dist.is_main:
+            ckpt.save(self.ck_path, model=self.module, optimizer=self.optimizer, step=self.step, cfg=self.cfg,
+                      store_info=self.store_info,
+                      extra={"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else None)
+
+    def train_step(self, batch: dict) -> float:
+        cfg = self.cfg
+        return train_step(self.model, self.optimizer, self.loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
+                          lr=warmup_lr(cfg.lr, cfg.warmup, self.step), target=self.kind.target(batch),
+                          dist=self.dist, precision=self.precision, scaler=self.scaler)
+
+    def validate(self, val_ds) -> dict:
+        return validate(self.module, val_ds, self.loss_fn, self.device, self.cfg.val_frames, self.kind, self.dist,
+                        self.precision)
+
+
+def _datasets(cfg: TrainConfig, spec, store):
+    """The training split's dataset and the validation split's (every frame, whole frames of a small
+    store; None, with a warning, when the store has no such split)."""
     train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed,
                              skip_bad_frames=cfg.skip_bad_frames)
     lay = store.layout
-    val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None   # small stores: whole frames
+    val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None
     try:
         val_ds = model_dataset(spec, store, cfg.val_split, cfg.spp, val_crop, augment=False, seed=cfg.seed,
-                               full_windows=False, skip_bad_frames=cfg.skip_bad_frames)   # every val frame
+                               full_windows=False, skip_bad_frames=cfg.skip_bad_frames)
     except DataError as e:
         if not isinstance(e.__cause__, SplitError):
             raise
         warnings.warn(f"training without validation: {e.__cause__} (--val-split chooses another split)",
-                      stacklevel=2)
+                      stacklevel=3)
         val_ds = None
-    log = _Log(out / "metrics.csv", step) if dist.is_main else None
+    return train_ds, val_ds
 
-    def save():
-        if dist.is_main:
-            ckpt.save(ck_path, model=module, optimizer=optimizer, step=step, cfg=cfg, store_info=store_info,
-                      extra={"scaler": scaler.state_dict()} if scaler.is_enabled() else None)
 
-    t0 = time.perf_counter()
+def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> tuple[float, dict]:
+    """``todo`` steps from ``run.step``: log, validate and checkpoint on their schedules; returns the last
+    training loss and validation figures."""
+    cfg, dist = run.cfg, run.dist
     loss, val = float("nan"), {}
-    todo = max(cfg.steps - step, 0) if stop_after is None else max(min(cfg.steps - step, stop_after), 0)
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
-    draws = draws_per_epoch(len(train_ds), cfg.batch)
-    if draws > 1 and dist.is_main:
-        warnings.warn(f"--batch {cfg.batch} is larger than the {len(train_ds)} training items of the store: each "
-                      f"epoch visits every item {draws} times, each visit its own crop and augmentation",
-                      stacklevel=2)
+    _say_batch(cfg, train_ds, dist)
     say = print if dist.is_main else (lambda *a, **k: None)
-    say(f"train {cfg.model}: {accel.describe(device, precision)}", flush=True)
+    say(f"train {cfg.model}: {accel.describe(run.device, run.precision)}", flush=True)
     feed = _Feed(train_ds, cfg.batch // dist.world, cfg.workers) if todo > 0 and dist.is_main else None
     bar = None
     if progress and dist.is_main:
         from tqdm import tqdm
-        bar = tqdm(total=cfg.steps, initial=step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
+        bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
         t_step = time.perf_counter()
-        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, step, step + todo, cfg.workers,
-                                  dist.rank, dist.world, pin_memory=device.type == "cuda"):
-            epoch = step // per_epoch
+        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
+                                  dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
+            epoch = run.step // per_epoch
             t_data = time.perf_counter()
-            batch = to_device(batch, device)
-            loss = train_step(model, optimizer, loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
-                              lr=warmup_lr(cfg.lr, cfg.warmup, step), target=kind.target(batch), dist=dist,
-                              precision=precision, scaler=scaler)
+            loss = run.train_step(to_device(batch, run.device))
             if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
                 (bar.write if bar else say)(feed.line())
             t_step = time.perf_counter()
-            step += 1
+            run.step += 1
             if bar:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4f}")
-            if log and (step % cfg.log_every == 0 or step == cfg.steps):
-                log.write(step=step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
-            if val_ds is not None and ((cfg.val_every and step % cfg.val_every == 0) or step == cfg.steps):
-                val = validate(module, val_ds, loss_fn, device, cfg.val_frames, kind, dist, precision)
-                if log:
-                    log.write(step=step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
-            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                save()
-        if todo > 0 and step % cfg.checkpoint_every and step != cfg.steps:
-            save()
+            last = run.step == cfg.steps
+            if run.log and (run.step % cfg.log_every == 0 or last):
+                run.log.write(step=run.step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
+            if val_ds is not None and ((cfg.val_every and run.step % cfg.val_every == 0) or last):
+                val = run.validate(val_ds)
+                if run.log:
+                    run.log.write(step=run.step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
+            if run.step % cfg.checkpoint_every == 0 or last:
+                run.save()
+        if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
+            run.save()
     finally:
         if bar:
             bar.close()
-    dist.barrier()                              # rank 0's checkpoint is written before any rank returns
-    res = {"step": step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
-           "checkpoint": str(ck_path) if ck_path.exists() else None}
-    return {**res, "rank": dist.rank, "world": dist.world} if dist.enabled else res
+    return loss, val
+
+
+def _say_batch(cfg: TrainConfig, train_ds, dist) -> None:
+    draws = draws_per_epoch(len(train_ds), cfg.batch)
+    if draws > 1 and dist.is_main:
+        warnings.warn(f"--batch {cfg.batch} is larger than the {len(train_ds)} training items of the store: each "
+                      f"epoch visits every item {draws} times, each visit its own crop and augmentation",
+                      stacklevel=4)

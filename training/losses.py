@@ -51,16 +51,6 @@ def l1(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     return torch.mean(torch.abs(tonemap(denoised) - tonemap(reference)))
 
 
-@register_loss("temporal-l1")
-def temporal_l1(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """L1 of temporal finite differences on tone-mapped clips (B, T, 3, H, W), T >= 2:
-    mean |(d_t - d_{t-1}) - (r_t - r_{t-1})| (Chaitanya et al. 2017's temporal term)."""
-    if denoised.dim() != 5 or denoised.shape[1] < 2:
-        raise ConfigError(f"temporal-l1 needs clips (B, T>=2, C, H, W), got shape {tuple(denoised.shape)}")
-    d, r = tonemap(denoised), tonemap(reference)
-    return torch.mean(torch.abs((d[:, 1:] - d[:, :-1]) - (r[:, 1:] - r[:, :-1])))
-
-
 @register_loss("l1-temporal")
 def l1_temporal_log(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """Eq. 4 of Hasselgren et al. 2020 in their log space (``training.logspace``):

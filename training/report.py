@@ -13,27 +13,19 @@ from pathlib import Path
 
 import numpy as np
 
+from . import checkpoint as ckpt
+from .checkpoint import find_runs
 from .errors import DataError
-from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, evaluate, write_json
+from .data import open_store
+from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, write_json
 from .fma import figure10, figure10_markdown
+from .hardcases import hard_case_report
 from .jsonio import write as write_strict
 from .tonemap import tonemap
 
 COLUMNS = (("relmse", "relMSE ↓", "{:.4f}"), ("smape", "SMAPE ↓", "{:.4f}"), ("psnr", "PSNR ↑", "{:.2f}"),
            ("ssim", "SSIM ↑", "{:.4f}"), ("flip", "FLIP ↓", "{:.4f}"), ("tpsnr", "tPSNR ↑", "{:.2f}"),
            ("spp", "spp", "{:.2f}"), ("ms_per_megapixel", "ms/MP ↓", "{:.0f}"))
-
-
-def find_runs(runs) -> list[Path]:
-    """Run directories holding a ``checkpoint.pt`` (globs that matched nothing are skipped)."""
-    found = []
-    for r in runs:
-        p = Path(r)
-        if (p / "checkpoint.pt").is_file():
-            found.append(p)
-        elif p.is_file() and p.suffix == ".pt":
-            found.append(p.parent)
-    return found
 
 
 def _fmt(v, f):
@@ -55,8 +47,7 @@ def table_markdown(results: list[dict]) -> str:
 def kinds_markdown(results: list[dict], key: str = "relmse", fmt: str = "{:.4f}") -> str:
     """Mean ``key`` per method over the frames of each kind (defocus, motion, fireflies, plain; a frame
     may have several kinds), with the frame counts in the header."""
-    from .evaluate import KINDS
-    kinds = [k for k in KINDS if k in results[0].get("by_kind", {})]
+    kinds = list(results[0].get("by_kind", {}))          # evaluate's order: scene families, then hard parts
     counts = {k: results[0]["by_kind"][k]["frames"] for k in kinds}
     head = "| method | all | " + " | ".join(f"{k} ({counts[k]})" for k in kinds) + " |"
     lines = [head, "|---|---|" + "---|" * len(kinds)]
@@ -158,8 +149,6 @@ def provenance(run_dirs, stores: dict, args: dict) -> dict:
 
     import torch
 
-    from . import checkpoint as ckpt
-    from .data import open_store
     versions = {"python": platform.python_version()}
     for pkg in PACKAGES:
         try:
@@ -211,20 +200,10 @@ def evaluate_methods(run_dirs, store, out, split: str = "test", spp: int | None 
         return r
 
     models = [one(d.name, d / "checkpoint.pt", spp) for d in run_dirs]
-    # baselines at each run's spp, from what the run reads: per-pixel means of stored samples, or (for a
-    # sampler) uniform counts composed from the sample layers
-    base_of = lambda r: "sampled-layers" if r.get("input_kind") == "sampled-layers" else "pixels"   # noqa: E731
-    groups = sorted({(r["spp"], base_of(r)) for r in models})
-    spps = sorted({n for n, _ in groups})
-    several_bases = len({b for _, b in groups}) > 1
-
-    def tag(n, base):
-        t = f" @{n}spp" if len(spps) > 1 else ""
-        return t + (" layers" if several_bases and base == "sampled-layers" else "")
-
-    inputs = [one(f"input{tag(n, b)}", "input", n, baseline_input=b) for n, b in groups]
-    oidns = [one(f"oidn{tag(n, b)}", "oidn", n, baseline_input=b) for n, b in groups]
-    return inputs, models, oidns, spps
+    groups = baseline_groups(models, open_store(store).layout.spp)
+    inputs = [one(f"input{tag}", "input", n, baseline_input=b) for n, b, tag in groups]
+    oidns = [one(f"oidn{tag}", "oidn", n, baseline_input=b) for n, b, tag in groups]
+    return inputs, models, oidns, sorted({n for n, _, _ in groups})
 
 
 def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
@@ -258,7 +237,6 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     first = {r["frames"][0]["index"] for r in results}
     if len(first) != 1:
         raise DataError(f"the methods' first evaluated frames differ ({sorted(first)}); cannot compare crops")
-    from .data import open_store
     ref = open_store(store).read_array("reference/radiance", first.pop()).transpose(1, 2, 0)
     crops_image([(r["label"], r["images"][0]) for r in results] + [("reference", ref)], out / "crops.png")
     plot_speed_vs_error(results, out / "speed_vs_error.png")
@@ -307,7 +285,6 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
                   "relMSE by kind of frame:", "", kinds_markdown(clip_results), ""]
         extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
     if hard_cases is not None:
-        from .hardcases import hard_case_report
         hc = hard_case_report(run_dirs, hard_cases, out, with_flip=with_flip, progress=progress)
         lines += [f"## Hard cases: `{hard_cases}`", "", hc["markdown"], ""]
         extra["hard_cases"] = {k: v for k, v in hc.items() if k != "markdown"}

@@ -370,11 +370,22 @@ class Denoiser(nn.Module):
         function as this model in eval mode."""
         return self.eval()
 
+    @property
+    def stepwise(self) -> bool:
+        """Recurrent: evaluated frame by frame in clip order with ``step(frame, state) -> (output, state,
+        extra)``, carrying its state (every model of the ``clips`` kind; a model may say so itself)."""
+        return self.input_spec().input_kind.stepwise
+
     def forward(self, batch: dict) -> torch.Tensor:
-        return self.denoise(batch["radiance"], batch["features"])
+        """The kind's way of running the model (:meth:`training.inputs.InputKind.forward`): ``denoise``
+        for per-sample frames, ``step`` over the frames of a clip."""
+        return self.input_spec().input_kind.forward(self, batch)
 
     def denoise(self, radiance: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
+
+    def step(self, frame: dict, state: dict | None):
+        raise NotImplementedError(f"model {self.name!r} is not recurrent (it has no step)")
 
     def fmas_per_pixel(self, spp: int) -> float:
         """Analytic FMAs per output pixel at ``spp`` samples per pixel (conv layers + kernel taps)."""

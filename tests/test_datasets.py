@@ -1,4 +1,5 @@
-"""PyTorch datasets: shapes, determinism, workers, augmentation vs motion vectors, layer composition, clips."""
+"""The datasets every input kind builds on (training.datasets): shapes, determinism, workers, augmentation
+vs motion vectors, windows of clips, sample layers."""
 from __future__ import annotations
 
 import itertools
@@ -7,8 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from stores.datasets import (ClipDataset, PixelDataset, SampleDataset, apply_augment, augment_image,
-                             compose_layers)
+from training.datasets import LayerFrames, SampleFrames, apply_augment, augment_image
 from stores.errors import CropSizeError, SampleCountError, SplitError
 from stores.reader import open_store
 from stores.schema import StoreLayout
@@ -29,7 +29,7 @@ def store(tmp_path_factory):
 
 
 def test_sample_dataset_items(store):
-    ds = SampleDataset(store, split=None, spp=3, crop=16, augment=False, seed=1)
+    ds = SampleFrames(store, split=None, spp=3, crop=16, augment=False, seed=1)
     assert len(ds) == 6
     it = ds[2]
     assert it["radiance"].shape == (3, 3, 16, 16) and it["features"].shape == (3, 17, 16, 16)
@@ -42,9 +42,9 @@ def test_sample_dataset_items(store):
     rad = stored("radiance", fr["radiance"], open_store(store).layout)     # compact2: 9-bit mantissa
     np.testing.assert_array_equal(it["radiance"].numpy(), rad[oy:oy + 16, ox:ox + 16, :3].transpose(2, 3, 0, 1))
     np.testing.assert_array_equal(it["reference"].numpy(), fr["reference"][oy:oy + 16, ox:ox + 16].transpose(2, 0, 1))
-    full = SampleDataset(store, split=None, spp=4, crop=None, augment=False)[0]
+    full = SampleFrames(store, split=None, spp=4, crop=None, augment=False)[0]
     assert full["radiance"].shape == (4, 3, 20, 24)
-    aligned = SampleDataset(store, split=None, spp=1, crop=8, augment=False, crop_align=8)
+    aligned = SampleFrames(store, split=None, spp=1, crop=8, augment=False, crop_align=8)
     origins = set()
     for epoch in range(4):
         aligned.set_epoch(epoch)
@@ -53,9 +53,9 @@ def test_sample_dataset_items(store):
 
 
 def test_determinism_epochs_and_workers(store):
-    ds = SampleDataset(store, split=None, spp=2, crop=8, augment=True, seed=5)
+    ds = SampleFrames(store, split=None, spp=2, crop=8, augment=True, seed=5)
     a = [ds[i] for i in range(len(ds))]
-    b = [SampleDataset(store, split=None, spp=2, crop=8, augment=True, seed=5)[i] for i in range(len(ds))]
+    b = [SampleFrames(store, split=None, spp=2, crop=8, augment=True, seed=5)[i] for i in range(len(ds))]
     for x, y in zip(a, b):
         for k in x:
             assert torch.equal(x[k], y[k]), k
@@ -115,7 +115,7 @@ def test_augmentation_keeps_motion_consistent_with_image(op):
 
 
 def test_clip_dataset_augmentation_end_to_end(tmp_path):
-    """Frames written to a store with known motion; ClipDataset's augmented clips stay consistent."""
+    """Frames written to a store with known motion; augmented windows of a clip stay consistent."""
     h = w = 12
     mx, my = -2, 1
     prev, cur = _shifted_pair(h, w, mx, my, seed=3)
@@ -126,7 +126,7 @@ def test_clip_dataset_augmentation_end_to_end(tmp_path):
         fr["guides_motion"][...] = (mx, my)
         fr["features"][..., 11:13] = (mx, my)
         wr.write_frame(t, fr)
-    ds = ClipDataset(tmp_path / "m.zarr", split=None, frames=2, spp=2, crop=None, augment=True, seed=0)
+    ds = SampleFrames(tmp_path / "m.zarr", split=None, frames=2, spp=2, crop=None, augment=True, seed=0)
     assert len(ds) == 1
     seen = set()
     for epoch in range(12):
@@ -140,70 +140,39 @@ def test_clip_dataset_augmentation_end_to_end(tmp_path):
     assert len(seen) >= 3                                # augmentation really rotated/flipped
 
 
-def test_compose_layers_counts_and_values(tmp_path):
-    """Per-pixel counts 0..63 on an 8x8 frame; layer n holds value (n+1)*[1,2,3]; oracle by bit loop."""
+def test_layer_frames_hold_the_stored_layers(tmp_path):
+    """Layer n holds value (n+1)*[1,2,3]: the items carry the stored layers, their spp and the budget."""
     lay = StoreLayout(num_frames=1, height=8, width=8, spp=2, tile=8)
     wr = open_or_create(tmp_path / "l.zarr", lay)
     fr = synthetic_frame(0, 8, 8, 2)
     fr["layers"] = np.stack([np.full((8, 8, 3), n + 1.0, np.float32) * np.float32([1, 2, 3]) for n in range(6)])
     wr.write_frame(0, fr)
-    counts = np.arange(64).reshape(8, 8)
-    ds = PixelDataset(tmp_path / "l.zarr", split=None, spp=counts, crop=None, augment=False)
-    it = ds[0]
-    assert torch.equal(it["spp_map"][0], torch.from_numpy(counts.astype(np.float32)))
-    for k in range(64):
-        y, x = divmod(k, 8)
-        bits = [n for n in range(6) if k & (1 << n)]
-        assert sum(1 << n for n in bits) == k
-        expect = 0.0 if k == 0 else sum((1 << n) * (n + 1.0) for n in bits) / k
-        np.testing.assert_allclose(it["radiance"][:, y, x].numpy(), expect * np.array([1, 2, 3]), rtol=1e-6)
-    # a constant count is the same as a map of that count; 1 spp is layer 0 exactly
-    one = PixelDataset(tmp_path / "l.zarr", split=None, spp=1, crop=None, augment=False)[0]
-    assert torch.equal(one["radiance"], torch.from_numpy(fr["layers"][0].transpose(2, 0, 1)))
-    # a callable sample map, drawn per item
-    ds2 = PixelDataset(tmp_path / "l.zarr", split=None, spp=lambda rng, h, w: rng.integers(0, 64, (h, w)),
-                       crop=4, augment=True, seed=3)
-    it2 = ds2[0]
-    assert it2["spp_map"].shape == (1, 4, 4) and it2["radiance"].shape == (3, 4, 4)
-    assert float(it2["spp_map"].max()) <= 63
-
-
-def test_compose_layers_unbiased_mean():
-    """Composition is the sample mean: with layers = means of known samples, any count gives the mean
-    of exactly that many samples."""
-    rng = np.random.default_rng(0)
-    samples = [rng.exponential(size=(2 ** n, 3, 2, 2)).astype(np.float32) for n in range(6)]
-    layers = np.stack([s.mean(axis=0) for s in samples])
-    counts = np.array([[13, 63], [1, 6]])
-    out = compose_layers(layers, counts, (1, 2, 4, 8, 16, 32))
-    for (y, x), k in np.ndenumerate(counts):
-        pool = np.concatenate([samples[n][:, :, y, x] for n in range(6) if k & (1 << n)])
-        assert pool.shape[0] == k
-        np.testing.assert_allclose(out[:, y, x], pool.mean(axis=0), rtol=1e-5)
-    with pytest.raises(SampleCountError, match="0..63"):
-        compose_layers(layers, np.array([[64]]), (1, 2, 4, 8, 16, 32))
+    it = LayerFrames(tmp_path / "l.zarr", split=None, spp=13, crop=None, augment=False)[0]
+    assert torch.equal(it["layers"], torch.from_numpy(fr["layers"].transpose(0, 3, 1, 2)))
+    assert it["layer_spp"].tolist() == [1, 2, 4, 8, 16, 32] and float(it["spp"]) == 13.0
+    with pytest.raises(SampleCountError, match="1..63"):
+        LayerFrames(tmp_path / "l.zarr", split=None, spp=64, crop=None)
 
 
 def test_clip_windows(store):
-    ds = ClipDataset(store, split=None, frames=2, spp=0, crop=8, augment=False)
+    """Windows of consecutive frames of one clip, one ending on each frame; evaluation's also shorter ones."""
+    ds = SampleFrames(store, split=None, frames=2, spp=1, crop=8, augment=False)
     assert len(ds) == 3 and [list(w) for w in ds.windows] == [[0, 1], [2, 3], [4, 5]]
     it = ds[1]
-    assert "radiance" not in it and it["reference"].shape == (2, 3, 8, 8)
-    px = ClipDataset(store, split=None, frames=2, spp=1, crop=None, augment=False, pixel_spp=6)[2]
-    lay = np.stack([stored("layers", synthetic_frame(i, 20, 24, 4, scene_seed=9, frame=i % 2, num_frames=2)["layers"],
-                           open_store(store).layout) for i in (4, 5)])
-    expect = (2 * lay[:, 1] + 4 * lay[:, 2]) / 6                          # 6 = 2 + 4
-    np.testing.assert_allclose(px["pixel_radiance"].numpy(), expect.transpose(0, 3, 1, 2), rtol=1e-5)
+    assert it["radiance"].shape == (2, 1, 3, 8, 8) and it["reference"].shape == (2, 3, 8, 8)
+    assert it["index"].tolist() == [2, 3]
+    one = SampleFrames(store, split=None, spp=1, crop=8, augment=False)[3]      # a single frame: no T axis
+    assert torch.equal(it["radiance"][1], one["radiance"]) and one["radiance"].shape == (1, 3, 8, 8)
+    every = SampleFrames(store, split=None, frames=2, spp=1, crop=8, augment=False, full_windows=False)
+    assert [list(w) for w in every.windows] == [[0], [0, 1], [2], [2, 3], [4], [4, 5]]
     with pytest.raises(SplitError, match="consecutive"):
-        ClipDataset(store, split=None, frames=3, spp=2, crop=8)
+        SampleFrames(store, split=None, frames=3, spp=2, crop=8)
 
 
 def test_dataset_bad_arguments(store):
     with pytest.raises(SampleCountError, match="1..4"):
-        SampleDataset(store, split=None, spp=5, crop=8)
+        SampleFrames(store, split=None, spp=5, crop=8)
     with pytest.raises(CropSizeError, match="20x24"):
-        SampleDataset(store, split=None, spp=2, crop=21)
-    with pytest.raises(SampleCountError, match="0..63"):
-        PixelDataset(store, split=None, spp=64, crop=8)
+        SampleFrames(store, split=None, spp=2, crop=21)
     with pytest.raises(SplitError, match="unknown split"):
-        SampleDataset(store, split="holdout", spp=2, crop=8)
+        SampleFrames(store, split="holdout", spp=2, crop=8)
