@@ -778,27 +778,46 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     The root ``zarr.json`` is written first with a ``creating`` attribute (host, pid, start) that the
     last step removes: a store cut mid-creation is recognised (:class:`IncompleteStoreError` from
     :func:`open_group`) and ``stores.writer.open_or_create`` makes it again."""
-    import zarr
     p = _zarr_store(path_or_url)
     layout = layout.resolved()               # an encoding left open is the default for new stores
     try:
         json.dumps(config or {})
     except TypeError as e:
         raise StoreLayoutError(f"config must be JSON-serialisable: {e}") from e
+    _make_room(p, overwrite)
+    root = _create_root(p, schema_version)
+    table = arrays(schema_version)            # the version's array table (v1 only for tests and benches)
+    _create_arrays(root, table, layout, schema_version)
+    _describe_lossy_codecs(root, table, layout)
+    # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
+    root.attrs.put(_root_attrs(layout, config, schema_version))
+    if schema_version >= 2:
+        consolidate(p)
+    return root
+
+
+def _make_room(p, overwrite: bool) -> None:
+    """Refuse a file, an existing store or a folder that is not a store at ``p``; with ``overwrite``
+    delete what is there instead (our lock file stays)."""
     if _is_local(p) and os.path.lexists(p) and not os.path.isdir(p):
         raise ForeignStoreError(f"{p} is a file, not a folder; refusing to replace it with a store")
-    if not overwrite:
-        if _exists(p):
-            raise StoreExistsError(f"a store already exists at {p!s}; open it (open_or_create) or pass "
-                                   "overwrite=True")
-        found = foreign_entries(p)
-        if found:
-            shown = ", ".join(found[:5]) + (f", ... ({len(found)} entries)" if len(found) > 5 else "")
-            raise ForeignStoreError(f"{p} is a non-empty folder that is not a store (it holds {shown}); "
-                                    "refusing to write into it: choose another path, or overwrite it "
-                                    "(--overwrite) to delete its contents")
-    else:
+    if overwrite:
         _clear(p)
+        return
+    if _exists(p):
+        raise StoreExistsError(f"a store already exists at {p!s}; open it (open_or_create) or pass "
+                               "overwrite=True")
+    found = foreign_entries(p)
+    if found:
+        shown = ", ".join(found[:5]) + (f", ... ({len(found)} entries)" if len(found) > 5 else "")
+        raise ForeignStoreError(f"{p} is a non-empty folder that is not a store (it holds {shown}); "
+                                "refusing to write into it: choose another path, or overwrite it "
+                                "(--overwrite) to delete its contents")
+
+
+def _create_root(p, schema_version: int):
+    """The root group with the ``creating`` mark (:func:`holder_record`), refusing one that appeared meanwhile."""
+    import zarr
     if _is_local(p):
         from zarr.storage import LocalStore
         os.makedirs(p, exist_ok=True)
@@ -808,13 +827,16 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     # zarr's mode "w-" refuses any non-empty folder (our lock file is in it): create_group with
     # overwrite=False is the same "never replace a node" guarantee on the root.
     try:
-        root = zarr.create_group(target, overwrite=False, attributes={
+        return zarr.create_group(target, overwrite=False, attributes={
             "kind": STORE_KIND, "schema_version": schema_version, CREATION_ATTR: holder_record()})
     except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError) as e:
         raise StoreExistsError(f"a store appeared at {p!s} while it was being created: {e}") from e
+
+
+def _create_arrays(root, table: tuple[ArraySpec, ...], layout: StoreLayout, schema_version: int) -> None:
+    """The groups and every array of ``table``, empty except the coordinates (their values written)."""
     for g in GROUPS:
         root.require_group(g)
-    table = arrays(schema_version)            # the version's array table (v1 only for tests and benches)
     for n, spec in enumerate(table):
         arr = root.create_array(spec.path, **create_kwargs(spec, layout, schema_version))
         if spec.coord:
@@ -828,8 +850,13 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
         spp = root.create_array("layers/spp", shape=(layout.num_layers,), dtype="int32",
                                 chunks=(layout.num_layers,), dimension_names=("level",))
         spp[:] = np.array(layout.layer_spp, np.int32)
+
+
+def _describe_lossy_codecs(root, table: tuple[ArraySpec, ...], layout: StoreLayout) -> None:
+    """Array attributes saying what the lossy codecs cost (xarray shows them): the radiance encoding,
+    ``max_rel_error`` of bit-rounded arrays (per feature where each has its own bits), log16's decoding."""
     root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
-    for spec in table:                       # say what the lossy codecs cost (xarray shows the attrs)
+    for spec in table:
         ch = spec.chain(layout) if spec.image else None
         if ch is None or ch.keepbits is None:
             continue
@@ -842,17 +869,17 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
         root["inputs/radiance"].attrs["log16"] = {
             "min_exp2": codecs.LOG16_MIN_EXP, "max_exp2": codecs.LOG16_MAX_EXP,
             "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
-    # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
+
+
+def _root_attrs(layout: StoreLayout, config: dict | None, schema_version: int) -> dict:
+    """The finished store's root attributes: what it is, its layout, where it came from."""
     import uuid
-    root.attrs.put({
+    return {
         "kind": STORE_KIND, "schema_version": schema_version, "layout": layout.to_dict(),
         "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
         "package_versions": package_versions(), "git_hash": git_hash(),
         "store_id": uuid.uuid4().hex,      # this store, not another made at the same path (writers' caches)
-    })
-    if schema_version >= 2:
-        consolidate(p)
-    return root
+    }
 
 
 def open_group(path_or_url, mode: str = "r", *, check: bool = True):
