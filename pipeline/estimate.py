@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 
 from pipeline.errors import ConfigError
-
+from scene_gen.checks import need
 
 
 def scratch_dir() -> str | None:
@@ -194,79 +194,98 @@ def calibrate(cfg, *, per_group: int = 1, ref_passes: int | None = None, threads
     reference passes rendered per frame (default 2; 4 with an early stop, whose pass count is
     predicted from them, :func:`predicted_passes`).
     """
-    from stores.schema import create_store
-    from stores.writer import StoreWriter
-
-    if per_group < 1:
-        raise ConfigError(f"--scenes-per-group must be >= 1, got {per_group}")
-    if concurrent < 1:
-        raise ConfigError(f"--concurrent must be >= 1, got {concurrent}")
-    rc = cfg.render_config()
-    if ref_passes is None:
-        ref_passes = min(4 if rc.ref_target_rel_stderr is not None else 2, max(2, rc.ref_passes))
-    if ref_passes < 1 or (rc.ref_spp and ref_passes > rc.ref_passes):
-        raise ConfigError(f"--ref-passes must be in [1, {rc.ref_passes}] (the config's ref_passes), got {ref_passes}")
-    threads = threads or cfg.cluster.threads_per_worker
-    rc = dataclasses.replace(rc, threads=int(threads))
-    pass_spp = rc.ref_spp // rc.ref_passes if rc.ref_spp else 0
-    cal_rc = (dataclasses.replace(rc, ref_passes=max(2, ref_passes), ref_min_passes=2, ref_target_rel_stderr=None,
-                                  ref_spp=max(2, ref_passes) * pass_spp) if rc.ref_spp else rc)
+    need(per_group >= 1, "--scenes-per-group", ">= 1", per_group, ConfigError)
+    need(concurrent >= 1, "--concurrent", ">= 1", concurrent, ConfigError)
+    threads = int(threads or cfg.cluster.threads_per_worker)
+    rc, cal_rc = _calibration_configs(cfg, ref_passes, threads)
     picks = _calibration_frames(cfg, per_group)
-    jobs = list(range(len(picks)))
-    if concurrent > 1:
-        jobs += [i % len(picks) for i in range(-len(jobs) % concurrent)]
-    runs: dict[int, list] = {}
-    arrays: dict[int, dict] = {}
-
-    def done(i, frame, arr):
-        first = i not in runs
-        runs.setdefault(i, []).append(frame)
-        arrays.setdefault(i, arr)
-        if first:
-            log(f"  calibrated {frame['kind']} scene {frame['scene']} (seed {frame['scene_seed']}, {frame['objects']} "
-                f"objects{', motion' if frame['has_motion'] else ''}): {frame['frame_s']:.1f} CPU-s a frame "
-                f"(load {frame['load_s']:.1f}, inputs {frame['inputs_s']:.1f}, layers {frame['layers_s']:.1f}, "
-                f"reference {frame['reference_s']:.1f} for {frame['reference_passes']} of {rc.ref_passes} passes, "
-                f"timed on {cal_rc.ref_passes if rc.ref_spp else 0}; took {frame['calibration_wall_s']:.1f} s)")
-
-    w0 = time.perf_counter()
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-    if concurrent > 1:
-        log(f"  {len(jobs)} calibration render(s) in {concurrent} processes side by side "
-            f"({len(jobs) - len(picks)} repeat(s) keep every frame under the same load)")
-    # fresh processes with an empty kernel cache: a frame pays its scene's kernel compilation, as every
-    # new scene of a run does (drjit would otherwise load kernels compiled by an earlier calibration)
-    with tempfile.TemporaryDirectory(prefix="estimate-kernels-", dir=scratch_dir()) as kernels, \
-            ProcessPoolExecutor(concurrent, multiprocessing.get_context("spawn"), initializer=_warm_worker,
-                                initargs=(int(threads), kernels)) as pool:
-        list(pool.map(time.sleep, [0.0] * concurrent))        # start-up: the processes, imports, drjit
-        start_s = time.perf_counter() - w0
-        futs = [(i, pool.submit(_calibrate_frame, cfg, *picks[i], rc, cal_rc)) for i in jobs]
-        for i, f in futs:
-            done(i, *f.result())
+    runs, arrays, start_s = _render_calibration(cfg, picks, rc, cal_rc, threads, concurrent, log)
     # a frame's first run is its figure: a repeat (it keeps the last frames under load) finds the kernels
     # compiled by then
     frames = [{**runs[i][0], "runs": len(runs[i])} for i in range(len(picks))]
-    with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:
-        path = Path(tmp) / "calibration.zarr"
-        layout = cfg.store_layout().with_frames(len(picks))
-        create_store(str(path), layout, {})
-        empty = _du(path)
-        w = StoreWriter(str(path))
-        for i in range(len(picks)):
-            w.write_frame(i, arrays[i])
-        per_frame_bytes = (_du(path) - empty) / len(picks)
-        fixed_bytes = empty
+    per_frame_bytes, fixed_bytes = _stored_bytes(cfg, [arrays[i] for i in range(len(picks))])
     raw = sum(int(a[k].nbytes) for a in arrays.values() for k in a if k != "meta") / len(picks)
     groups: dict[int, list] = {}
     for f in frames:
         groups.setdefault(f["group"], []).append(f)
     mean = lambda fs, k: sum(f[k] for f in fs) / len(fs)      # noqa: E731
-    return {"frames": frames, "threads": int(threads), "concurrent": int(concurrent), "start_s": start_s,
+    return {"frames": frames, "threads": threads, "concurrent": int(concurrent), "start_s": start_s,
             "group_frame_s": {g: mean(v, "frame_s") for g, v in groups.items()},
             "group_reference_spp": {g: mean(v, "reference_spp") for g, v in groups.items()},
             "bytes_per_frame": per_frame_bytes, "store_fixed_bytes": fixed_bytes, "raw_bytes_per_frame": raw}
+
+
+def _calibration_configs(cfg, ref_passes: int | None, threads: int) -> tuple:
+    """``(rc, cal_rc)``: the config's render settings on ``threads`` drjit threads, and the same with a
+    reference of ``ref_passes`` passes of its production size, without an early stop (the default:
+    2 passes, 4 when the reference stops early, so its stop can be predicted)."""
+    rc = cfg.render_config()
+    if ref_passes is None:
+        ref_passes = min(4 if rc.ref_target_rel_stderr is not None else 2, max(2, rc.ref_passes))
+    need(ref_passes >= 1 and not (rc.ref_spp and ref_passes > rc.ref_passes), "--ref-passes",
+         f"in [1, {rc.ref_passes}] (the config's ref_passes)", ref_passes, ConfigError)
+    rc = dataclasses.replace(rc, threads=threads)
+    if not rc.ref_spp:
+        return rc, rc
+    passes = max(2, ref_passes)
+    return rc, dataclasses.replace(rc, ref_passes=passes, ref_min_passes=2, ref_target_rel_stderr=None,
+                                   ref_spp=passes * (rc.ref_spp // rc.ref_passes))
+
+
+def _log_frame(frame: dict, rc, cal_rc, log) -> None:
+    log(f"  calibrated {frame['kind']} scene {frame['scene']} (seed {frame['scene_seed']}, {frame['objects']} "
+        f"objects{', motion' if frame['has_motion'] else ''}): {frame['frame_s']:.1f} CPU-s a frame "
+        f"(load {frame['load_s']:.1f}, inputs {frame['inputs_s']:.1f}, layers {frame['layers_s']:.1f}, "
+        f"reference {frame['reference_s']:.1f} for {frame['reference_passes']} of {rc.ref_passes} passes, "
+        f"timed on {cal_rc.ref_passes if rc.ref_spp else 0}; took {frame['calibration_wall_s']:.1f} s)")
+
+
+def _render_calibration(cfg, picks: list, rc, cal_rc, threads: int, concurrent: int, log) -> tuple:
+    """Render every pick in ``concurrent`` fresh processes, the list padded with repeats to a multiple
+    of ``concurrent``; ``(runs, arrays, start_s)``: each pick's timings of every run, its first run's
+    frame dict, and the seconds the processes took to start."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = list(range(len(picks)))
+    if concurrent > 1:
+        jobs += [i % len(picks) for i in range(-len(jobs) % concurrent)]
+        log(f"  {len(jobs)} calibration render(s) in {concurrent} processes side by side "
+            f"({len(jobs) - len(picks)} repeat(s) keep every frame under the same load)")
+    runs: dict[int, list] = {}
+    arrays: dict[int, dict] = {}
+    w0 = time.perf_counter()
+    # fresh processes with an empty kernel cache: a frame pays its scene's kernel compilation, as every
+    # new scene of a run does (drjit would otherwise load kernels compiled by an earlier calibration)
+    with tempfile.TemporaryDirectory(prefix="estimate-kernels-", dir=scratch_dir()) as kernels, \
+            ProcessPoolExecutor(concurrent, multiprocessing.get_context("spawn"), initializer=_warm_worker,
+                                initargs=(threads, kernels)) as pool:
+        list(pool.map(time.sleep, [0.0] * concurrent))        # start-up: the processes, imports, drjit
+        start_s = time.perf_counter() - w0
+        futs = [(i, pool.submit(_calibrate_frame, cfg, *picks[i], rc, cal_rc)) for i in jobs]
+        for i, f in futs:
+            frame, arr = f.result()
+            if i not in runs:
+                _log_frame(frame, rc, cal_rc, log)
+            runs.setdefault(i, []).append(frame)
+            arrays.setdefault(i, arr)
+    return runs, arrays, start_s
+
+
+def _stored_bytes(cfg, frames: list[dict]) -> tuple[float, int]:
+    """``(bytes a frame, bytes of the empty store)``: ``frames`` written to a temporary store of the
+    config's layout."""
+    from stores.schema import create_store
+    from stores.writer import StoreWriter
+
+    with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:
+        path = Path(tmp) / "calibration.zarr"
+        create_store(str(path), cfg.store_layout().with_frames(len(frames)), {})
+        empty = _du(path)
+        w = StoreWriter(str(path))
+        for i, arrays in enumerate(frames):
+            w.write_frame(i, arrays)
+        return (_du(path) - empty) / len(frames), empty
 
 
 def predict(cfg, cal: dict, workers: int) -> dict:
@@ -327,8 +346,7 @@ def run(args) -> int:
     from pipeline.config import load_config
     cfg = load_config(args.config)
     workers = args.workers if args.workers is not None else _default_workers(cfg)
-    if workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    need(workers >= 1, "--workers", ">= 1", workers, ConfigError)
     threads = args.threads or cfg.cluster.threads_per_worker
     concurrent = args.concurrent if args.concurrent is not None else min(workers, local_slots(threads))
     W, H = cfg.resolution
