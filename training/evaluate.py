@@ -67,7 +67,7 @@ HARD_PARTS = ("defocus", "motion", "fireflies", "plain")
 @lru_cache(maxsize=1)
 def scene_families() -> tuple[str, ...]:
     """The registered scene families (``scene_gen``), the first kind of a frame."""
-    from scene_gen.layout import family_names
+    from scene_gen.families import family_names
     return tuple(family_names())
 
 

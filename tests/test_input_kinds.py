@@ -1,0 +1,165 @@
+"""Every input kind plugs in: a tiny test-only model of each kind (tests/kind_models.py, registered here,
+never shipped) goes through the whole CLI (train, evaluate, report, bench, denoise, hard-cases) and
+through torchrun with 2 ranks, which gives the one-process weights. A model's output that does not
+match its kind's target is refused, not broadcast; a clips model's time axis is handled by the kind."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from training import checkpoint as ckpt
+
+ROOT = Path(__file__).resolve().parents[1]
+KINDS = ("samples", "pixels", "clips", "sampled-layers")
+CLIPS, FRAMES = (2, 1, 2), 3     # train, val and test clips of three frames
+TEST_FRAMES = CLIPS[2] * FRAMES
+
+
+@pytest.fixture(scope="module")
+def probes():
+    from kind_models import PROBES, register_probes, unregister_probes
+    register_probes()
+    yield PROBES
+    unregister_probes()
+
+
+@pytest.fixture(scope="module")
+def clip_store(tmp_path_factory):
+    from test_temporal import make_clip_store
+    return make_clip_store(tmp_path_factory.mktemp("kinds") / "clips.zarr", clips=CLIPS, frames=FRAMES)
+
+
+def cli(*args) -> int:
+    from training.__main__ import main
+    return main([str(a) for a in args])
+
+
+def train_argv(name: str, store: str, out) -> list[str]:
+    return ["train", "--model", name, "--store", store, "--out", str(out), "--steps", "3", "--batch", "2",
+            "--crop", "8", "--val-every", "3", "--val-frames", "2", "--lr", "0.01",
+            "--seed", "4", "--checkpoint-every", "100", "--workers", "0", "--device", "cpu", "--no-progress"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_store, tmp_path):
+    name = probes[kind]
+    run = tmp_path / "run"
+    assert cli(*train_argv(name, clip_store, run)) == 0
+    ck = ckpt.load(run / "checkpoint.pt")
+    assert ck["step"] == 3 and ck["model"] == name
+    val = [r for r in (run / "metrics.csv").read_text().splitlines() if ",val," in r]
+    assert val and all(math.isfinite(float(v)) for v in val[-1].split(",")[3:7])
+
+    assert cli("evaluate", "--checkpoint", run / "checkpoint.pt", "--store", clip_store, "--out", tmp_path / "e.json",
+               "--no-flip", "--device", "cpu") == 0
+    ev = json.loads((tmp_path / "e.json").read_text())
+    assert ev["input_kind"] == kind and len(ev["frames"]) == TEST_FRAMES
+    for metric in ("relmse", "psnr", "ssim"):
+        lo, hi = ev["ci95"][metric]
+        assert math.isfinite(ev["mean"][metric]) and lo <= hi
+    assert ev["clips"] == CLIPS[2] and ev["mean"]["tpsnr"] is not None    # each clip's frames in order
+
+    assert cli("bench", "--models", name, "--size", "16", "--repeats", "1", "--no-oidn", "--device", "cpu",
+               "--json", tmp_path / "b.json") == 0
+    assert json.loads((tmp_path / "b.json").read_text())[name]["ms_per_mp"] > 0
+
+    from stores.imageio import read_exr
+    from stores.reader import open_store
+    last = open_store(clip_store).frames_in_split("test")[-1]        # a recurrent model runs its clip first
+    assert cli("denoise", "--checkpoint", run / "checkpoint.pt", "--store", clip_store, "--frame", last,
+               "--out", tmp_path / "d.exr", "--device", "cpu") == 0
+    img, _ = read_exr(tmp_path / "d.exr")
+    assert img.shape[:2] == (16, 16) and np.isfinite(img).all()
+    assert np.allclose(img[..., :3], _evaluated_image(run, clip_store, TEST_FRAMES - 1), rtol=1e-4, atol=1e-5)
+
+    assert cli("report", "--runs", run, "--store", clip_store, "--out", tmp_path / "report", "--no-flip") == 0
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert f"| {run.name} |" in text and "| input |" in text and "| oidn |" in text
+
+    assert cli("hard-cases", "--store", clip_store, "--runs", run, "--out", tmp_path / "hc", "--no-oidn") == 0
+    hc = json.loads((tmp_path / "hc" / "hard-cases.json").read_text())
+    assert run.name in hc["frames"] and len(hc["frames"][run.name]) == open_store(clip_store).num_frames
+
+
+def _evaluated_image(run, store, pos: int) -> np.ndarray:
+    from training.evaluate import evaluate
+    return evaluate(run / "checkpoint.pt", store, keep=(pos,), with_flip=False)["images"][pos]
+
+
+def test_an_output_that_is_not_the_kinds_target_is_refused(probes, clip_store, tmp_path, capsys):
+    """A clips model that outputs one frame for a window of two: before, the loss broadcast it against
+    the window's references and training "worked"."""
+    from kind_models import ProbeClips
+    from training.models.registry import MODELS, register
+
+    class OneFrame(ProbeClips):
+        def forward(self, batch):
+            return self.step({k: v[:, -1] for k, v in batch.items() if k != "origin"}, None)[0]
+
+    register("probe-one-frame")(OneFrame)
+    try:
+        assert cli(*train_argv("probe-one-frame", clip_store, tmp_path / "r")) == 2
+    finally:
+        MODELS.pop("probe-one-frame")
+    err = capsys.readouterr().err
+    assert "(2, 3, 8, 8)" in err and "(2, 2, 3, 8, 8)" in err
+
+
+def test_the_clips_kind_steps_the_model_through_the_window(probes):
+    from training.inputs import KINDS as INPUT_KINDS
+    from training.inputs import frame_at
+    from training.models import build
+    torch.manual_seed(0)
+    model = build(probes["clips"])
+    with torch.no_grad():
+        model.mix.fill_(0.3)
+        batch = INPUT_KINDS["clips"].example_batch(2, 2, 8, 8, frames=3, generator=torch.Generator().manual_seed(1))
+        out = model(batch)
+        assert out.shape == (2, 3, 3, 8, 8)
+        state = None
+        for t in range(3):                           # by hand: what evaluation does frame by frame
+            o, state, _ = model.step(frame_at(batch, t), state)
+            assert torch.equal(out[:, t], o)
+    assert model.stepwise
+
+
+# ------------------------------------------------------------------------------ torchrun
+def test_two_ranks_train_every_kind_to_the_one_process_weights(probes, clip_store, tmp_path):
+    from training.models import build
+    argvs = {kind: train_argv(probes[kind], clip_store, tmp_path / "ddp" / kind) for kind in KINDS}
+    spec = tmp_path / "argvs.json"
+    spec.write_text(json.dumps(list(argvs.values())))
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        env.pop(k, None)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           str(ROOT / "tests" / "kind_models.py"), "--each", str(spec)]
+    p = subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        stdout, stderr = p.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        stdout, stderr = p.communicate()
+        pytest.fail("torchrun with 2 ranks did not finish in 240 s: " + stderr[-5000:])
+    assert p.returncode == 0, stdout[-3000:] + stderr[-5000:]
+    for kind, argv in argvs.items():
+        one = tmp_path / "one" / kind
+        assert cli(*train_argv(probes[kind], clip_store, one)) == 0
+        a, b = ckpt.load(one / "checkpoint.pt")["state_dict"], ckpt.load(tmp_path / "ddp" / kind / "checkpoint.pt")["state_dict"]
+        assert a.keys() == b.keys()
+        worst = max(float((a[k].double() - b[k].double()).abs().max()) for k in a)
+        assert worst <= 1e-5, f"{kind}: 2 ranks differ from one process by {worst:.3g}"
+        torch.manual_seed(4)
+        start = build(probes[kind]).state_dict()
+        assert any(not torch.equal(start[k], a[k]) for k in a), f"{kind}: the steps changed no weight"
