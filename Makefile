@@ -39,17 +39,23 @@ COMPARE_MODELS ?= layer pixelgather layer-optimized samplesplat
 COMPARE_STEPS ?= 800
 REALTIME_MODELS ?= nbg wskpn
 REALTIME_STEPS ?= 10000
+# SEEDS=N trains the layer-family and real-time models with seeds 0..N-1 (seed 0 in data/runs/MODEL, seed s
+# in data/runs/MODEL-seedS); the report gives their spread. The temporal models (hours each) train once.
+SEEDS ?= 1
+SEED_LIST := $(shell seq 0 $$(( $(SEEDS) - 1 )))
+seed_runs = $(foreach m,$(1),$(foreach s,$(SEED_LIST),data/runs/$(m)$(if $(filter-out 0,$(s)),-seed$(s))))
 COMPARE_START := $(shell date +%s)
-compare: setup   ## every denoiser family, OIDN and the inputs on the same held-out scenes, clips and hard cases: one report (hours)
+compare: setup   ## every denoiser family, OIDN and the inputs on the same held-out scenes, clips and hard cases: one report (hours; SEEDS=N repeats the non-temporal models)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
-	for m in $(COMPARE_MODELS); do \
-	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(COMPARE_STEPS) --crop 64 --out data/runs/$$m || exit 1; \
-	done
+	for m in $(COMPARE_MODELS); do for s in $(SEED_LIST); do \
+	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(COMPARE_STEPS) --crop 64 --seed $$s \
+	    --out data/runs/$$m$$( [ $$s = 0 ] || echo -seed$$s ) || exit 1; \
+	done; done
 	$(MAKE) --no-print-directory compare-realtime REALTIME_REPORT=0
 	$(MAKE) --no-print-directory compare-temporal TEMPORAL_REPORT=0
 	$(PY) -m pipeline dataset --config configs/hard-cases.yaml --out data/hard-cases.zarr
-	$(PY) -m training report --runs $(addprefix data/runs/,$(COMPARE_MODELS) $(REALTIME_MODELS)) \
+	$(PY) -m training report --runs $(call seed_runs,$(COMPARE_MODELS) $(REALTIME_MODELS)) \
 	  $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) --store data/eval-cpu.zarr \
 	  --clips-store data/train-temporal-cpu.zarr --hard-cases data/hard-cases.zarr --out data/report-compare
 	@echo "make compare: data/report-compare/report.md in $$(( $$(date +%s) - $(COMPARE_START) )) s"
@@ -58,11 +64,12 @@ REALTIME_REPORT ?= 1
 compare-realtime: setup ## the 1-spp part of the comparison: nbg and wskpn on train-cpu, report on eval-cpu (minutes)
 	$(PY) -m pipeline dataset --config configs/train-cpu.yaml --out data/train-cpu.zarr
 	$(PY) -m pipeline dataset --config configs/eval-cpu.yaml --out data/eval-cpu.zarr
-	for m in $(REALTIME_MODELS); do \
-	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(REALTIME_STEPS) --crop 64 --out data/runs/$$m || exit 1; \
-	done
+	for m in $(REALTIME_MODELS); do for s in $(SEED_LIST); do \
+	  $(PY) -m training train --model $$m --store data/train-cpu.zarr --steps $(REALTIME_STEPS) --crop 64 --seed $$s \
+	    --out data/runs/$$m$$( [ $$s = 0 ] || echo -seed$$s ) || exit 1; \
+	done; done
 	if [ "$(REALTIME_REPORT)" = 1 ]; then \
-	  $(PY) -m training report --runs $(addprefix data/runs/,$(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-realtime; \
+	  $(PY) -m training report --runs $(call seed_runs,$(REALTIME_MODELS)) --store data/eval-cpu.zarr --out data/report-realtime; \
 	fi
 
 TEMPORAL_MODELS ?= temporal temporal-uniform temporal-perframe

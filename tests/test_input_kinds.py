@@ -84,6 +84,14 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
     assert cli("report", "--runs", run, "--store", clip_store, "--out", tmp_path / "report", "--no-flip") == 0
     text = (tmp_path / "report" / "report.md").read_text()
     assert f"| {run.name} |" in text and "| input |" in text and "| oidn |" in text
+    assert "Each method against **input**" in text                     # paired differences with intervals
+    comp = json.loads((tmp_path / "report" / "comparisons.json").read_text())["comparisons"]
+    assert comp["baseline"] == "input" and [r["label"] for r in comp["rows"]] == [run.name, "oidn"]
+    lo, hi = comp["rows"][0]["relmse"]["ci95"]
+    assert lo <= comp["rows"][0]["relmse"]["mean"] <= hi
+    if kind == "samples":
+        assert cli("report", "--runs", run, "--store", clip_store, "--out", tmp_path / "r2", "--no-flip",
+                   "--baseline", "nonesuch") == 2
 
     assert cli("hard-cases", "--store", clip_store, "--runs", run, "--out", tmp_path / "hc", "--no-oidn") == 0
     hc = json.loads((tmp_path / "hc" / "hard-cases.json").read_text())

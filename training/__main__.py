@@ -55,7 +55,8 @@ def _evaluate(a) -> int:
 def _report(a) -> int:
     from .report import report
     report(a.runs, a.store, a.out, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
-           skip_bad_frames=a.skip_bad_frames, clips_store=a.clips_store, hard_cases=a.hard_cases)
+           skip_bad_frames=a.skip_bad_frames, clips_store=a.clips_store, hard_cases=a.hard_cases,
+           baseline=a.baseline)
     print(f"wrote {a.out}/report.md")
     return 0
 
@@ -176,6 +177,9 @@ def main(argv=None) -> int:
                                          "clips (a section with tPSNR; recurrent models carry their state)")
     r.add_argument("--hard-cases", help="also evaluate everything on each case of this store of "
                                         "configs/hard-cases.yaml (the hard-case table)")
+    r.add_argument("--baseline", default=None,
+                   help="the method every other is compared with, by its label in the table (default: the first, "
+                        "the noisy input): paired per-frame differences with 95%% intervals")
     r.set_defaults(fn=_report)
 
     h = sub.add_parser("hard-cases", help="every run, OIDN and the noisy input on each case of a hard-case store "

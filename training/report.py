@@ -3,7 +3,11 @@
 ``report(runs, store, out)`` writes ``out/report.md`` (quality/speed table, figure-10 FMA table,
 training budgets), ``out/speed_vs_error.png`` (ms per megapixel, log scale, against relMSE),
 ``out/crops.png`` (input / each model / OIDN / reference, tone-mapped), ``out/sample_map-<run>.png``
-for adaptive samplers (where the samples went) and ``out/eval-<name>.json``. Figures: matplotlib.
+for adaptive samplers (where the samples went), ``out/eval-<name>.json`` and ``out/comparisons.json``.
+Every comparison is stated against one method (the first, or ``--baseline``) as a paired per-frame
+difference with its 95% interval (a bootstrap over clips, :mod:`training.stats`), "no difference shown"
+where the interval holds 0; runs that differ only in their training seed get their spread. Figures:
+matplotlib.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import checkpoint as ckpt
+from . import stats
 from .checkpoint import find_runs
 from .errors import DataError
 from .data import open_store
@@ -206,18 +211,138 @@ def evaluate_methods(run_dirs, store, out, split: str = "test", spp: int | None 
     return inputs, models, oidns, sorted({n for n, _, _ in groups})
 
 
+# --------------------------------------------------------------------------------------------
+# Comparisons with their confidence
+
+COMPARED = (("relmse", "relMSE", "{:+.4f}", -1), ("psnr", "PSNR", "{:+.2f}", 1), ("ssim", "SSIM", "{:+.4f}", 1),
+            ("flip", "FLIP", "{:+.4f}", -1))          # (key, name, format, +1: higher is better)
+
+
+def comparisons(results: list[dict], baseline: str | None = None) -> dict:
+    """Every method against ``baseline`` (a label; None: the first method) as the paired per-frame
+    difference (method minus baseline, on the frames both were evaluated on) with its 95% interval, a
+    bootstrap over clips (:func:`training.stats.paired_difference`). ``{"baseline": label, "rows":
+    [{"label", key: {"mean", "ci95", "frames", "shown"}}]}``."""
+    labels = [r["label"] for r in results]
+    if baseline is None:
+        baseline = labels[0]
+    if baseline not in labels:
+        raise DataError(f"--baseline {baseline!r} is not one of the report's methods: {labels}")
+    base = next(r for r in results if r["label"] == baseline)
+    clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
+
+    def per_frame(r, key):
+        return {f["index"]: f[key] for f in r["frames"] if key in f}
+    rows = []
+    for r in results:
+        if r is base:
+            continue
+        row = {"label": r["label"]}
+        for key, *_ in COMPARED:
+            if key in base["frames"][0] and r["frames"] and key in r["frames"][0]:
+                row[key] = stats.paired_difference(per_frame(base, key), per_frame(r, key), clip)
+        rows.append(row)
+    return {"baseline": baseline, "rows": rows}
+
+
+def comparisons_markdown(comp: dict) -> str:
+    """The paired differences as a table: ``mean [low, high]``, and "no difference shown" where the
+    interval holds 0 (or cannot be known: fewer than two clips)."""
+    keys = [c for c in COMPARED if any(c[0] in r for r in comp["rows"])]
+    lines = ["| method | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
+             "|---|" + "---|" * len(keys)]
+    for row in comp["rows"]:
+        cells = []
+        for key, _, f, better in keys:
+            d = row.get(key)
+            if d is None:
+                cells.append("–")
+                continue
+            text = f.format(d["mean"]) + ("" if d["ci95"] is None else
+                                          f" [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]")
+            if not d["shown"]:
+                text += " no difference shown"
+            else:
+                text += " better" if d["mean"] * better > 0 else " worse"
+            cells.append(text)
+        lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def comparisons_section(results: list[dict], baseline: str | None) -> list[str]:
+    comp = comparisons(results, baseline)
+    if not comp["rows"]:
+        return []
+    return [f"Each method against **{comp['baseline']}**, frame by frame on the same frames: the mean difference "
+            "(method minus baseline) with its 95% interval, a bootstrap over the held-out clips (a still is a "
+            "clip of one frame; the frames of a clip are resampled together). \"better\"/\"worse\" only where "
+            "the interval excludes 0, \"no difference shown\" where it holds 0.", "", comparisons_markdown(comp), ""]
+
+
+def seed_spread(results: list[dict]) -> list[dict]:
+    """Runs that differ only in their training seed, grouped: ``{"label", "seeds", key: {"mean", "std",
+    "min", "max"}}`` of each metric's mean over the frames (``make compare SEEDS=N``)."""
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        tc = r.get("train_config")
+        if tc is None:
+            continue
+        key = json_key({**{k: v for k, v in tc.items() if k != "seed"}, "method": r["method"], "spp": r["spp"],
+                        "model_config": r.get("model_config")})
+        groups.setdefault(key, []).append(r)
+    out = []
+    for runs in groups.values():
+        if len(runs) < 2:
+            continue
+        row = {"label": runs[0]["method"], "runs": [r["label"] for r in runs],
+               "seeds": [r["train_config"].get("seed") for r in runs]}
+        for key, *_ in COMPARED:
+            v = [r["mean"].get(key) for r in runs]
+            if all(isinstance(x, float) and math.isfinite(x) for x in v):
+                row[key] = {"mean": float(np.mean(v)), "std": float(np.std(v, ddof=1)), "min": min(v), "max": max(v)}
+        out.append(row)
+    return out
+
+
+def json_key(d: dict) -> str:
+    import json
+    return json.dumps(d, sort_keys=True, default=str)
+
+
+def seed_spread_section(results: list[dict]) -> list[str]:
+    rows = seed_spread(results)
+    if not rows:
+        return []
+    keys = [c for c in COMPARED if any(c[0] in r for r in rows)]
+    lines = ["Spread across training seeds (runs that differ only in `--seed`): mean ± standard deviation of "
+             "each run's mean, and the range.", "",
+             "| model | seeds | " + " | ".join(name for _, name, _, _ in keys) + " |",
+             "|---|---|" + "---|" * len(keys)]
+    for r in rows:
+        cells = [f"{r[k]['mean']:.4g} ± {r[k]['std']:.2g} ({r[k]['min']:.4g}–{r[k]['max']:.4g})" if k in r else "–"
+                 for k, *_ in keys]
+        lines.append(f"| {r['label']} | {', '.join(str(s) for s in r['seeds'])} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+# --------------------------------------------------------------------------------------------
+# The report
+
+
 def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
            with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False,
-           clips_store: str | None = None, hard_cases: str | None = None) -> dict:
+           clips_store: str | None = None, hard_cases: str | None = None, baseline: str | None = None) -> dict:
     """Evaluate every run and the baselines; write the report files. Returns the results.
 
     Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
     for nbg/wskpn) and the noisy input and OIDN at every spp among the runs, so each model stands next
     to the baselines at its own sample count (labels gain ``@N spp`` when there are several).
-    ``clips_store``: also evaluate everything on the ``test`` split of a store of moving clips (a section
-    with tPSNR). ``hard_cases``: a store of ``configs/hard-cases.yaml``, evaluated case by case
-    (:mod:`training.hardcases`). ``out/provenance.json`` records the command, code, versions, stores
-    and runs the numbers come from."""
+    Every method is compared with ``baseline`` (a label; None: the first method, the noisy input) as a
+    paired difference with its 95% interval (:func:`comparisons`); runs that differ only in their seed
+    get their spread. ``clips_store``: also evaluate everything on the ``test`` split of a store of
+    moving clips (a section with tPSNR). ``hard_cases``: a store of ``configs/hard-cases.yaml``,
+    evaluated case by case (:mod:`training.hardcases`). ``out/provenance.json`` records the command,
+    code, versions, stores and runs the numbers come from."""
     import time
     t_start = time.perf_counter()
     out = Path(out)
@@ -228,16 +353,44 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     prov = provenance(run_dirs, {"evaluation": store, "clips": clips_store, "hard_cases": hard_cases},
                       {"runs": [str(r) for r in runs], "store": str(store), "split": split, "spp": spp,
                        "max_frames": max_frames, "with_flip": with_flip, "skip_bad_frames": skip_bad_frames,
-                       "clips_store": clips_store, "hard_cases": hard_cases})
+                       "clips_store": clips_store, "hard_cases": hard_cases, "baseline": baseline})
     inputs, models, oidns, spps = evaluate_methods(run_dirs, store, out, split, spp, max_frames, with_flip,
                                                    progress, skip_bad_frames)
     results = inputs + models + oidns
+    comparisons(results, baseline)                       # an unknown --baseline fails before the figures
+    maps = write_figures(results, models, store, out)
+    lines = main_section(results, store, split, spps, maps, baseline)
+    extra = {"comparisons": comparisons(results, baseline), "seed_spread": seed_spread(results)}
+    if clips_store is not None:
+        clip_results = sum(evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
+                                            skip_bad_frames, prefix="clips-")[:3], [])
+        lines += clips_section(clip_results, clips_store, out, baseline)
+        extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
+        extra["clips_comparisons"] = comparisons(clip_results, baseline)
+    if hard_cases is not None:
+        hc = hard_case_report(run_dirs, hard_cases, out, with_flip=with_flip, progress=progress)
+        lines += [f"## Hard cases: `{hard_cases}`", "", hc["markdown"], ""]
+        extra["hard_cases"] = {k: v for k, v in hc.items() if k != "markdown"}
+    fig10 = figure10()
+    lines += budgets_section(results) + ["## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, "
+                                         "paper defaults)", "", figure10_markdown(fig10), ""]
+    prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
+    write_strict(out / "provenance.json", prov)
+    lines += provenance_section(prov)
+    (out / "report.md").write_text("\n".join(lines))
+    write_strict(out / "comparisons.json", extra)
+    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10,
+            **extra}
 
-    # the reference of the frame the crops show (the first evaluated frame of every method)
+
+def write_figures(results: list[dict], models: list[dict], store, out: Path) -> list[tuple[str, str, int]]:
+    """crops.png (the first evaluated frame of every method and its reference), speed_vs_error.png and
+    each adaptive sampler's sample map; returns the maps' ``(label, file, frame)``."""
     first = {r["frames"][0]["index"] for r in results}
     if len(first) != 1:
         raise DataError(f"the methods' first evaluated frames differ ({sorted(first)}); cannot compare crops")
-    ref = open_store(store).read_array("reference/radiance", first.pop()).transpose(1, 2, 0)
+    st = open_store(store)
+    ref = st.read_array("reference/radiance", first.pop()).transpose(1, 2, 0)
     crops_image([(r["label"], r["images"][0]) for r in results] + [("reference", ref)], out / "crops.png")
     plot_speed_vs_error(results, out / "speed_vs_error.png")
     maps = []
@@ -245,22 +398,25 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
         sm = r.get("sample_map")
         if sm is not None and float(np.ptp(sm["counts"])) > 0:
             name = f"sample_map-{r['label'].replace(' ', '')}.png"
-            frame_ref = open_store(store).read_array("reference/radiance", sm["index"]).transpose(1, 2, 0)
+            frame_ref = st.read_array("reference/radiance", sm["index"]).transpose(1, 2, 0)
             sample_map_image(sm["counts"], frame_ref, out / name, f"{r['label']}: frame {sm['index']}")
             maps.append((r["label"], name, sm["index"]))
-    fig10 = figure10()
+    return maps
 
+
+def main_section(results: list[dict], store, split: str, spps, maps, baseline: str | None) -> list[str]:
     at = ", ".join(f"{n}" for n in spps)
     lines = [f"# Denoiser report: {split} split of `{store}` at {at} spp", "",
              f"{len(results[0]['frames'])} held-out frames (split by scene). relMSE and SMAPE on linear radiance; "
              "PSNR and SSIM on tone-mapped values (sRGB(log(x+1)), eq. 7); FLIP is HDR-FLIP. "
              f"Times are wall-clock per frame on this machine ({results[0]['torch_threads']} torch threads), "
              "after one warm-up frame. Each model is evaluated at the samples per pixel it was trained at; "
-             "the noisy input and OIDN at each of those counts.", "", *reference_note(results), table_markdown(results), "",
+             "the noisy input and OIDN at each of those counts.", "", *reference_note(results),
+             table_markdown(results), "", *comparisons_section(results, baseline), *seed_spread_section(results),
              "![speed against error](speed_vs_error.png)", "",
-             f"relMSE by kind of frame (frame counts in brackets; indoor/outdoor, defocus and motion from the scene, "
-             f"fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x brighter "
-             "than the reference; plain: none of these):", "", kinds_markdown(results), "",
+             f"relMSE by kind of frame (frame counts in brackets; the scene family, defocus and motion from the "
+             f"scene, fireflies: at least {FIREFLY_SHARE:.1%} of the pixels hold a sample {FIREFLY_RATIO:g}x "
+             "brighter than the reference; plain: none of these):", "", kinds_markdown(results), "",
              "SMAPE by kind of frame:", "", kinds_markdown(results, "smape"), "",
              "PSNR by kind of frame:", "", kinds_markdown(results, "psnr", "{:.2f}"), "",
              "Crops (inputs / models / OIDN / reference):", "", "![crops](crops.png)", ""]
@@ -271,39 +427,36 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     for label, name, idx in maps:
         lines += [f"Sample map of {label} (frame {idx}, the last of the first held-out clip):", "",
                   f"![sample map]({name})", ""]
-    extra = {}
-    if clips_store is not None:
-        ci, cm, co, _ = evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
-                                         skip_bad_frames, prefix="clips-")
-        clip_results = ci + cm + co
-        plot_speed_vs_error(clip_results, out / "clips_speed_vs_error.png")
-        n_clips = max(r.get("clips", 0) for r in clip_results)
-        lines += [f"## Moving clips: test split of `{clips_store}`", "",
-                  f"{len(clip_results[0]['frames'])} frames in {n_clips} held-out clips, in order; recurrent "
-                  "models carry their state through each clip, the others see one frame at a time.", "",
-                  *reference_note(clip_results), table_markdown(clip_results), "", "![speed against error on clips](clips_speed_vs_error.png)", "",
-                  "relMSE by kind of frame:", "", kinds_markdown(clip_results), ""]
-        extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
-    if hard_cases is not None:
-        hc = hard_case_report(run_dirs, hard_cases, out, with_flip=with_flip, progress=progress)
-        lines += [f"## Hard cases: `{hard_cases}`", "", hc["markdown"], ""]
-        extra["hard_cases"] = {k: v for k, v in hc.items() if k != "markdown"}
-    lines += ["## Training budgets", ""]
+    return lines
+
+
+def clips_section(clip_results: list[dict], clips_store, out: Path, baseline: str | None) -> list[str]:
+    plot_speed_vs_error(clip_results, out / "clips_speed_vs_error.png")
+    n_clips = max(r.get("clips", 0) for r in clip_results)
+    return [f"## Moving clips: test split of `{clips_store}`", "",
+            f"{len(clip_results[0]['frames'])} frames in {n_clips} held-out clips, in order; recurrent "
+            "models carry their state through each clip, the others see one frame at a time.", "",
+            *reference_note(clip_results), table_markdown(clip_results), "",
+            *comparisons_section(clip_results, baseline),
+            "![speed against error on clips](clips_speed_vs_error.png)", "",
+            "relMSE by kind of frame:", "", kinds_markdown(clip_results), ""]
+
+
+def budgets_section(results: list[dict]) -> list[str]:
+    lines = ["## Training budgets", ""]
     for r in results:
         if "train_config" in r:
             tc = r["train_config"]
             lines.append(f"- {r['label']}: model `{r['method']}` {r.get('model_config')}, {r['train_steps']} steps of "
-                         f"batch {tc['batch']}, crop {tc['crop']}, {tc['spp']} spp, loss {tc['loss']}, lr {tc['lr']}")
-    lines += ["", "## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, paper defaults)", "",
-              figure10_markdown(fig10), ""]
-    prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
-    write_strict(out / "provenance.json", prov)
-    lines += ["## Provenance", "",
-              f"Every number above was computed by this run of the report ({prov['created']}, "
-              f"{prov['report_seconds']:.0f} s, code {prov['git_commit'] or 'outside git'}"
-              f"{' with local changes' if prov['git_dirty'] else ''}); the command, package versions, "
-              "machine, the stores' dataset configs and each run's training config and checkpoint hash are "
-              "in [provenance.json](provenance.json).", ""]
-    (out / "report.md").write_text("\n".join(lines))
-    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10,
-            **extra}
+                         f"batch {tc['batch']}, crop {tc['crop']}, {tc['spp']} spp, loss {tc['loss']}, lr {tc['lr']}, "
+                         f"seed {tc.get('seed')}")
+    return lines + [""]
+
+
+def provenance_section(prov: dict) -> list[str]:
+    return ["## Provenance", "",
+            f"Every number above was computed by this run of the report ({prov['created']}, "
+            f"{prov['report_seconds']:.0f} s, code {prov['git_commit'] or 'outside git'}"
+            f"{' with local changes' if prov['git_dirty'] else ''}); the command, package versions, "
+            "machine, the stores' dataset configs and each run's training config and checkpoint hash are "
+            "in [provenance.json](provenance.json).", ""]
