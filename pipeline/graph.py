@@ -4,8 +4,7 @@
 readable key, its function, its arguments (:class:`Ref` to other nodes) and its worker resources.
 :meth:`DatasetGraph.submit` hands it to a ``distributed.Client`` with ``client.submit(key=...,
 resources=..., retries=...)`` node by node, so keys, resources and retries reach the scheduler exactly
-as built (no graph optimisation can drop an annotation or fuse keys away); :meth:`DatasetGraph.to_dask`
-gives the same graph as a plain Dask task dict (``dask.get``, tests, visualisation).
+as built (no graph optimisation can drop an annotation or fuse keys away).
 
 Keys (stage first, because the dashboard's progress pane groups tasks by the key's prefix)::
 
@@ -27,7 +26,6 @@ keep failing are recorded in the store first.
 """
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -64,10 +62,6 @@ class Node:
     frame_index: int | None = None
     kwargs: dict | None = None          # literal keyword arguments (the write's clip id)
 
-    def call(self) -> Callable:
-        """``func`` with ``kwargs`` bound (what the scheduler runs)."""
-        return functools.partial(self.func, **self.kwargs) if self.kwargs else self.func
-
     @property
     def dependencies(self) -> tuple[str, ...]:
         return tuple(a.key for a in self.args if isinstance(a, Ref))
@@ -96,11 +90,6 @@ class DatasetGraph:
             out[n.stage] = out.get(n.stage, 0) + 1
         return out
 
-    def to_dask(self) -> dict:
-        """A plain Dask graph ``{key: (func, *args)}`` (``dask.get(dsk, keys)`` runs it)."""
-        return {k: (n.call(), *(a.key if isinstance(a, Ref) else _quote(a) for a in n.args))
-                for k, n in self.nodes.items()}
-
     def submit(self, client) -> dict[str, Any]:
         """Submit every node to ``client``; returns key → Future (all of them, so none is released)."""
         futures: dict[str, Any] = {}
@@ -109,12 +98,6 @@ class DatasetGraph:
             futures[k] = client.submit(n.func, *args, **(n.kwargs or {}), key=k, pure=False, retries=self.retries,
                                        resources=n.resources, priority=n.priority)
         return futures
-
-
-def _quote(a):
-    """Literal arguments that Dask must not interpret as keys or tasks."""
-    from dask.core import literal
-    return literal(a) if isinstance(a, (tuple, list, dict, str)) else a
 
 
 def graph_token(cfg: DatasetConfig, store: str) -> str:

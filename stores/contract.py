@@ -1,8 +1,11 @@
 """The data contract between the renderer (pipeline.render) and the store (stores.writer).
 
-numpy-only. ``pipeline.render.render_frame`` returns a :class:`FrameArrays`-shaped dict; the store
-writer, exports and datasets read these names. Shapes use H, W (pixels), S (samples per pixel,
-default 8) and L = number of sample layers (6: 1, 2, 4, 8, 16, 32 spp).
+Plain data, no imports. A rendered frame is a plain dict (``pipeline.render.render_frame``,
+``pipeline.render.assemble``): one numpy array for every name of :data:`FRAME_ARRAYS`, of the shape
+and dtype given there, plus ``meta``, a dict with the keys and types of :data:`FRAME_META`. The store
+writer (``stores.writer.StoreWriter.write_frame``), the schema's array table and the exports use these
+names. Shapes use H, W (pixels), S (samples per pixel, default 8) and L = number of sample layers
+(6: 1, 2, 4, 8, 16, 32 spp).
 """
 from __future__ import annotations
 
@@ -40,7 +43,7 @@ FRAME_ARRAYS = {
     "camera_to_world": ((4, 4), "float64"),
     "world_to_clip": ((4, 4), "float64"),      # projection * view of this frame (NDC in [-1, 1])
 }
-# Scalars / strings recorded per frame (``FrameArrays['meta']``):
+# Scalars / strings recorded per frame (a rendered frame's ``meta`` dict):
 FRAME_META = {
     "scene_json": str,          # SceneSpec JSON (scene_gen.spec)
     "scene_seed": int,

@@ -279,17 +279,6 @@ class Store:
         split = cfg.get("split") if isinstance(cfg, dict) else None
         return dict(split) if isinstance(split, dict) and split else dict(DEFAULT_SPLIT)
 
-    def refresh(self) -> None:
-        """Forget cached per-frame metadata (after frames were written by another process)."""
-        self.root, self.layout = schema.open_group(self.path, mode="r")
-        self._absent = schema.absent_arrays(self.root, self.version)
-        self._num_frames = None
-        self._fast_readers = {}
-        self._meta_cache = None
-        self._clip_starts = None
-        self._scene_texts = {}
-        self._listed = {}
-
     def _zarr_read(self, path: str, sel, frame: int | None = None) -> np.ndarray:
         """``root[path][sel]`` through zarr-python, with damage (a failed crc32c, a truncated or garbage
         chunk) raised as CorruptChunkError naming the array (and the frame, when one is read)."""
@@ -478,10 +467,6 @@ class Store:
             out = [self.scene_json(i) for i in range(self.num_frames)]
             return np.array(out, dtype=object).astype(str)
         return t[key].copy()
-
-    def complete_mask(self) -> np.ndarray:
-        """``complete (bool, F)``."""
-        return self._meta_table()["complete"].copy()
 
     def complete_frames(self) -> list[int]:
         return [int(i) for i in np.nonzero(self._meta_table()["complete"])[0]]
