@@ -11,11 +11,12 @@ the zenith, the middle row the horizon.
 """
 from __future__ import annotations
 
-from functools import lru_cache
 import json
-from pathlib import Path
+from functools import lru_cache
 
 import numpy as np
+
+from scene_gen.textures import _fbm
 
 DEFAULTS = {
     "seed": 0, "sun_elevation": 35.0, "sun_azimuth": 40.0, "sun_radiance": 2.0e4, "sun_size": 1.2,
@@ -50,8 +51,6 @@ def make_probe(params: dict, height: int = 128) -> np.ndarray:
 
 @lru_cache(maxsize=32)
 def _make_probe(params_json: str, height: int) -> np.ndarray:
-    from scene_gen.textures import _fbm
-
     p = {**DEFAULTS, **json.loads(params_json)}
     x, y, z = _direction_grid(height)
     zen, hor, gnd = (np.asarray(p[k], np.float64) for k in ("zenith", "horizon", "ground"))
@@ -75,9 +74,3 @@ def _make_probe(params_json: str, height: int) -> np.ndarray:
     out = img.astype(np.float32)
     out.setflags(write=False)
     return out
-
-
-def write_probe_exr(params: dict, path: str | Path, height: int = 256) -> Path:
-    """Write the probe as an OpenEXR file (float32 RGB)."""
-    from scene_gen.imageio import write_exr
-    return write_exr(path, make_probe(params, height))
