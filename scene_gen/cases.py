@@ -54,6 +54,7 @@ import numpy as np
 from scene_gen import cameras as cams
 from scene_gen.config import ConfigError, SceneGenConfig
 from scene_gen.spec import LightSpec, MaterialSpec, MeshSpec, ObjectSpec, SceneSpec, Transform
+from scene_gen.variant import mitsuba
 
 MAX_DEPTH = 8.0          # D: placement depth cap (world units)
 SUN_SCALE = 150.0        # sunsky sun_scale of the sun case (the generator draws 1.2-2.6): sun radiance ~1.5e6
@@ -152,7 +153,6 @@ def scene_hook(spec: SceneSpec) -> Callable | None:
         return None
 
     def poison(scene):
-        from scene_gen.variant import mitsuba
         mi = mitsuba()
         p = mi.traverse(scene)
         keys = [k for k in p.keys() if k.startswith(NAN_EMITTER) and k.endswith("radiance.value")]

@@ -21,7 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from scene_gen import meshes
+from scene_gen.errors import SpecError
+from scene_gen.probes import make_probe
 from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
+from scene_gen.textures import make_texture
+from scene_gen.variant import mitsuba
 
 TEXTURE_SIZE = 256
 PROBE_HEIGHT = 256
@@ -30,7 +35,6 @@ FAR_CLIP = 1e4
 
 
 def _mi():
-    from scene_gen.variant import mitsuba
     return mitsuba()
 
 
@@ -63,8 +67,6 @@ def offset_at(obj: ObjectSpec, tau: float) -> np.ndarray:
 
 def world_mesh(obj: ObjectSpec, tau: float = 0.0):
     """(vertices float32 N×3, faces uint32 M×3, normals float32 N×3 | None, uv float32 N×2 | None) in world space."""
-    from scene_gen import meshes
-
     md = meshes.build(obj.mesh)
     m = object_matrix(obj.transform)
     v = md.vertices.astype(np.float64) @ m[:3, :3].T + m[:3, 3] + offset_at(obj, tau)
@@ -110,8 +112,6 @@ def _base(mi, mat: MaterialSpec):
     """The base/diffuse reflectance slot: a bitmap texture when the material has one."""
     if mat.texture is None:
         return _rgb(mat.base_color)
-    from scene_gen.textures import make_texture
-
     tex = make_texture(mat.texture, TEXTURE_SIZE)
     s = float(mat.texture.uv_scale)
     return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(tex)), "raw": True,
@@ -167,8 +167,6 @@ def light_dict(light: LightSpec, mi=None) -> dict:
     if light.kind == "constant":
         return {"type": "constant", "radiance": _rgb(p.get("radiance", (1.0, 1.0, 1.0)))}
     if light.kind == "envmap":
-        from scene_gen.probes import make_probe
-
         probe = make_probe(dict(p.get("probe", {})), PROBE_HEIGHT)
         return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(probe)), "scale": float(p.get("scale", 1.0)),
                 "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], float(p.get("rotation", 0.0)))}
@@ -237,7 +235,6 @@ def shape_groups(spec: SceneSpec, merge: bool = False) -> list[tuple[str, tuple[
     """
     if not merge:
         return [(o.name, (o,)) for o in spec.objects]
-    from scene_gen import meshes
     out: list[tuple[str, tuple[ObjectSpec, ...]]] = []
     groups: dict[tuple, list[ObjectSpec]] = {}
     slot: dict[tuple, int] = {}
@@ -288,7 +285,6 @@ def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 
         res = (res, res)
     w, h = int(res[0]), int(res[1])
     if w <= 0 or h <= 0:
-        from scene_gen.errors import SpecError
         raise SpecError(f"resolution must be positive, got {w}x{h}")
     tau = float(frame if tau is None else tau)
     cam = spec.camera(frame)
