@@ -42,6 +42,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
+from scene_gen.checks import is_int, is_number, need
 
 
 class ClusterError(PipelineError, ConnectionError):
@@ -290,10 +291,6 @@ JOB_THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS") 
 JOB_PASS_ENV = ("MI_VARIANT", "DENOISE_FORCE_CPU")     # this machine's choice of variant, passed on when set
 
 
-def _count(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
-
-
 def job_settings(cfg: ClusterConfig) -> dict:
     """The keyword arguments of the SLURMCluster / PBSCluster: ``cfg.jobqueue`` with what every worker needs
     written into its job script, so a job does not depend on what sbatch or qsub pass on from here:
@@ -329,16 +326,17 @@ def job_settings(cfg: ClusterConfig) -> dict:
     kw = dict(cfg.jobqueue)
     tpw = cfg.threads_per_worker
     cores, procs = kw.get("cores"), kw.get("processes")
-    if not _count(cores):
-        raise ConfigError(f"{where}.cores must be an integer >= 1 (the CPUs one job asks for), got {cores!r}")
+    need(is_int(cores) and cores >= 1, f"{where}.cores", "an integer >= 1 (the CPUs one job asks for)", cores,
+         ConfigError)
     if procs is None:
         if cores % tpw:
             raise ConfigError(f"{where}.cores ({cores}) must be a multiple of dataset.cluster.threads_per_worker "
                               f"({tpw}): a job runs cores / threads_per_worker workers")
         kw["processes"] = procs = cores // tpw
-    elif not _count(procs):
-        raise ConfigError(f"{where}.processes must be an integer >= 1 (Dask workers a job), got {procs!r}")
-    elif procs * tpw != cores:
+    else:
+        need(is_int(procs) and procs >= 1, f"{where}.processes", "an integer >= 1 (Dask workers a job)", procs,
+             ConfigError)
+    if procs * tpw != cores:
         fixes = [f"processes: {cores // tpw}"] if cores % tpw == 0 else []
         fixes += [f"dataset.cluster.threads_per_worker: {cores // procs}"] if cores % procs == 0 else []
         raise ConfigError(f"{where}: cores ({cores}) must equal processes ({procs}) x "
@@ -346,9 +344,9 @@ def job_settings(cfg: ClusterConfig) -> dict:
                           "processes threads and drjit renders "
                           f"with a worker's threads; set {' or '.join(fixes) or 'them to agree'}")
     job_cpu = kw.get("job_cpu")
-    if job_cpu is not None and not (_count(job_cpu) and job_cpu >= cores):
-        raise ConfigError(f"{where}.job_cpu must be null (= cores) or an integer >= cores ({cores}): the job's "
-                          f"workers run {cores} threads, got {job_cpu!r}")
+    need(job_cpu is None or (is_int(job_cpu) and job_cpu >= cores), f"{where}.job_cpu",
+         f"null (= cores) or an integer >= cores ({cores}): the job's workers run {cores} threads", job_cpu,
+         ConfigError)
     mem = kw.get("memory")
     try:
         if isinstance(mem, bool) or int(parse_bytes(str(mem))) <= 0:
@@ -362,13 +360,13 @@ def job_settings(cfg: ClusterConfig) -> dict:
         kw["log_directory"] = os.path.abspath(logs)     # the #SBATCH -o/-e paths, whatever the job's directory
 
     extra = kw.get("worker_extra_args") or []
-    if not isinstance(extra, list):
-        raise ConfigError(f"{where}.worker_extra_args must be a list of `dask worker` arguments, got {extra!r}")
+    need(isinstance(extra, list), f"{where}.worker_extra_args", "a list of `dask worker` arguments", extra,
+         ConfigError)
     extra = [str(a) for a in extra]
     res = kw.pop("resources", None)
     gpus = kw.pop("gpus_per_job", None)
     if gpus is not None:
-        if not _count(gpus) or gpus != procs:
+        if not (is_int(gpus) and gpus >= 1) or gpus != procs:
             raise ConfigError(f"{where}.gpus_per_job must be an integer >= 1 equal to the job's workers (processes: "
                               f"{procs}; one worker per GPU), got {gpus!r}; set processes and cores to match")
         if cfg.kind == "slurm":
@@ -380,11 +378,10 @@ def job_settings(cfg: ClusterConfig) -> dict:
     else:
         extra_env = []
     if res is not None:
-        if not (isinstance(res, dict) and res and all(
-                isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
-                and isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for k, v in res.items())):
-            raise ConfigError(f"{where}.resources must be a mapping of resource names to the amount each worker "
-                              f"has, e.g. {{GPU: 1}}, got {res!r}")
+        need(isinstance(res, dict) and res and all(
+            isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
+            and is_number(v) and v > 0 for k, v in res.items()), f"{where}.resources",
+            "a mapping of resource names to the amount each worker has, e.g. {GPU: 1}", res, ConfigError)
         if "--resources" in extra:
             raise ConfigError(f"{where}: worker resources are given twice, as resources and as --resources in "
                               "worker_extra_args; keep one")
@@ -408,13 +405,11 @@ def job_settings(cfg: ClusterConfig) -> dict:
     kw.pop("env_extra", None)
     if isinstance(user, str):
         user = [user]
-    if not isinstance(user, list):
-        raise ConfigError(f"{where}.job_script_prologue must be a list of shell lines, got {user!r}")
+    need(isinstance(user, list), f"{where}.job_script_prologue", "a list of shell lines", user, ConfigError)
     kw["job_script_prologue"] = lines + [str(x) for x in user]
 
     opts = kw.get("scheduler_options") or {}
-    if not isinstance(opts, dict):
-        raise ConfigError(f"{where}.scheduler_options must be a mapping of Scheduler arguments, got {opts!r}")
+    need(isinstance(opts, dict), f"{where}.scheduler_options", "a mapping of Scheduler arguments", opts, ConfigError)
     opts = dict(opts)
     if "dashboard_address" not in opts and "dashboard" not in opts:
         if cfg.dashboard_address is None:
