@@ -18,11 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from scene_gen.spec import SCENE_KINDS
+from scene_gen import to_mitsuba
+from scene_gen.config import ConfigError, SceneGenConfig
+from scene_gen.errors import SceneGenError, VariantError
+from scene_gen.families import family_names
+from scene_gen.imageio import tonemap, write_exr, write_png
+from scene_gen.sampling import sample_scene
+from scene_gen.variant import mitsuba
 
 
 def _config(path: str | None):
-    from scene_gen.config import ConfigError, SceneGenConfig
     if path is None:
         return SceneGenConfig()
     p = Path(path)
@@ -40,8 +45,6 @@ def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, thre
 
     Moving objects are shown at the middle of the exposure (previews do not blur). Static objects
     sharing a material are merged, as the dataset renderer does (the same image, faster)."""
-    from scene_gen.variant import mitsuba
-    from scene_gen import to_mitsuba
     mi = mitsuba(threads=threads)
     tau = frame + 0.5 * spec.shutter if spec.has_motion else None
     scene = to_mitsuba.load(spec, frame, res=(res, res), tau=tau, merge=True)
@@ -50,8 +53,6 @@ def render_spec(spec, *, res: int, spp: int, frame: int = 0, seed: int = 0, thre
 
 
 def _preview(a) -> int:
-    from scene_gen.imageio import write_exr, write_png
-    from scene_gen.sampling import sample_scene
     t0 = time.perf_counter()
     spec = sample_scene(a.seed, a.kind, num_frames=a.frames, res=a.res, config=_config(a.config))
     t1 = time.perf_counter()
@@ -78,7 +79,6 @@ def _preview(a) -> int:
 
 
 def _spec(a) -> int:
-    from scene_gen.sampling import sample_scene
     spec = sample_scene(a.seed, a.kind, num_frames=a.frames, res=a.res, config=_config(a.config))
     print(spec.to_json(indent=1))
     return 0
@@ -87,17 +87,16 @@ def _spec(a) -> int:
 def _contact_sheet(a) -> int:
     from PIL import Image, ImageDraw
 
-    from scene_gen.imageio import tonemap
-    from scene_gen.sampling import sample_scene
     cfg = _config(a.config)
+    kinds = family_names()
     cols = a.cols or int(np.ceil(np.sqrt(a.count)))
     rows = int(np.ceil(a.count / cols))
     pad = 2
     sheet = Image.new("RGB", (cols * (a.res + pad) + pad, rows * (a.res + pad) + pad), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     for i in range(a.count):
-        kind = SCENE_KINDS[i % 2]
-        seed = a.seed + i // 2
+        kind = kinds[i % len(kinds)]
+        seed = a.seed + i // len(kinds)
         spec = sample_scene(seed, kind, res=a.res, config=cfg)
         img = render_spec(spec, res=a.res, spp=a.spp)
         tile = Image.fromarray((tonemap(img) * 255 + 0.5).astype(np.uint8))
@@ -125,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     pv = sub.add_parser("preview", help="render one scene to EXR and a tone-mapped PNG")
     common(pv, 256)
-    pv.add_argument("--kind", choices=SCENE_KINDS, default="indoor")
+    pv.add_argument("--kind", choices=family_names(), default="indoor", help="scene family (default indoor)")
     pv.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     pv.add_argument("--frames", type=int, default=1, help="frames in the clip (default 1)")
     pv.add_argument("--frame", type=int, default=0, help="which frame to render (default 0)")
@@ -135,13 +134,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("spec", help="print the SceneSpec JSON of one scene")
     common(sp, 256)
-    sp.add_argument("--kind", choices=SCENE_KINDS, default="indoor")
+    sp.add_argument("--kind", choices=family_names(), default="indoor", help="scene family (default indoor)")
     sp.add_argument("--frames", type=int, default=1)
     sp.set_defaults(func=_spec)
 
-    cs = sub.add_parser("contact-sheet", help="a PNG grid of random indoor and outdoor scenes")
+    cs = sub.add_parser("contact-sheet", help="a PNG grid of random scenes of every family")
     common(cs, 160)
-    cs.add_argument("--count", type=int, default=16, help="number of scenes, alternating indoor/outdoor (default 16)")
+    cs.add_argument("--count", type=int, default=16, help="number of scenes, the families in turn (default 16)")
     cs.add_argument("--cols", type=int, default=0, help="columns (default: square)")
     cs.add_argument("--spp", type=int, default=64)
     cs.add_argument("--out", default="docs/contact_sheet.png")
@@ -150,7 +149,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from scene_gen.errors import SceneGenError
     args = build_parser().parse_args(argv)
     for name in ("res", "spp", "count", "frames"):
         v = getattr(args, name, None)
@@ -166,7 +164,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except Exception as e:  # a library failure: still one line, but say what it was
-        from scene_gen.errors import VariantError
         if isinstance(e, VariantError):
             print(f"error: {e}", file=sys.stderr)
             return 2

@@ -3,14 +3,21 @@
 Units are metres and degrees. Every field is checked when the config is built and a bad value raises
 :class:`ConfigError` naming the field and its allowed range, e.g.
 ``scene_gen.indoor_objects must be an integer in [0, 10000], got -3``.
+
+The fields are the settings every scene family shares (:class:`SharedSettings`) followed by each
+family's own (``scene_gen.families.Setting``: ``indoor_objects``; ``outdoor_objects``, ``p_sunsky``),
+so a family brings its settings in its own file. All of them are plain keys of the config's
+``scene_gen`` section.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields, make_dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from scene_gen.errors import ConfigError, SpecError  # noqa: F401  (ConfigError re-exported)
+from scene_gen.families import Setting, family_settings
 
 
 def _int_in(name: str, v, lo: int, hi: int) -> None:
@@ -37,8 +44,15 @@ def _range(name: str, v, lo: float, hi: float, *, open_lo: bool = False, open_hi
     return (float(v[0]), float(v[1]))
 
 
+def _check_setting(name: str, s: Setting, v) -> None:
+    if s.kind == "int":
+        _int_in(name, v, s.lo, s.hi)
+    else:
+        _prob(name, v)
+
+
 @dataclass(frozen=True)
-class SceneGenConfig:
+class SharedSettings:
     """Random scene synthesis settings (Gharbi et al. 2019 as summarised by Munkberg et al. 2020, sec. 4).
 
     Counts are the meshes *placed*; objects outside every frame's view frustum are dropped afterwards,
@@ -49,16 +63,16 @@ class SceneGenConfig:
     the room, backdrop, furniture or light panels) takes one of them, so objects share BSDFs and the renderer
     merges static ones into K meshes (1.1x the samples per second, each scene timed alone; make bench); 0: every object draws
     its own. The layout is the same for every K (the palette has its own random stream).
+
+    These are the settings every scene family shares; :class:`SceneGenConfig` adds the families' own.
     """
-    outdoor_objects: int = 75
-    indoor_objects: int = 50
+    _families: ClassVar[dict] = {}        # the families' settings (name -> Setting) of SceneGenConfig
     p_defocus: float = 0.5
     p_motion: float = 0.5
     p_object_motion: float = 0.5          # in a scene with motion, the share of objects that move
     fov_range: tuple = (15.0, 65.0)       # degrees, within (0, 180)
     aperture_range: tuple = (0.001, 0.02)  # lens radius / focus distance, log-uniform
     speed_range: tuple = (0.1, 1.5)       # object speed in object radii per frame
-    p_sunsky: float = 0.5                 # outdoor: Mitsuba sunsky, else a procedural HDR probe
     p_floating: float = 0.1               # share of objects that float above the ground
     model_folder: str | None = None       # user OBJ/PLY/GLB models (optional)
     p_user_model: float = 0.5             # share of meshes taken from model_folder when it is set
@@ -70,9 +84,9 @@ class SceneGenConfig:
     material_palette: int = 0             # > 0: content objects draw from this many materials per scene
 
     def __post_init__(self):
-        _int_in("outdoor_objects", self.outdoor_objects, 0, 10000)
-        _int_in("indoor_objects", self.indoor_objects, 0, 10000)
-        for n in ("p_defocus", "p_motion", "p_object_motion", "p_sunsky", "p_floating", "p_user_model", "shutter"):
+        for n, s in self._families.items():
+            _check_setting(n, s, getattr(self, n))
+        for n in ("p_defocus", "p_motion", "p_object_motion", "p_floating", "p_user_model", "shutter"):
             _prob(n, getattr(self, n))
         object.__setattr__(self, "fov_range", _range("fov_range", self.fov_range, 0.0, 180.0,
                                                      open_lo=True, open_hi=True))
@@ -119,3 +133,20 @@ class SceneGenConfig:
             raise ConfigError(f"scene_gen: unknown field(s) {unknown}; known: {sorted(names)}")
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
         return cls(**kw)
+
+
+def _with_family_settings(base: type) -> type:
+    """``base`` with every registered family's settings as more fields (families in seed order)."""
+    settings = family_settings()
+    clash = sorted({f.name for f in fields(base)} & set(settings))
+    if clash:
+        raise ConfigError(f"scene family setting(s) {clash} are already settings every family shares")
+    doc = "\n".join(f"    - ``{n}`` ({s.kind}, default {s.default!r}): {s.doc}" for n, s in settings.items())
+    return make_dataclass(
+        "SceneGenConfig", [(n, type(s.default), field(default=s.default)) for n, s in settings.items()],
+        bases=(base,), frozen=True,
+        namespace={"__module__": __name__, "_families": settings,
+                   "__doc__": f"{base.__doc__.rstrip()}\n\n    The families' own settings:\n\n{doc}\n"})
+
+
+SceneGenConfig = _with_family_settings(SharedSettings)

@@ -1,60 +1,22 @@
 """What scene families share: objects being placed, the layout a family returns, random shapes and
-light/probe draws (numpy only), and the registry of scene families by name.
+light/probe draws (numpy only).
 
-A family is a function ``layout(rng, r_cam, cfg, fov, res, user_models) -> Layout`` registered under
-its scene kind, one file each (``scene_gen.rooms``: indoor, ``scene_gen.outdoor``: outdoor)::
-
-    @register_family("indoor")
-    def layout_indoor(rng, r_cam, cfg, fov, res, user_models): ...
-
-    family("indoor")(...)            # scene_gen.sampling.sample_scene does this
-
-Kinds are ``scene_gen.spec.SCENE_KINDS`` (the one list; a SceneSpec validates its kind against it);
-every kind has exactly one registered family.
+A family (``scene_gen.families``, one file each) is a function
+``layout(rng, r_cam, cfg, fov, res, user_models) -> Layout`` that places objects with these pieces;
+``scene_gen.sampling.sample_scene`` turns its Layout into a SceneSpec (camera path, motion, culling,
+defocus, triangle budgets).
 """
 from __future__ import annotations
 
-import importlib
+import colorsys
 import math
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from scene_gen.config import ConfigError
-from scene_gen.spec import SCENE_KINDS, MaterialSpec, MeshSpec, Transform
-
-FAMILY_MODULES = ("scene_gen.rooms", "scene_gen.outdoor")     # imported on first lookup; they register
-FAMILIES: dict[str, Callable] = {}
-
-
-def register_family(kind: str):
-    """Decorator: register a layout function as the scene family of ``kind`` (one of SCENE_KINDS)."""
-    def deco(fn):
-        if kind not in SCENE_KINDS:
-            raise ConfigError(f"scene family {kind!r} is not a scene kind; add it to scene_gen.spec.SCENE_KINDS "
-                              f"({SCENE_KINDS})")
-        if kind in FAMILIES and FAMILIES[kind] is not fn:
-            raise ConfigError(f"scene family {kind!r} is already registered by {FAMILIES[kind].__module__}")
-        FAMILIES[kind] = fn
-        return fn
-    return deco
-
-
-def family(kind: str) -> Callable:
-    """The layout function of scene kind ``kind``."""
-    for m in FAMILY_MODULES:
-        importlib.import_module(m)
-    try:
-        return FAMILIES[kind]
-    except KeyError:
-        raise ConfigError(f"scene kind must be one of {tuple(sorted(FAMILIES))}, got {kind!r}") from None
-
-
-def family_names() -> list[str]:
-    for m in FAMILY_MODULES:
-        importlib.import_module(m)
-    return sorted(FAMILIES)
+from scene_gen import meshes
+from scene_gen.errors import ConfigError
+from scene_gen.spec import MaterialSpec, MeshSpec, Transform
 
 
 # Procedural shape kinds for random objects and their relative frequency.
@@ -141,7 +103,6 @@ def random_shape(rng: np.random.Generator, user_models: list[str] | None = None,
     """A random mesh spec and its canonical half extents (float64, 3; after normalisation, y up)."""
     seed = int(rng.integers(0, 2**31 - 1))
     if user_models and rng.uniform() < p_user_model:
-        from scene_gen import meshes
         spec = MeshSpec("file", {"path": user_models[int(rng.integers(len(user_models)))]}, seed=seed)
         b = meshes.build(spec).bounds.astype(np.float64)   # user models only: cached per process
         return spec, np.maximum(_half_norm(b[0], b[1]), 0.02)
@@ -208,7 +169,6 @@ def light_color(rng: np.random.Generator) -> np.ndarray:
         t = rng.uniform(0, 1)
         c = np.array([1.0, 0.85 + 0.15 * t, 0.65 + 0.35 * t]) if rng.uniform() < 0.7 else np.array([0.85 + 0.15 * t, 0.93, 1.0])
     else:
-        import colorsys
         c = np.array(colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(0.3, 0.7), 1.0))
     return c / c.max()
 

@@ -29,7 +29,7 @@ boolean    two ``children``; ``op`` in union|difference|intersection (default di
            second operand scaled by ``b_scale`` and moved by ``b_offset`` (random from the seed)
 plane      ``resolution`` (grid cells per side, 1), ``bend`` (0..1: the back half, z < 0, curves up
            to height ``bend``, a photo-studio backdrop); lies on y = 0 facing +Y, not normalised
-room       ``scene_gen.rooms.build_room_mesh(params)``, returned without normalisation
+room       ``scene_gen.rooms.room_geometry(params)``, returned without normalisation
 file       ``path`` (required: OBJ/PLY/GLB/GLTF/STL), ``up`` ('y' or 'z', default 'y')
 =========  ===================================================================================
 
@@ -51,7 +51,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scene_gen import rooms
 from scene_gen.errors import MeshError, SpecError
+from scene_gen.profiles import random_outline, random_revolve_profile
 from scene_gen.spec import MESH_KINDS, MeshSpec
 
 
@@ -407,7 +409,6 @@ _MAKERS = {
 
 def _revolve(spec):
     import trimesh
-    from scene_gen.profiles import random_revolve_profile
     prof = _points(spec, "profile", 2, 2)
     if prof is None:
         prof = random_revolve_profile(_rng(spec))
@@ -424,7 +425,6 @@ def _revolve(spec):
 
 
 def _extrude(spec):
-    from scene_gen.profiles import random_outline
     rng = _rng(spec)
     outline = _points(spec, "outline", 2, 3)
     if outline is None:
@@ -614,14 +614,8 @@ _MAKERS.update({"revolve": _revolve, "extrude": _extrude, "blob": _blob, "boolea
 
 
 def _room(spec: MeshSpec) -> MeshData:
-    try:
-        from scene_gen import rooms
-    except ImportError as e:
-        raise MeshError(f"mesh kind 'room' needs scene_gen.rooms: {e}") from e
-    mesh = rooms.build_room_mesh(dict(spec.params))
-    if not isinstance(mesh, MeshData):
-        raise MeshError(f"rooms.build_room_mesh returned {type(mesh).__name__}, expected MeshData")
-    return mesh
+    v, f, n, uv = rooms.room_geometry(dict(spec.params))
+    return MeshData(vertices=v, faces=f, normals=n, uv=uv)
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,17 +12,23 @@ layer-embeddings paper (Munkberg & Hasselgren 2020, sec. 4) describes it:
 - only what the scene needs: objects outside every frame's view frustum (motion sweep included) are
   dropped, triangle budgets follow the projected size, static scenes carry no velocities.
 
-All randomness comes from ``np.random.SeedSequence([seed, kind_id])`` split into independent streams
-(layout, materials, camera, motion, lens), so the same arguments give an identical spec in any process.
+The scene kinds are the registered scene families (``scene_gen.families``; a family's layout function
+places the room or backdrop, the objects and the lights). All randomness comes from
+``np.random.SeedSequence([seed, family.seed_index])`` split into independent streams (layout,
+materials, camera, motion, lens), so the same arguments give an identical spec in any process.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from scene_gen import cameras as cams
+from scene_gen import meshes
 from scene_gen.config import ConfigError, SceneGenConfig
-from scene_gen.layout import Layout, Placed, family
-from scene_gen.spec import SCENE_KINDS, MeshSpec, ObjectSpec, SceneSpec
+from scene_gen.families import family_names, get_family
+from scene_gen.layout import Layout, Placed
+from scene_gen.materials import random_material
+from scene_gen.meshes import triangle_budget
+from scene_gen.spec import MeshSpec, ObjectSpec, SceneSpec
 
 __all__ = ["sample_scene", "scan_models", "Layout", "Placed"]
 
@@ -32,7 +38,6 @@ def scan_models(folder: str | None) -> list[str]:
     Raises ConfigError naming the folder when none can be used."""
     if folder is None:
         return []
-    from scene_gen import meshes
     found = _scan_cache.get(folder)
     if found is None:
         found = meshes.scan_model_folder(folder)
@@ -51,8 +56,8 @@ _scan_cache: dict[str, list[str]] = {}
 def _check_args(seed, kind, num_frames, res) -> None:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
-    if kind not in SCENE_KINDS:
-        raise ConfigError(f"scene kind must be one of {SCENE_KINDS}, got {kind!r}")
+    if kind not in family_names():
+        raise ConfigError(f"scene kind must be one of {family_names()}, got {kind!r}")
     if isinstance(num_frames, bool) or not isinstance(num_frames, (int, np.integer)) or not 1 <= num_frames <= 100000:
         raise ConfigError(f"num_frames must be an integer in [1, 100000], got {num_frames!r}")
     if isinstance(res, bool) or not isinstance(res, (int, np.integer)) or not 1 <= res <= 65536:
@@ -61,7 +66,7 @@ def _check_args(seed, kind, num_frames, res) -> None:
 
 def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
                  config: SceneGenConfig | None = None) -> SceneSpec:
-    """A random scene of ``kind`` (``indoor``/``outdoor``) for ``num_frames`` frames at ``res``² pixels.
+    """A random scene of ``kind`` (a scene family: ``indoor``, ``outdoor``, ...) for ``num_frames`` frames at ``res``² pixels.
 
     Pure function of its arguments (numpy only)."""
     _check_args(seed, kind, num_frames, res)
@@ -69,12 +74,13 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
     if not isinstance(cfg, SceneGenConfig):
         raise ConfigError(f"config must be a SceneGenConfig, got {type(cfg).__name__}")
     user_models = scan_models(cfg.model_folder)
-    ss = np.random.SeedSequence([int(seed), SCENE_KINDS.index(kind)])
+    family = get_family(kind)
+    ss = np.random.SeedSequence([int(seed), family.seed_index])
     r_flags, r_layout, r_cam, r_motion, r_lens, r_path = (np.random.default_rng(s) for s in ss.spawn(6))
     defocus = bool(r_flags.uniform() < cfg.p_defocus)
     motion = bool(r_flags.uniform() < cfg.p_motion)
     fov = cams.sample_fov(r_cam, cfg.fov_range)
-    lay: Layout = family(kind)(r_layout, r_cam, cfg, fov, res, user_models)
+    lay: Layout = family.layout(r_layout, r_cam, cfg, fov, res, user_models)
     path = cams.camera_path(r_path, lay.origin, lay.target, num_frames, step=lay.camera_step, clamp=lay.clamp)
     frames = [cams.make_camera(o, t, fov) for o, t in path]
     objs: list[Placed] = lay.objects
@@ -108,7 +114,6 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
         aperture = cams.sample_aperture(r_lens, dists[0], cfg.aperture_range)
         frames = [cams.make_camera(c.origin, c.target, c.fov, aperture, d) for c, d in zip(frames, dists)]
     # triangle budgets from the largest projected radius over the frames
-    from scene_gen.meshes import triangle_budget
     rpx = cams.max_projected_radius(frames, centers, radii, vel, (res, res))
     out = []
     for i, o in enumerate(objs):
@@ -128,7 +133,6 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
 def _apply_palette(rng: np.random.Generator, objs: list, k: int) -> None:
     """Content objects (movable, not kept structure or furniture, not emitters) take one of ``k`` random
     materials."""
-    from scene_gen.materials import random_material
     palette = [random_material(rng) for _ in range(k)]
     for o in objs:
         if o.movable and not o.keep and o.emitter is None:

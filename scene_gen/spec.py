@@ -18,10 +18,10 @@ from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, get_type_hints
 
 from scene_gen.errors import SpecError
+from scene_gen.families import family_names
 
 SPEC_VERSION = 1
 
-SCENE_KINDS = ("indoor", "outdoor")
 MESH_KINDS = ("sphere", "box", "cylinder", "capsule", "cone", "torus", "revolve", "extrude", "blob",
               "boolean", "plane", "room", "file")
 MATERIAL_KINDS = ("diffuse", "conductor", "roughconductor", "dielectric", "roughdielectric",
@@ -30,6 +30,14 @@ TEXTURE_KINDS = ("checker", "noise", "stripes", "cells")
 LIGHT_KINDS = ("area", "point", "envmap", "sunsky", "constant")
 
 Vec3 = tuple[float, float, float]
+
+
+def __getattr__(name: str):
+    """``SCENE_KINDS``: the registered scene families, ``("indoor", "outdoor")`` and any added since
+    (``scene_gen.families.family_names()``, found when first asked for)."""
+    if name == "SCENE_KINDS":
+        return family_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -275,7 +283,8 @@ class SceneSpec(_Spec):
     case: str = ""                    # hard cases applied (scene_gen.cases), comma-separated; '' = none
 
     def __post_init__(self):
-        _check(self.kind in SCENE_KINDS, f"scene.kind must be one of {SCENE_KINDS}, got {self.kind!r}")
+        kinds = family_names()
+        _check(self.kind in kinds, f"scene.kind must be one of {kinds}, got {self.kind!r}")
         _check(isinstance(self.seed, int) and self.seed >= 0, f"scene.seed must be an integer >= 0, got {self.seed!r}")
         _check(len(self.cameras) >= 1, "scene.cameras needs at least one camera (one per frame)")
         _check(0.0 <= self.shutter <= 1.0, f"scene.shutter must lie in [0, 1], got {self.shutter}")

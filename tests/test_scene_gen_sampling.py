@@ -15,12 +15,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scene_gen import cameras as cams
-from scene_gen import rooms
+from scene_gen import meshes, rooms
 from scene_gen.config import ConfigError, SceneGenConfig
 from scene_gen.errors import SpecError
 from scene_gen.materials import random_material
 from scene_gen.sampling import sample_scene
-from scene_gen.spec import MATERIAL_KINDS, TEXTURE_KINDS, SceneSpec
+from scene_gen.spec import MATERIAL_KINDS, TEXTURE_KINDS, MeshSpec, SceneSpec
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -202,7 +202,6 @@ def test_triangle_budgets_follow_screen_size():
 
 def test_objects_rest_on_the_ground():
     """World-space meshes (built by scene_gen.meshes, an independent oracle) touch y = 0."""
-    from scene_gen import meshes
     from scene_gen.to_mitsuba import world_mesh
     import dataclasses
     s = sample_scene(2, "outdoor", config=SceneGenConfig(outdoor_objects=30, p_floating=0.0, p_motion=0.0))
@@ -249,7 +248,7 @@ def test_room_meshes_face_inward_with_openings(room_type):
     H = plan["height"]
     wall_area = sum(math.dist(a, b) for a, b, _ in rooms.room_walls(plan["rects"])) * H
     for part in rooms.PARTS:
-        m = rooms.build_room_mesh({**plan, "openings": openings, "skylights": skylights, "part": part})
+        m = meshes.build(MeshSpec("room", {**plan, "openings": openings, "skylights": skylights, "part": part}))
         tri = m.vertices[m.faces].astype(np.float64)
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         assert (np.einsum("ij,ij->i", fn, m.normals[m.faces[:, 0]]) > 0).all()   # winding matches normals
@@ -370,16 +369,3 @@ def test_material_palette_zero_is_not_written():
     assert d["material_palette"] == 16 and SceneGenConfig.from_dict(d) == SceneGenConfig(material_palette=16)
     with pytest.raises(ConfigError, match="material_palette"):
         SceneGenConfig(material_palette=-1)
-
-
-def test_scene_families_are_registered_by_kind():
-    from scene_gen import layout, outdoor
-    from scene_gen.spec import SCENE_KINDS
-    assert layout.family_names() == sorted(SCENE_KINDS)
-    assert layout.family("outdoor") is outdoor.layout_outdoor
-    with pytest.raises(ConfigError, match="scene kind must be one of"):
-        layout.family("underwater")
-    with pytest.raises(ConfigError, match="not a scene kind"):
-        layout.register_family("underwater")(lambda *a: None)
-    with pytest.raises(ConfigError, match="already registered"):
-        layout.register_family("outdoor")(lambda *a: None)

@@ -12,16 +12,27 @@ import math
 import numpy as np
 
 from scene_gen import cameras as cams
-from scene_gen.layout import Layout, Placed, probe_params, random_shape, register_family, upright
+from scene_gen.families import Setting, register_family
+from scene_gen.layout import Layout, Placed, probe_params, random_shape, upright
 from scene_gen.materials import diffuse, random_material, random_texture
 from scene_gen.spec import LightSpec, MeshSpec, Transform
+
+# Radiance scales chosen so a 64-spp preview with the fixed log tone map is well exposed.
+MAX_SCREEN = 0.3  # largest object radius as a share of the half-width of the view at its distance
+SUN_SCALE = 2.0   # Mitsuba sunsky at scale 1: the sun lights a 0.5-albedo ground to ~0.17 (at 45°)
+SKY_SCALE = 5.0   # ... the sky alone to ~0.04, and the sky itself is ~0.1 (sunsky turned y-up)
+OUTDOOR_PROBE_SCALE = 1.0
+OUTDOOR_SUN = 3.0  # probe sun irradiance: a 0.5-albedo ground in full sun ~0.5 (x sin elevation)
+
+SETTINGS = {"outdoor_objects": Setting(75, "int", 0, 10000, "meshes placed on the backdrop"),
+            "p_sunsky": Setting(0.5, "probability", doc="Mitsuba sunsky, else a procedural HDR probe")}
 
 
 def _f(x) -> float:
     return round(float(x), 6)
 
 
-@register_family("outdoor")
+@register_family("outdoor", seed_index=1, settings=SETTINGS)
 def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fov: float, res: int,
                    user_models: list[str]):
 
@@ -118,11 +129,3 @@ def layout_outdoor(rng: np.random.Generator, r_cam: np.random.Generator, cfg, fo
                                            "scale": OUTDOOR_PROBE_SCALE, "rotation": _f(rng.uniform(0, 360))}))
     return Layout(objects=objects, lights=lights, origin=origin, target=target,
                   camera_step=_f(rng.uniform(0.05, 0.3)))
-
-
-# Radiance scales chosen so a 64-spp preview with the fixed log tone map is well exposed.
-MAX_SCREEN = 0.3  # largest object radius as a share of the half-width of the view at its distance
-SUN_SCALE = 2.0   # Mitsuba sunsky at scale 1: the sun lights a 0.5-albedo ground to ~0.17 (at 45°)
-SKY_SCALE = 5.0   # ... the sky alone to ~0.04, and the sky itself is ~0.1 (sunsky turned y-up)
-OUTDOOR_PROBE_SCALE = 1.0
-OUTDOOR_SUN = 3.0  # probe sun irradiance: a 0.5-albedo ground in full sun ~0.5 (x sin elevation)
