@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from scene_gen.checks import need, need_int
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
@@ -79,19 +80,17 @@ class StoreLayout:
 
     def __post_init__(self):
         for name in ("num_frames", "height", "width", "spp", "tile"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < (0 if name == "num_frames" else 1):
-                lo = 0 if name == "num_frames" else 1
-                raise StoreLayoutError(f'"{name}" must be an integer >= {lo}, got {v!r}')
+            need_int(f'"{name}"', getattr(self, name), 0 if name == "num_frames" else 1, None, StoreLayoutError,
+                     numpy=True)
         object.__setattr__(self, "layer_spp", tuple(int(s) for s in self.layer_spp))
         if any(s < 1 for s in self.layer_spp):
             raise StoreLayoutError(f'"layer_spp" must hold positive sample counts, got {self.layer_spp!r}')
-        if self.radiance_encoding not in RADIANCE_ENCODINGS:
-            raise StoreLayoutError(f'"radiance_encoding" must be one of {RADIANCE_ENCODINGS}, got {self.radiance_encoding!r}')
-        if self.feature_dtype not in FEATURE_DTYPES:
-            raise StoreLayoutError(f'"feature_dtype" must be one of {FEATURE_DTYPES}, got {self.feature_dtype!r}')
-        if self.encoding is not None and self.encoding not in codecs.ENCODINGS:
-            raise StoreLayoutError(f'"encoding" must be one of {codecs.ENCODINGS} (or left out), got {self.encoding!r}')
+        need(self.radiance_encoding in RADIANCE_ENCODINGS, '"radiance_encoding"', f"one of {RADIANCE_ENCODINGS}",
+             self.radiance_encoding, StoreLayoutError)
+        need(self.feature_dtype in FEATURE_DTYPES, '"feature_dtype"', f"one of {FEATURE_DTYPES}", self.feature_dtype,
+             StoreLayoutError)
+        need(self.encoding is None or self.encoding in codecs.ENCODINGS, '"encoding"',
+             f"one of {codecs.ENCODINGS} (or left out)", self.encoding, StoreLayoutError)
 
     @property
     def codec_set(self) -> str:
