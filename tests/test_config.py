@@ -250,3 +250,24 @@ def test_a_batch_jobs_memory_is_shared_by_the_workers_it_will_run():
     assert worker_memory(c)[0] == 8 * 2 ** 30
     c = ClusterConfig(kind="pbs", jobqueue={"cores": 8, "processes": 2, "memory": "32GiB"})
     assert worker_memory(c)[0] == 16 * 2 ** 30
+
+
+def test_the_shared_checks_name_the_setting_in_one_line():
+    """scene_gen.checks, behind every config: '<name> must be <allowed>, got <value>' in the caller's error
+    class; bools are not integers or numbers; numpy integers only where asked for."""
+    from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+    with pytest.raises(ConfigError, match=r"^render\.spp must be an integer in \[1, 4096\], got 0$"):
+        need_int("render.spp", 0, 1, 4096, ConfigError)
+    with pytest.raises(ConfigError, match=r"^x must be an integer >= 1, got True$"):
+        need_int("x", True, 1, None, ConfigError)
+    need_int("x", np.int64(3), 1, None, ConfigError, numpy=True)
+    assert not is_int(np.int64(3)) and is_int(np.int64(3), numpy=True) and not is_int(True, numpy=True)
+    assert is_number(2) and is_number(0.5) and not is_number(True) and not is_number(float("nan"), finite=True)
+    need(True, "never", "raised", 0, ConfigError)
+    with pytest.raises(ConfigError, match=r"^a\.b must be one of \('u', 'v'\), got 'w'$"):
+        need(False, "a.b", "one of ('u', 'v')", "w", ConfigError)
+    assert known_keys(None, ["a"], "s", ConfigError) == {}
+    with pytest.raises(ConfigError, match=r"^s: unknown key\(s\) \['c'\]; known: \['a', 'b'\]$"):
+        known_keys({"a": 1, "c": 2}, ["b", "a"], "s", ConfigError)
+    with pytest.raises(ConfigError, match=r"^s must be a mapping, got list$"):
+        known_keys([1], ["a"], "s", ConfigError)
