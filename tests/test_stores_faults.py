@@ -104,7 +104,7 @@ def test_missing_shard_is_named_by_validate_readers_dataset_and_resume(store, ca
     from training.datasets import SampleFrames
     ds = SampleFrames(store, split=None, spp=S, crop=8, augment=False)
     with pytest.raises(MissingShardError):
-        ds[ds.frames.index(2)]
+        ds[[w[-1] for w in ds.windows].index(2)]
     # resume: the writer side counts them as incomplete, so `pipeline dataset` re-renders them
     w = StoreWriter(store)
     assert w.incomplete_frames() == [1, 2] and not w.frame_complete(1) and w.frame_complete(0)
