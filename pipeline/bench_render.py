@@ -131,11 +131,13 @@ def frames_per_hour(*, res: int, workers: int, scene_gen: dict | None = None) ->
     """Frames per hour at ``res`` for the default config's scene mix (``pipeline.estimate.calibrate``)."""
     from pipeline.config import SceneGroup, load_config
     from pipeline.estimate import calibrate, local_slots
+    from scene_gen.families import family_names
     d = load_config(DEFAULT_CONFIG)
-    mix = {k: sum(g.count * g.frames for g in d.scenes if g.kind == k) for k in ("indoor", "outdoor")}
+    kinds = [k for k in family_names() if any(g.kind == k for g in d.scenes)]
+    mix = {k: sum(g.count * g.frames for g in d.scenes if g.kind == k) for k in kinds}
     # the first scene of each kind keeps its seed: groups in the default order, one scene each
     cal_cfg = d.with_overrides(resolution=(res, res), scene_gen={**d.scene_gen, **(scene_gen or {})},
-                               scenes=tuple(SceneGroup(k, 1) for k in ("indoor", "outdoor")))
+                               scenes=tuple(SceneGroup(k, 1) for k in kinds))
     # the workers render side by side, as in a run (they slow each other down)
     cal = calibrate(cal_cfg, per_group=1, threads=1, concurrent=min(workers, local_slots(1)), log=lambda *a: None)
     t = {f["kind"]: f["frame_s"] for f in cal["frames"]}

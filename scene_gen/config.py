@@ -11,36 +11,30 @@ so a family brings its settings in its own file. All of them are plain keys of t
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import ClassVar
 
+from scene_gen.checks import is_number, known_keys, need, need_int
 from scene_gen.errors import ConfigError, SpecError  # noqa: F401  (ConfigError re-exported)
 from scene_gen.families import Setting, family_settings
 
 
 def _int_in(name: str, v, lo: int, hi: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise ConfigError(f"scene_gen.{name} must be an integer in [{lo}, {hi}], got {v!r}")
+    need_int(f"scene_gen.{name}", v, lo, hi, ConfigError)
 
 
 def _prob(name: str, v) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v <= 1.0):
-        raise ConfigError(f"scene_gen.{name} must be a probability in [0, 1], got {v!r}")
+    need(is_number(v) and 0.0 <= v <= 1.0, f"scene_gen.{name}", "a probability in [0, 1]", v, ConfigError)
 
 
 def _range(name: str, v, lo: float, hi: float, *, open_lo: bool = False, open_hi: bool = False) -> tuple:
-    ok = isinstance(v, (tuple, list)) and len(v) == 2 and all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    ok = isinstance(v, (tuple, list)) and len(v) == 2 and all(is_number(x, finite=True) for x in v)
     if ok:
         a, b = float(v[0]), float(v[1])
         ok = a <= b and (a > lo if open_lo else a >= lo) and (b < hi if open_hi else b <= hi)
-    if not ok:
-        lb = "(" if open_lo else "["
-        rb = ")" if open_hi else "]"
-        raise ConfigError(f"scene_gen.{name} must be a pair (min, max) with min <= max inside "
-                          f"{lb}{lo}, {hi}{rb}, got {v!r}")
+    lb, rb = "(" if open_lo else "[", ")" if open_hi else "]"
+    need(ok, f"scene_gen.{name}", f"a pair (min, max) with min <= max inside {lb}{lo}, {hi}{rb}", v, ConfigError)
     return (float(v[0]), float(v[1]))
 
 
@@ -98,14 +92,13 @@ class SharedSettings:
         if self.min_triangles > self.max_triangles:
             raise ConfigError(f"scene_gen.min_triangles ({self.min_triangles}) must be <= "
                               f"scene_gen.max_triangles ({self.max_triangles})")
-        if (isinstance(self.tris_per_px, bool) or not isinstance(self.tris_per_px, (int, float))
-                or not (0 < self.tris_per_px <= 1e6)):
-            raise ConfigError(f"scene_gen.tris_per_px must be a number in (0, 1e6], got {self.tris_per_px!r}")
+        need(is_number(self.tris_per_px) and 0 < self.tris_per_px <= 1e6, "scene_gen.tris_per_px",
+             "a number in (0, 1e6]", self.tris_per_px, ConfigError)
         _int_in("max_depth", self.max_depth, 1, 1000)
         _int_in("material_palette", self.material_palette, 0, 10000)
         if self.model_folder is not None:
-            if not isinstance(self.model_folder, (str, Path)) or str(self.model_folder) == "":
-                raise ConfigError(f"scene_gen.model_folder must be a folder path or null, got {self.model_folder!r}")
+            need(isinstance(self.model_folder, (str, Path)) and str(self.model_folder) != "", "scene_gen.model_folder",
+                 "a folder path or null", self.model_folder, ConfigError)
             p = Path(self.model_folder)
             if not p.is_dir():
                 raise ConfigError(f"scene_gen.model_folder {str(p)!r} is not an existing folder")
@@ -125,12 +118,7 @@ class SharedSettings:
     def from_dict(cls, d: dict | None) -> "SceneGenConfig":
         if d is None:
             return cls()
-        if not isinstance(d, dict):
-            raise ConfigError(f"scene_gen config must be a mapping, got {type(d).__name__}")
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ConfigError(f"scene_gen: unknown field(s) {unknown}; known: {sorted(names)}")
+        d = known_keys(d, cls, "scene_gen", ConfigError, noun="field(s)")
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
         return cls(**kw)
 
