@@ -85,7 +85,9 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
     text = (tmp_path / "report" / "report.md").read_text()
     assert f"| {run.name} |" in text and "| input |" in text and "| oidn |" in text
     assert "Each method against **input**" in text                     # paired differences with intervals
-    comp = json.loads((tmp_path / "report" / "comparisons.json").read_text())["comparisons"]
+    saved = json.loads((tmp_path / "report" / "comparisons.json").read_text())
+    comp, by_kind = saved["comparisons"], saved["comparisons_by_kind"]
+    assert by_kind["kinds"] and all(k in row for row in by_kind["rows"] for k, _ in by_kind["kinds"])
     assert comp["baseline"] == "input" and [r["label"] for r in comp["rows"]] == [run.name, "oidn"]
     lo, hi = comp["rows"][0]["relmse"]["ci95"]
     assert lo <= comp["rows"][0]["relmse"]["mean"] <= hi

@@ -22,7 +22,7 @@ from . import stats
 from .checkpoint import find_runs
 from .errors import DataError
 from .data import open_store
-from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, write_json
+from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, frame_kinds, write_json
 from .fma import figure10, figure10_markdown
 from .hardcases import hard_case_report
 from .jsonio import write as write_strict
@@ -252,31 +252,57 @@ def comparisons_markdown(comp: dict) -> str:
     lines = ["| method | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
              "|---|" + "---|" * len(keys)]
     for row in comp["rows"]:
-        cells = []
-        for key, _, f, better in keys:
-            d = row.get(key)
-            if d is None:
-                cells.append("–")
-                continue
-            text = f.format(d["mean"]) + ("" if d["ci95"] is None else
-                                          f" [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]")
-            if not d["shown"]:
-                text += " no difference shown"
-            else:
-                text += " better" if d["mean"] * better > 0 else " worse"
-            cells.append(text)
+        cells = [_difference_cell(row.get(key), f, better) for key, _, f, better in keys]
         lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: str = "relmse") -> dict:
+    """:func:`comparisons` of ``key`` over the frames of each kind (``evaluate.frame_kinds``; the kinds
+    of the baseline's ``by_kind``): ``{"baseline", "kinds": [(kind, frames)], "rows": [{"label", kind: diff}]}``."""
+    comp = comparisons(results, baseline)
+    base = next(r for r in results if r["label"] == comp["baseline"])
+    kinds = list(base.get("by_kind", {}))
+    tags = {f["index"]: frame_kinds(f) for f in base["frames"]}
+    clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
+    rows = []
+    for r in results:
+        if r is base or not r["frames"] or key not in r["frames"][0]:
+            continue
+        row = {"label": r["label"]}
+        for kind in kinds:
+            a = {f["index"]: f[key] for f in base["frames"] if kind in tags[f["index"]]}
+            b = {f["index"]: f[key] for f in r["frames"] if f["index"] in a}
+            row[kind] = stats.paired_difference(a, b, clip)
+        rows.append(row)
+    return {"baseline": comp["baseline"], "kinds": [(k, base["by_kind"][k]["frames"]) for k in kinds], "rows": rows}
+
+
+def _difference_cell(d, f: str, better: int) -> str:
+    if d is None:
+        return "–"
+    text = f.format(d["mean"]) + ("" if d["ci95"] is None else f" [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]")
+    if not d["shown"]:
+        return text + " no difference shown"
+    return text + (" better" if d["mean"] * better > 0 else " worse")
 
 
 def comparisons_section(results: list[dict], baseline: str | None) -> list[str]:
     comp = comparisons(results, baseline)
     if not comp["rows"]:
         return []
+    kinds = comparisons_by_kind(results, baseline)
+    table = ["| method | " + " | ".join(f"{k} ({n})" for k, n in kinds["kinds"]) + " |",
+             "|---|" + "---|" * len(kinds["kinds"])]
+    for row in kinds["rows"]:
+        table.append(f"| {row['label']} | " + " | ".join(_difference_cell(row[k], "{:+.4f}", -1)
+                                                          for k, _ in kinds["kinds"]) + " |")
     return [f"Each method against **{comp['baseline']}**, frame by frame on the same frames: the mean difference "
             "(method minus baseline) with its 95% interval, a bootstrap over the held-out clips (a still is a "
             "clip of one frame; the frames of a clip are resampled together). \"better\"/\"worse\" only where "
-            "the interval excludes 0, \"no difference shown\" where it holds 0.", "", comparisons_markdown(comp), ""]
+            "the interval excludes 0, \"no difference shown\" where it holds 0.", "", comparisons_markdown(comp), "",
+            f"ΔrelMSE against **{comp['baseline']}** by kind of frame (frame counts in brackets):", "",
+            *table, ""]
 
 
 def seed_spread(results: list[dict]) -> list[dict]:
@@ -360,7 +386,8 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     comparisons(results, baseline)                       # an unknown --baseline fails before the figures
     maps = write_figures(results, models, store, out)
     lines = main_section(results, store, split, spps, maps, baseline)
-    extra = {"comparisons": comparisons(results, baseline), "seed_spread": seed_spread(results)}
+    extra = {"comparisons": comparisons(results, baseline), "comparisons_by_kind": comparisons_by_kind(results, baseline),
+             "seed_spread": seed_spread(results)}
     if clips_store is not None:
         clip_results = sum(evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
                                             skip_bad_frames, prefix="clips-")[:3], [])
