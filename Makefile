@@ -57,7 +57,7 @@ compare: setup   ## every denoiser family, OIDN and the inputs on the same held-
 	$(PY) -m pipeline dataset --config configs/hard-cases.yaml --out data/hard-cases.zarr
 	$(PY) -m training report --runs $(call seed_runs,$(COMPARE_MODELS) $(REALTIME_MODELS)) \
 	  $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) --store data/eval-cpu.zarr \
-	  --clips-store data/train-temporal-cpu.zarr --hard-cases data/hard-cases.zarr --out data/report-compare
+	  --clips-store data/eval-temporal-cpu.zarr --hard-cases data/hard-cases.zarr --out data/report-compare
 	@echo "make compare: data/report-compare/report.md in $$(( $$(date +%s) - $(COMPARE_START) )) s"
 
 REALTIME_REPORT ?= 1
@@ -77,15 +77,16 @@ TEMPORAL_STEPS ?= 1500
 TEMPORAL_CROP ?= 64
 TEMPORAL_CFG ?= {"size": "small"}
 TEMPORAL_REPORT ?= 1
-compare-temporal: setup ## adaptive vs uniform vs per-frame at 4 spp on held-out moving clips (train-temporal-cpu; hours on a CPU)
+compare-temporal: setup ## adaptive vs uniform vs per-frame at 4 spp on 12 held-out moving clips (train- and eval-temporal-cpu; hours on a CPU)
 	$(PY) -m pipeline dataset --config configs/train-temporal-cpu.yaml --out data/train-temporal-cpu.zarr
+	$(PY) -m pipeline dataset --config configs/eval-temporal-cpu.yaml --out data/eval-temporal-cpu.zarr
 	for m in $(TEMPORAL_MODELS); do \
 	  $(PY) -m training train --model $$m --store data/train-temporal-cpu.zarr --steps $(TEMPORAL_STEPS) \
 	    --crop $(TEMPORAL_CROP) --model-cfg '$(TEMPORAL_CFG)' --out data/runs-temporal/$$m || exit 1; \
 	done
 	if [ "$(TEMPORAL_REPORT)" = 1 ]; then \
 	  $(PY) -m training report --runs $(addprefix data/runs-temporal/,$(TEMPORAL_MODELS)) \
-	    --store data/train-temporal-cpu.zarr --out data/report-temporal; \
+	    --store data/eval-temporal-cpu.zarr --out data/report-temporal; \
 	fi
 
 HARD_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt)
