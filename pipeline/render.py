@@ -316,16 +316,11 @@ class FrameScene:
 
 # ------------------------------------------------------------------------------------------------
 # inputs
-def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float, *, debug: bool = False) -> dict:
-    """One wavefront: ``rows`` pixel rows from ``row0``, ``s_per`` samples a pixel, at shutter time ``t``.
-
-    Returns numpy arrays of N = rows·W·s_per lanes (pixel-major, then sample): ``L`` (float32, N×3,
-    radiance times the ray weight) and ``F`` (float32, N×17, the features). Everything, the features
-    included, is computed in one drjit kernel in float32: per-sample numpy in float64 cost as much as
-    a quarter of the loop. ``debug`` (tests): also the primary hit point ``p``, ray direction ``d``, film
-    position ``film`` (in [0, 1]²), ``hit``, the hit shape's registry id ``sid``, shading normal ``n``,
-    ray distance ``t``, diffuse reflectance ``albedo`` and lens sample on the unit disk ``lens``.
-    """
+def _primary(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float):
+    """The camera rays of one wavefront and their primary hits: ``(sampler, ray, weight, si, hit, film,
+    ap)``. The sampler is left after the ray's five dimensions (film 2, lens 2, wavelength 1), where the
+    integrator continues; :func:`_trace` and :func:`_geometry` both start here, so a geometry pass sees
+    exactly the rays (and hits) of the input samples."""
     mi, dr = fs.mi, fs.dr
     W, H = fs.cfg.res
     n = rows * W * s_per
@@ -342,7 +337,23 @@ def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float
     wav = sampler.next_1d()
     ray, weight = fs.sensor.sample_ray_differential(dr.opaque(mi.Float, float(fs.tau(t))), wav, film, ap)
     si = fs.scene.ray_intersect(ray, mi.RayFlags.All, True)
-    hit = si.is_valid()
+    return sampler, ray, weight, si, si.is_valid(), film, ap, idx
+
+
+def _trace(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float, *, debug: bool = False) -> dict:
+    """One wavefront: ``rows`` pixel rows from ``row0``, ``s_per`` samples a pixel, at shutter time ``t``.
+
+    Returns numpy arrays of N = rows·W·s_per lanes (pixel-major, then sample): ``L`` (float32, N×3,
+    radiance times the ray weight) and ``F`` (float32, N×17, the features). Everything, the features
+    included, is computed in one drjit kernel in float32: per-sample numpy in float64 cost as much as
+    a quarter of the loop. ``debug`` (tests): also the primary hit point ``p``, ray direction ``d``, film
+    position ``film`` (in [0, 1]²), ``hit``, the hit shape's registry id ``sid``, shading normal ``n``,
+    ray distance ``t``, diffuse reflectance ``albedo`` and lens sample on the unit disk ``lens``.
+    """
+    mi, dr = fs.mi, fs.dr
+    W, H = fs.cfg.res
+    n = rows * W * s_per
+    sampler, ray, weight, si, hit, film, ap, idx = _primary(fs, seed, row0, rows, s_per, t)
     albedo = si.bsdf(ray).eval_diffuse_reflectance(si, hit)
     L, _valid, _ = fs.integrator.sample(fs.scene, sampler, ray, None, True)
     L = L * weight
@@ -384,15 +395,9 @@ def _feature_columns(fs: FrameScene, si, ray, hit, albedo, sid, ap, t: float) ->
     op = lambda x: dr.opaque(Float, float(x))          # noqa: E731  per-frame constants, not literals
     zero = Float(0.0)
     normal = dr.select(hit, si.sh_frame.n, V3(0.0))
-    # Mitsuba starts camera rays on the near plane (t = NEAR / cos to the view axis): add that back so
-    # depth is the distance from the eye (pinhole) or lens point to the hit.
-    va = fs.view_axis
-    cos_view = dr.abs(ray.d.x * op(va[0]) + ray.d.y * op(va[1]) + ray.d.z * op(va[2]))
-    depth = dr.select(hit, si.t + cam_geom.NEAR / dr.maximum(cos_view, 1e-6), 0.0)
+    depth = _eye_depth(fs, si, ray, hit)
     alb = dr.clip(dr.select(hit, albedo, mi.Color3f(0.0)), 0.0, 1.0)
-    # per-shape tables (index 0 = no hit), looked up by the hit shape's registry id
-    rel = sid - dr.opaque(mi.UInt32, fs.lut_base)                  # wraps around below the base: out of range
-    index = dr.gather(mi.UInt32, fs.table_lut, rel, hit & (rel < dr.opaque(mi.UInt32, dr.width(fs.table_lut))))
+    index = _shape_index(fs, sid, hit)
     spec = [dr.gather(Float, fs.table_specular[c], index) for c in range(3)]
     rough = dr.gather(Float, fs.table_roughness, index)
     # Motion: world point (w=1) on hits, direction (w=0) at infinity on misses, projected with this
@@ -425,6 +430,44 @@ def _feature_columns(fs: FrameScene, si, ray, hit, albedo, sid, ap, t: float) ->
             lens_u, lens_v, time]
 
 
+def _eye_depth(fs: FrameScene, si, ray, hit):
+    """Distance from the eye (pinhole) or lens point to the primary hit, 0 on a miss. Mitsuba starts
+    camera rays on the near plane (t = NEAR / cos to the view axis): that is added back."""
+    dr, op = fs.dr, (lambda x: fs.dr.opaque(fs.mi.Float, float(x)))      # noqa: E731
+    va = fs.view_axis
+    cos_view = dr.abs(ray.d.x * op(va[0]) + ray.d.y * op(va[1]) + ray.d.z * op(va[2]))
+    return dr.select(hit, si.t + cam_geom.NEAR / dr.maximum(cos_view, 1e-6), 0.0)
+
+
+def _shape_index(fs: FrameScene, sid, hit):
+    """Index into the per-shape tables (0 = no hit) of the hit shapes' registry ids."""
+    mi, dr = fs.mi, fs.dr
+    rel = sid - dr.opaque(mi.UInt32, fs.lut_base)                  # wraps around below the base: out of range
+    return dr.gather(mi.UInt32, fs.table_lut, rel, hit & (rel < dr.opaque(mi.UInt32, dr.width(fs.table_lut))))
+
+
+MISS_DISTANCE = 1e5   # world position of a miss (sample_geometry): this far along its ray, in scene units
+
+
+def _geometry(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: float) -> dict:
+    """The world-space geometry of one wavefront's samples (the rays of :func:`_trace` with the same
+    arguments, without shading): ``position`` (float32, N×3: the primary hit; a miss: the point
+    :data:`MISS_DISTANCE` along its ray), ``motion`` (float32, N×3: the hit point's position one frame
+    earlier minus its position now, ``-velocity``; 0 on a miss) and ``depth`` (float32, N: the
+    ``depth`` feature, to check the samples against a store's)."""
+    mi, dr = fs.mi, fs.dr
+    _sampler, ray, _weight, si, hit, _film, _ap, _idx = _primary(fs, seed, row0, rows, s_per, t)
+    Float, V3 = mi.Float, mi.Vector3f
+    index = _shape_index(fs, dr.reinterpret_array(mi.UInt32, si.shape), hit)
+    vel = V3(*(dr.gather(Float, fs.table_velocity[c], index) for c in range(3)))
+    pos = dr.select(hit, si.p, ray.o + ray.d * dr.opaque(Float, MISS_DISTANCE))
+    motion = dr.select(hit, -vel, V3(0.0))
+    depth = _eye_depth(fs, si, ray, hit)
+    dr.eval(pos, motion, depth)
+    return {"position": np.asarray(pos, np.float32).T.copy(), "motion": np.asarray(motion, np.float32).T.copy(),
+            "depth": np.asarray(depth, np.float32)}
+
+
 def _project(fs: FrameScene, m: np.ndarray, p, w):
     """Pixel coordinates (x, y) and validity of world points ``p`` (w = 1) or directions (w = 0) under
     the 4x4 world-to-clip ``m`` (``pipeline.camera.project_pixels`` in drjit; invalid: behind the
@@ -444,37 +487,67 @@ def render_inputs(fs: FrameScene, sample_hook: Callable | None = None) -> tuple[
     ``sample_hook(radiance, features)`` (float32 N×3, N×17 arrays of one wavefront, modified in place)
     runs before the NaN/Inf rule; tests use it to inject values.
     """
-    cfg, spec, frame = fs.cfg, fs.spec, fs.frame
-    W, H = cfg.res
-    S = cfg.spp
-    slices = math.gcd(cfg.time_slices, S) if fs.has_motion else 1
-    s_per = S // slices
-    times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
-    rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
+    W, H = fs.cfg.res
+    S = fs.cfg.spp
+    waves = list(_input_wavefronts(fs))
     # a still whose frame fits one wavefront takes the trace's buffers (pixel-major, then sample) as its
     # arrays: an allocation and a copy of every sample less, 6% of the loop
-    whole = len(times) == 1 and rows_per >= H
+    whole = len(waves) == 1
     if not whole:
         radiance = np.empty((H, W, S, 3), np.float32)           # every element is written below
         features = np.empty((H, W, S, NUM_FEATURES), np.float32)
     bad_total = 0
+    for args, sl in waves:
+        fs.set_time(args[-1])
+        tr = _trace(fs, *args)
+        L, F = tr["L"], tr["F"]
+        if sample_hook is not None:
+            sample_hook(L, F)
+        L, F, bad = sanitize_samples(L, F, fs.cfg.max_value)
+        if whole:
+            return L.reshape(H, W, S, 3), F.reshape(H, W, S, NUM_FEATURES), bad
+        bad_total += bad
+        rows, s_per = args[2], args[3]
+        radiance[sl] = L.reshape(rows, W, s_per, 3)
+        features[sl] = F.reshape(rows, W, s_per, NUM_FEATURES)
+    return radiance, features, bad_total
+
+
+def _input_wavefronts(fs: FrameScene):
+    """The wavefronts of the input samples, in order: ``((seed, row0, rows, s_per, t), slice)`` with the
+    arguments of :func:`_trace` and the ``(H, W, S)`` slice of the frame they fill. Time slices first
+    (samples ``k * s_per ...`` of every pixel at slice time ``t_k``), then row chunks of at most
+    ``cfg.max_wavefront`` lanes; each has its own seed."""
+    cfg, spec, frame = fs.cfg, fs.spec, fs.frame
+    W, H = cfg.res
+    slices = math.gcd(cfg.time_slices, cfg.spp) if fs.has_motion else 1
+    s_per = cfg.spp // slices
+    times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
+    rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
     for k, t in enumerate(times):
-        fs.set_time(float(t))
         for c, row0 in enumerate(range(0, H, rows_per)):
             rows = min(rows_per, H - row0)
             seed = stream_seed(spec.seed, frame, STREAM_INPUTS, k, c, offset=cfg.seed_offset)
-            tr = _trace(fs, seed, row0, rows, s_per, float(t))
-            L, F = tr["L"], tr["F"]
-            if sample_hook is not None:
-                sample_hook(L, F)
-            L, F, bad = sanitize_samples(L, F, cfg.max_value)
-            if whole:
-                return L.reshape(H, W, S, 3), F.reshape(H, W, S, NUM_FEATURES), bad
-            bad_total += bad
-            sl = np.s_[row0:row0 + rows, :, k * s_per:(k + 1) * s_per]
-            radiance[sl] = L.reshape(rows, W, s_per, 3)
-            features[sl] = F.reshape(rows, W, s_per, NUM_FEATURES)
-    return radiance, features, bad_total
+            yield (seed, row0, rows, s_per, float(t)), np.s_[row0:row0 + rows, :, k * s_per:(k + 1) * s_per]
+
+
+def sample_geometry(fs: FrameScene) -> dict[str, np.ndarray]:
+    """The world-space geometry of the frame's input samples, exactly the samples of
+    :func:`render_inputs` (the same rays, traced to their first hit, not shaded; a small fraction of
+    its time): ``position`` and ``motion`` (float32, H×W×S×3) and ``depth`` (float32, H×W×S). See
+    :func:`_geometry`. Used by the ``noisebase`` export, whose format stores them per sample."""
+    W, H = fs.cfg.res
+    S = fs.cfg.spp
+    out = {"position": np.empty((H, W, S, 3), np.float32), "motion": np.empty((H, W, S, 3), np.float32),
+           "depth": np.empty((H, W, S), np.float32)}
+    for args, sl in _input_wavefronts(fs):
+        fs.set_time(args[-1])
+        g = _geometry(fs, *args)
+        rows, s_per = args[2], args[3]
+        for k, a in g.items():
+            out[k][sl] = a.reshape(rows, W, s_per, *a.shape[1:])
+    fs.set_time(0.0)
+    return out
 
 
 def sanitize_samples(L: np.ndarray, F: np.ndarray, max_value: float) -> tuple[np.ndarray, np.ndarray, int]:
