@@ -16,7 +16,7 @@ COMMANDS = {
     "render-frame": ("pipeline.cli_render", "render one frame of a generated scene to an .npz (+ PNG)"),
     "dataset": ("pipeline.cli_dataset", "build a dataset from a YAML config on a Dask cluster"),
     "validate": ("stores.validate", "check a store: schema, completeness, NaN/Inf, value ranges"),
-    "export": ("stores.export", "export frames of a store to EXR, OIDN or layerdenoise layouts"),
+    "export": ("pipeline.export", "export frames of a store to EXR, OIDN, layerdenoise or Noisebase layouts"),
     "estimate": ("pipeline.estimate", "predict samples, core-hours, store bytes and wall time of a config from a "
                  "short calibration render"),
     "bench": ("pipeline.bench", "benchmarks that print figures (renderer, store, scheduler, models)"),

@@ -1,4 +1,5 @@
-"""Exports to the formats other tools read: ``exr``, ``oidn`` and ``layerdenoise``.
+"""Exports to the formats other tools read: ``exr``, ``oidn`` and ``layerdenoise`` (``noisebase``, which needs
+the renderer, is added by :mod:`pipeline.export`: ``python -m pipeline export`` has all four).
 
 ``main(argv)`` is ``python -m pipeline export STORE --frames ... --format F --out DIR``. Only frames
 ``validate`` passes are exported (:mod:`stores.fitness`, the check every command applies: complete,
@@ -50,7 +51,7 @@ from stores.imageio import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
 from stores.validate import cli_main, parse_frames
 
-FORMATS = ("exr", "oidn", "layerdenoise")
+FORMATS = ("exr", "oidn", "layerdenoise")       # the formats of the store alone (``python -m stores export``)
 
 
 # ``{"RGB": ...}``-style reading, for callers of this module's former reader
@@ -191,14 +192,14 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     when ``skip_bad_frames``. Everything is written into a temporary folder in ``out`` first and moved
     into place at the end (:func:`_into_place`): a failed export leaves ``out`` as it was."""
     from stores.fitness import screen
-    if fmt not in FORMATS:
-        raise ExportError(f"unknown export format {fmt!r}; choose one of {FORMATS}")
+    if fmt not in WRITERS:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {tuple(WRITERS)}")
     store = open_store(store_path)
     idx = frames if isinstance(frames, list) else parse_frames(frames, store.num_frames)
     if not idx:
         raise ExportError("no frames to export")
     idx = screen(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}", progress=True)
-    write = {"exr": export_exr, "oidn": export_oidn, "layerdenoise": export_layerdenoise}[fmt]
+    write = WRITERS[fmt]
     try:
         os.makedirs(out, exist_ok=True)
     except OSError as e:
@@ -207,10 +208,17 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     import tempfile
     tmp = tempfile.mkdtemp(prefix=".export-", dir=out)
     try:
-        files = write(store, idx, tmp, name) if fmt == "layerdenoise" else write(store, idx, tmp)
+        files = write(store, idx, tmp, name)
         return _into_place(tmp, out, files)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+# format -> writer(store, frames, out, name) -> files. Other packages add formats that need more than the
+# store (``pipeline.export`` adds ``noisebase``, which re-traces the samples with the renderer).
+WRITERS = {"exr": lambda st, fr, out, name: export_exr(st, fr, out),
+           "oidn": lambda st, fr, out, name: export_oidn(st, fr, out),
+           "layerdenoise": export_layerdenoise}
 
 
 def _into_place(tmp: str, out: str, files: list[str]) -> list[str]:
@@ -229,7 +237,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The ``export`` sub-command's arguments (shared by ``python -m pipeline`` and ``python -m stores``)."""
     ap.add_argument("store", help="path of the Zarr store")
     ap.add_argument("--frames", default="all", help="all (default), 3, 0,2,5-7")
-    ap.add_argument("--format", required=True, choices=FORMATS)
+    ap.add_argument("--format", required=True, choices=tuple(WRITERS))
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
     ap.add_argument("--skip-bad-frames", action="store_true",
