@@ -21,18 +21,21 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 from .errors import DataError
+from .inputs import check_features
 
 ORDER_SALT = 0x0DE7
 
 
 def open_store(store):
-    """A :class:`stores.reader.Store` from a path (or the store itself)."""
+    """A :class:`stores.reader.Store` from a path (or the store itself); a folder of Noisebase sequences
+    gives a :class:`stores.noisebase.NoisebaseStore`, which the per-sample kinds read alike."""
+    from stores import noisebase
     from stores.errors import StoreError
     from stores.reader import Store, open_store as _open
-    if isinstance(store, Store):
+    if isinstance(store, (Store, noisebase.NoisebaseStore)):
         return store
     try:
-        return _open(store)
+        return noisebase.NoisebaseStore(store) if noisebase.is_noisebase(store) else _open(store)
     except (StoreError, FileNotFoundError) as e:
         raise DataError(f"cannot open store {store!s}: {e}") from e
 
@@ -47,6 +50,7 @@ def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: 
     st = open_store(store)
     kind = spec.input_kind
     kind.check_store(st)
+    check_features(spec, st)
     kind.check_spp(st, spp)
     try:
         ds = kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
@@ -66,7 +70,10 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
     attr = "frames" if hasattr(ds, "frames") else "windows"
     items = list(getattr(ds, attr))
     used = sorted({int(i) for it in items for i in (it if isinstance(it, tuple) else (it,))})
-    bad = check_frames(store, used, progress=progress)
+    # a source other than our stores (a Noisebase folder) brings its own check of what it holds
+    check = getattr(store, "check_frames", None) or (lambda frames, progress: check_frames(store, frames,
+                                                                                           progress=progress))
+    bad = check(used, progress=progress)
     if not bad:
         return 0
     listed = describe(bad)

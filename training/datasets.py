@@ -112,7 +112,7 @@ class StoreDataset(torch.utils.data.Dataset):
 
     def __init__(self, store, split: str | None, crop: int | tuple[int, int] | None, augment: bool, seed: int,
                  crop_align: int = 1):
-        self.store: Store = store if isinstance(store, Store) else open_store(store)
+        self.store: Store = store if hasattr(store, "read_array") else open_store(store)   # ours or a NoisebaseStore
         if int(crop_align) < 1:
             raise CropSizeError(f"crop_align must be >= 1, got {crop_align}")
         self.crop_align = int(crop_align)

@@ -32,6 +32,7 @@ number of DataLoader workers or their order.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,27 +46,67 @@ from .errors import ConfigError, DataError
 GUIDE_ARRAYS = ("reference/radiance", "reference/stderr", "guides/albedo", "guides/normal", "guides/depth",
                 "guides/motion")
 SAMPLE_ARRAYS = ("inputs/radiance", "inputs/features")
+PIXEL_FEATURES = ("normal", "depth", "albedo", "motion")    # what the pixels kind's items hold
+
+
+ALL_FEATURES = tuple(FEATURE_GROUPS)
+
+
+def check_feature_groups(groups, what: str = '"features"') -> tuple[str, ...]:
+    """``groups`` as a tuple in ``FEATURE_GROUPS`` order, or ConfigError naming the unknown ones."""
+    if isinstance(groups, str) or not all(isinstance(g, str) for g in groups):
+        raise ConfigError(f"{what} must be a list of feature groups {list(ALL_FEATURES)}, got {groups!r}")
+    unknown = [g for g in groups if g not in FEATURE_GROUPS]
+    if unknown:
+        raise ConfigError(f"{what}: unknown feature groups {unknown}; the groups are {list(ALL_FEATURES)}")
+    return tuple(g for g in ALL_FEATURES if g in set(groups))
 
 
 @dataclass(frozen=True)
 class InputSpec:
     """What a model consumes: ``kind`` (one of :data:`KINDS`), ``frames`` consecutive frames per item
-    (1: stills) and ``default_spp``, the samples per pixel it is fed unless told otherwise (for
-    ``sampled-layers``: the average budget)."""
+    (1: stills), ``default_spp``, the samples per pixel it is fed unless told otherwise (for
+    ``sampled-layers``: the average budget) and ``features``, the per-sample feature groups it reads
+    (``stores.contract.FEATURE_GROUPS``; data that lacks one of them is refused, :func:`check_features`)."""
 
     kind: str
     frames: int = 1
     default_spp: int = 8
+    features: tuple[str, ...] = ALL_FEATURES
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ConfigError(f'input kind must be one of {sorted(KINDS)}, got {self.kind!r}')
         if not isinstance(self.frames, int) or self.frames < 1:
             raise ConfigError(f'"frames" must be an integer >= 1, got {self.frames!r}')
+        object.__setattr__(self, "features", check_feature_groups(self.features))
 
     @property
     def input_kind(self) -> "InputKind":
         return KINDS[self.kind]
+
+
+def check_features(spec: InputSpec, store) -> None:
+    """Refuse (DataError naming them) a model that reads feature groups the data does not hold (a store's
+    ``missing_features``: e.g. a Noisebase folder has no specular, roughness, coc, lens or time)."""
+    reads = spec.input_kind.feature_groups(spec)
+    lacking = [g for g in reads if g in getattr(store, "missing_features", ())]
+    if lacking:
+        have = [g for g in reads if g not in lacking]
+        raise DataError(f"the model reads the feature groups {lacking}, which {store.path!s} does not hold; train "
+                        f"it on the ones it has: --model-cfg '{{\"features\": {json.dumps(have)}}}' (the others "
+                        "reach the network as 0)")
+
+
+def mask_features(features: torch.Tensor, groups: tuple[str, ...]) -> torch.Tensor:
+    """``features (..., 17, h, w)`` with the groups not in ``groups`` set to 0 (the tensor itself when
+    every group is read)."""
+    if groups == ALL_FEATURES:
+        return features
+    keep = torch.zeros(NUM_FEATURES, dtype=features.dtype, device=features.device)
+    for g in groups:
+        keep[FEATURE_GROUPS[g]] = 1
+    return features * keep.view(NUM_FEATURES, 1, 1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -101,6 +142,10 @@ class InputKind:
         if missing:
             raise DataError(f"input kind {self.name!r} needs the arrays {missing}, which the store "
                             f"{store.path!s} does not have")
+
+    def feature_groups(self, spec: InputSpec) -> tuple[str, ...]:
+        """The per-sample feature groups a model of this kind with declaration ``spec`` reads."""
+        return spec.features
 
     def max_spp(self, store) -> int:
         return int(store.layout.spp)
@@ -216,6 +261,9 @@ class PixelsKind(InputKind):
     holds = "per-pixel images"
     reads_images = True
 
+    def feature_groups(self, spec):
+        return tuple(g for g in spec.features if g in PIXEL_FEATURES)
+
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
         return PixelFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed, frames=frames,
                            full_windows=full_windows)
@@ -286,6 +334,9 @@ class SampledLayersKind(InputKind):
     baseline_input = "sampled-layers"
     baseline_tag = " layers"             # "input layers": the baseline composed from the layers
     holds = "sample layers"
+
+    def feature_groups(self, spec):
+        return ()                        # the layers and the per-pixel guides only
 
     def max_spp(self, store) -> int:
         return int(sum(store.layout.layer_spp))

@@ -106,7 +106,7 @@ class PixelDenoiser(Denoiser):
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=float(temporal_alpha), **config)
         self.temporal_frames, self.temporal_alpha = temporal_frames, float(temporal_alpha)
 
-    def input_spec(self) -> InputSpec:
+    def declared_inputs(self) -> InputSpec:
         return InputSpec("pixels", frames=self.temporal_frames, default_spp=self.inputs.default_spp)
 
     def forward(self, batch: dict) -> torch.Tensor:

@@ -10,6 +10,7 @@ over pixels, samples or layers.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Sequence
 
 import torch
@@ -19,7 +20,7 @@ import torch.nn.functional as F
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
 from ..errors import ConfigError
-from ..inputs import InputSpec
+from ..inputs import ALL_FEATURES, InputSpec, check_feature_groups, mask_features
 
 NEG_SLOPE = 0.01
 EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)
@@ -361,9 +362,29 @@ class Denoiser(nn.Module):
     def __init__(self, **config):
         super().__init__()
         self.config = dict(config)
+        self.feature_groups: tuple[str, ...] = ALL_FEATURES
+
+    def declared_inputs(self) -> InputSpec:
+        """The model's input declaration (override where it depends on settings)."""
+        return type(self).inputs
 
     def input_spec(self) -> InputSpec:
-        return type(self).inputs
+        """:meth:`declared_inputs` with the feature groups the model reads (:meth:`use_features`)."""
+        spec = self.declared_inputs()
+        return spec if self.feature_groups == spec.features else replace(spec, features=self.feature_groups)
+
+    def prepare_inputs(self, radiance: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """:func:`prepare_inputs` of the feature groups the model reads (the others 0)."""
+        return prepare_inputs(radiance, mask_features(features, self.feature_groups))
+
+    def use_features(self, groups) -> "Denoiser":
+        """Read only the per-sample feature ``groups`` (names of ``stores.contract.FEATURE_GROUPS``): the
+        others reach the network as 0 (:func:`training.inputs.mask_features`), so a model trains on data
+        that lacks them (Noisebase has no specular, roughness, CoC, lens or time). The model setting
+        ``features`` (``--model-cfg '{"features": ["normal", "depth", "albedo", "motion"]}'``)."""
+        self.feature_groups = check_feature_groups(groups, f"model {self.name!r}: setting \"features\"")
+        self.config["features"] = list(self.feature_groups)
+        return self
 
     def for_inference(self) -> "Denoiser":
         """The form ``evaluate`` and ``bench`` run (e.g. with re-parameterised branches fused); the same

@@ -54,7 +54,7 @@ class LayerDenoiser(Denoiser):
     # -- stages ----------------------------------------------------------------------------------
     def embed_samples(self, radiance, features):
         """Sample embeddings E (BSeHW) and context C (B context HW)."""
-        x = prepare_inputs(radiance, features)
+        x = self.prepare_inputs(radiance, features)
         b, s, c, h, w = x.shape
         e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
         ctx, _ = self.unet(e.mean(dim=1))

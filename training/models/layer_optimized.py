@@ -70,7 +70,7 @@ class LayerOptimizedDenoiser(Denoiser):
         return LayerDenoiser.partition(self, e, ctx)
 
     def denoise(self, radiance, features):
-        x = prepare_inputs(radiance, features)
+        x = self.prepare_inputs(radiance, features)
         b, s, c, h, w = x.shape
         e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
         ctx, decoder = self.unet(e.mean(dim=1))

@@ -38,7 +38,7 @@ class PixelGatherDenoiser(Denoiser):
 
     def pixel_kernels(self, radiance, features):
         """Per-pixel kernels (float32, B k*k H W), exponentiated with the per-pixel max subtracted."""
-        x = prepare_inputs(radiance, features)
+        x = self.prepare_inputs(radiance, features)
         mean = x.mean(dim=1)
         var = (x - mean.unsqueeze(1)).square().mean(dim=1)              # 20x faster than Tensor.var(dim=1)
         stats = torch.cat((mean, var), dim=1)

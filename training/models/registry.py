@@ -142,8 +142,11 @@ def build(name: str, **cfg):
     """Instantiate model ``name`` with settings ``cfg`` (unknown keys and values of the wrong type
     raise ConfigError, :func:`check_settings`)."""
     cls = get(name)
+    cfg = dict(cfg)
+    features = cfg.pop("features", None)        # every model's setting (Denoiser.use_features)
     check_settings(name, cfg)
     try:
-        return cls(**cfg)
+        model = cls(**cfg)
     except TypeError as e:
         raise ConfigError(f"bad settings for model {name!r}: {e}") from None
+    return model if features is None else model.use_features(features)

@@ -40,7 +40,7 @@ class SampleSplatDenoiser(Denoiser):
 
     def sample_kernels(self, radiance, features):
         """Per-sample kernels (float32, B S k*k H W), max over (S, taps) subtracted before exp."""
-        x = prepare_inputs(radiance, features)
+        x = self.prepare_inputs(radiance, features)
         b, s, c, h, w = x.shape
         e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
         ctx, _ = self.unet(e.mean(dim=1))

@@ -144,7 +144,7 @@ class TemporalDenoiser(Denoiser):
         xavier_init(self)
 
     # ------------------------------------------------------------------ declaration
-    def input_spec(self) -> InputSpec:
+    def declared_inputs(self) -> InputSpec:
         return InputSpec("sampled-layers", frames=self.frames if self.recurrent else 1,
                          default_spp=self.inputs.default_spp)
 

@@ -1,0 +1,263 @@
+"""Noisebase both ways: ``python -m pipeline export --format noisebase`` writes sequences that Noisebase's own
+``TrainingSampleLoader_v1`` reads (in its own environment, zarr 2), with exact world-space positions
+(re-traced samples) that reproduce our stored motion and depth; :class:`stores.noisebase.NoisebaseStore`
+reads them back (zarr 3) within the RGBE encoding's error, and our per-sample kinds train on them, a
+model that needs features Noisebase lacks being refused by name."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stores.contract import FEATURE_GROUPS as G, FEATURE_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+RES = 16
+CLIPS = 2                 # clips of FRAMES frames: a moving ball under a moving camera, one with defocus
+FRAMES = 3
+SPP = 4
+# Noisebase's loader environment: its pinned zarr 2 beside this interpreter's torch and numpy
+NB_PACKAGES = ("noisebase==1.1.1", "zarr==2.18.7", "numcodecs==0.15.1", "antlr4-python3-runtime==4.9.3",
+               "hydra-core", "omegaconf", "asciitree", "fasteners", "deprecated", "wrapt")
+
+
+def render_cfg():
+    from pipeline.render import RenderConfig
+    return RenderConfig(res=(RES, RES), spp=SPP, layer_levels=1, ref_spp=32, ref_passes=2, ref_min_passes=2,
+                        time_slices=2)
+
+
+def clip_spec(seed: int, defocus: bool):
+    from test_render import ball_scene
+    spec = ball_scene(motion=True, defocus=defocus, frames=FRAMES, seed=seed, cam_step=(0.2, 0.05, -0.1))
+    return dataclasses.replace(spec, kind="indoor" if defocus else "outdoor")
+
+
+def write_store(path, specs_frames, cfg=None) -> str:
+    """A store of real renders: ``specs_frames`` = [(spec, frames to render)], the render settings recorded
+    as a dataset run records them (``config['render']``)."""
+    from pipeline.render import render_frame
+    from stores.schema import StoreLayout
+    from stores.writer import open_or_create
+    cfg = cfg or render_cfg()
+    n = sum(len(fr) for _, fr in specs_frames)
+    layout = StoreLayout(num_frames=n, height=RES, width=RES, spp=cfg.spp, layer_spp=(1,), tile=16)
+    w = open_or_create(str(path), layout, {"render": {**dataclasses.asdict(cfg), "res": list(cfg.res)}})
+    i = 0
+    for spec, frames in specs_frames:
+        for f in frames:
+            w.write_frame(i, render_frame(spec, f, cfg))
+            i += 1
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    specs = [(clip_spec(11 + k, defocus=k == 1), range(FRAMES)) for k in range(CLIPS)]
+    return write_store(tmp_path_factory.mktemp("nb") / "clips.zarr", specs)
+
+
+@pytest.fixture(scope="module")
+def exported(store, tmp_path_factory):
+    from pipeline.__main__ import main
+    out = tmp_path_factory.mktemp("nbout") / "nb"
+    assert main(["export", store, "--format", "noisebase", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def noisebase_env():
+    """A folder of Noisebase 1.1.1 and its zarr 2 (pip --target, cached), put before this interpreter's
+    packages; skipped with the reason where pip cannot install them (no package index)."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "denoise-datagen" / "noisebase-1.1.1"
+    if not (cache / "noisebase").is_dir():
+        r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(cache),
+                            *NB_PACKAGES], capture_output=True, text=True, timeout=600)
+        if r.returncode != 0:
+            pytest.skip(f"cannot install Noisebase's loader environment ({' '.join(NB_PACKAGES)}): "
+                        f"{r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode}")
+    return cache
+
+
+def test_noisebase_loader_reads_the_export(store, exported, noisebase_env, tmp_path):
+    from stores.reader import open_store
+    npz = tmp_path / "read.npz"
+    env = {**os.environ, "PYTHONPATH": str(noisebase_env)}
+    r = subprocess.run([sys.executable, str(ROOT / "tests" / "noisebase_loader.py"), str(exported), str(npz)],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"read {CLIPS * FRAMES} frames" in r.stdout
+    got = np.load(npz)
+    st = open_store(store)
+    seqs = json.loads((exported / "sequences.json").read_text())["sequences"]
+    assert [s["frames"] for s in seqs] == [list(range(k * FRAMES, (k + 1) * FRAMES)) for k in range(CLIPS)]
+    moving = 0
+    for s in seqs:
+        name = s["file"].removesuffix(".zip")
+        for f, i in enumerate(s["frames"]):
+            fr = st.read_frame(i, ["radiance", "features", "reference"])
+            nbf = lambda k: got[f"{name}/{f}/{k}"]                                   # noqa: E731
+            rad = np.moveaxis(fr["radiance"], -1, 0)                                   # 3 H W S
+            # RGBE: less than one colour step, at most (1 + 1/256 of the log range) of the brightest channel / 255
+            err = np.abs(nbf("color") - rad) / np.maximum(rad.max(axis=0, keepdims=True), 1e-30)
+            assert err.max() < 1.1 / 255
+            np.testing.assert_array_equal(nbf("reference"), np.moveaxis(fr["reference"], -1, 0))
+            feat = fr["features"]
+            np.testing.assert_array_equal(nbf("w_normal"), np.moveaxis(feat[..., G["normal"]], -1, 0))
+            np.testing.assert_array_equal(nbf("diffuse"), np.moveaxis(feat[..., G["albedo"]], -1, 0))
+            depth = feat[..., FEATURE_NAMES.index("depth")]
+            hit = depth > 0
+            # Noisebase's log depth of our positions: the distance from the camera centre (our depth is from
+            # the lens point: within the aperture radius 0.25 of the defocused clip)
+            dist = 1.0 / np.expm1(nbf("depth")[0].astype(np.float64))
+            tol = 2.0 ** -8 * depth + (0.26 if s["clip_id"] == seqs[1]["clip_id"] else 1e-4)
+            assert np.all(np.abs(dist - depth)[hit] <= tol[hit])
+            if f > 0:
+                # its screen motion (row, col) from our positions, world motion and cameras is our stored motion
+                ours = np.moveaxis(feat[..., G["motion"]], -1, 0)[::-1]
+                d = np.abs(nbf("motion") - ours)[:, hit]
+                assert d.max() < 2.0 ** -8 * max(1.0, np.abs(ours).max()) + 1e-3, d.max()
+                moving += int((np.abs(ours[:, hit]) > 0.5).sum())
+    assert moving > 50                    # the motion compared is not all zero
+
+
+def test_positions_are_the_samples_own(store):
+    """The re-traced geometry is exactly the stored samples': depth bit for bit before rounding, and the
+    stored motion is the projection of position + motion with the previous camera."""
+    from pipeline import camera as C
+    from pipeline.render import FrameScene, render_inputs, sample_geometry
+    spec = clip_spec(11, defocus=False)
+    fs = FrameScene(spec, 2, render_cfg())
+    _, feat, _ = render_inputs(fs)
+    geo = sample_geometry(fs)
+    np.testing.assert_array_equal(geo["depth"], feat[..., FEATURE_NAMES.index("depth")])
+    hit = geo["depth"] > 0
+    assert hit.sum() > 100 and (np.abs(geo["motion"][hit]).sum(-1) > 0).sum() > 10
+    cur = C.project_pixels(fs.world_to_clip, geo["position"][hit], (RES, RES))
+    prev = C.project_pixels(fs.prev_world_to_clip, (geo["position"] + geo["motion"])[hit], (RES, RES))
+    np.testing.assert_allclose(prev - cur, feat[..., G["motion"]][hit], atol=1e-3)
+    np.testing.assert_allclose(np.linalg.norm(geo["position"][hit] - fs.camera_to_world[:3, 3], axis=-1),
+                               geo["depth"][hit], rtol=1e-5)
+
+
+def test_reader_round_trip(store, exported):
+    from stores.noisebase import MISSING_FEATURES, NoisebaseStore
+    from stores.reader import open_store
+    st, nb = open_store(store), NoisebaseStore(exported)
+    assert (nb.layout.height, nb.layout.width, nb.layout.spp, nb.num_frames) == (RES, RES, SPP, CLIPS * FRAMES)
+    assert list(nb.clips(None).values()) == [list(range(k * FRAMES, (k + 1) * FRAMES)) for k in range(CLIPS)]
+    assert set(MISSING_FEATURES) == {"specular", "roughness", "coc", "lens", "time"}
+    crop = (3, 2, 9, 11)
+    for i in range(nb.num_frames):
+        rad = st.read_array("inputs/radiance", i, crop, samples=3)
+        got = nb.read_array("inputs/radiance", i, crop, samples=3)
+        assert got.shape == rad.shape == (3, 3, 9, 11)
+        assert np.all(np.abs(got - rad) <= 1.1 / 255 * rad.max(axis=1, keepdims=True) + 1e-30)
+        feat, nbf = st.read_array("inputs/features", i, crop).astype(np.float32), nb.read_array("inputs/features", i, crop)
+        assert nbf.shape == feat.shape and nbf.dtype == np.float32
+        for g in ("normal", "albedo"):
+            np.testing.assert_array_equal(nbf[:, G[g]], feat[:, G[g]])
+        hit = feat[:, G["depth"]] > 0
+        np.testing.assert_allclose(nbf[:, G["depth"]][hit], feat[:, G["depth"]][hit], rtol=2.0 ** -8, atol=0.26)
+        if st.meta_column("frame")[i] > 0:
+            np.testing.assert_allclose(nbf[:, G["motion"]], feat[:, G["motion"]], atol=0.02)
+        else:
+            assert not nbf[:, G["motion"]].any()              # the first frame of a sequence: no motion
+        for g in MISSING_FEATURES:
+            assert not nbf[:, G[g]].any()
+        np.testing.assert_array_equal(nb.read_array("reference/radiance", i, crop),
+                                      st.read_array("reference/radiance", i, crop))
+        np.testing.assert_allclose(nb.read_array("guides/albedo", i), feat_mean(st, i, "albedo"), atol=1e-3)
+
+
+def feat_mean(st, i, group):
+    return st.read_array("inputs/features", i)[:, G[group]].astype(np.float32).mean(axis=0)
+
+
+def test_export_refuses_what_noisebase_cannot_hold(store, tmp_path):
+    from pipeline.export import export
+    from stores.errors import ExportError
+    with pytest.raises(ExportError, match="whole clip"):
+        export(store, "0-1", "noisebase", str(tmp_path / "a"))
+    stills = write_store(tmp_path / "stills.zarr", [(clip_spec(5, False), [0]), (clip_spec(6, False), [0])])
+    with pytest.raises(ExportError, match="stills"):
+        export(stills, "all", "noisebase", str(tmp_path / "b"))
+    mixed = write_store(tmp_path / "mixed.zarr", [(clip_spec(5, False), range(2)), (clip_spec(6, False), range(3))])
+    with pytest.raises(ExportError, match="different lengths"):
+        export(mixed, "all", "noisebase", str(tmp_path / "c"))
+    assert not any(list((tmp_path / d).glob("*.zip")) for d in "abc" if (tmp_path / d).exists())
+
+
+def test_export_refuses_samples_it_cannot_retrace(store, tmp_path):
+    """A store whose recorded render settings are not those its samples were drawn with (another seed
+    offset: other film positions) is refused before anything is written."""
+    import zarr
+    from pipeline.export import export
+    from stores.errors import ExportError
+    import shutil
+    bad = tmp_path / "bad.zarr"
+    shutil.copytree(store, bad)
+    root = zarr.open_group(str(bad), mode="r+")
+    cfg = dict(root.attrs["config"])
+    cfg["render"] = {**cfg["render"], "seed_offset": 99}
+    root.attrs["config"] = cfg
+    with pytest.raises(ExportError, match="cannot be re-traced"):
+        export(str(bad), "all", "noisebase", str(tmp_path / "out"))
+    assert not list((tmp_path / "out").glob("*.zip"))
+
+
+def cli(*args) -> int:
+    from training.__main__ import main
+    return main([str(a) for a in args])
+
+
+def test_our_kinds_train_on_noisebase_data(exported, tmp_path, capsys):
+    from kind_models import PROBES, register_probes, unregister_probes
+    common = ["--steps", "2", "--batch", "2", "--crop", "8", "--spp", "4", "--workers", "0", "--device", "cpu",
+              "--no-progress", "--val-split", "train", "--val-every", "2", "--val-frames", "2"]
+    # the layer family reads every feature group: refused by name, then trained on the ones Noisebase has
+    tiny = {"embed": 8, "context": 8, "kernel_size": 5, "unet_encoder": [[8], [8], [8]], "unet_bottleneck": [8],
+            "unet_decoder": [[8], [8], [8]], "partition_hidden": [8], "kernel_hidden": [8]}
+    assert cli("train", "--model", "layer", "--store", exported, "--out", tmp_path / "r0", *common,
+               "--model-cfg", json.dumps(tiny)) == 2
+    err = capsys.readouterr().err
+    assert "['specular', 'roughness', 'coc', 'lens', 'time']" in err and '"features"' in err
+    held = {**tiny, "features": ["normal", "depth", "albedo", "motion"]}
+    assert cli("train", "--model", "layer", "--store", exported, "--out", tmp_path / "r1", *common,
+               "--model-cfg", json.dumps(held)) == 0
+    assert cli("evaluate", "--checkpoint", tmp_path / "r1" / "checkpoint.pt", "--store", exported, "--split", "train",
+               "--out", tmp_path / "e.json") == 0
+    res = json.loads((tmp_path / "e.json").read_text())
+    assert np.isfinite(res["mean"]["psnr"]) and "ci95" in res
+    # a clips model (windows of per-sample frames, stepped through them) trains on the sequences too
+    register_probes()
+    try:
+        assert cli("train", "--model", PROBES["clips"], "--store", exported, "--out", tmp_path / "r2", *common,
+                   "--model-cfg", json.dumps({"features": held["features"]})) == 0
+    finally:
+        unregister_probes()
+
+
+def test_unread_features_never_reach_the_network():
+    import torch
+    from training.models import build
+    m = build("layer", embed=8, context=8, kernel_size=5, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,),
+              unet_decoder=((8,), (8,), (8,)), features=["normal", "depth", "albedo"]).eval()
+    assert m.input_spec().features == ("normal", "depth", "albedo") and m.config["features"] == ["normal", "depth", "albedo"]
+    g = torch.Generator().manual_seed(0)
+    rad, feat = torch.rand(1, 4, 3, 8, 8, generator=g), torch.rand(1, 4, 17, 8, 8, generator=g)
+    other = feat.clone()
+    for k in ("specular", "roughness", "motion", "coc", "lens", "time"):
+        other[:, :, G[k]] = torch.rand_like(other[:, :, G[k]]) * 9
+    with torch.no_grad():
+        torch.testing.assert_close(m.denoise(rad, feat), m.denoise(rad, other))
+        assert not torch.allclose(m.denoise(rad, feat), m.denoise(rad, feat * 1.5))
+    from training.errors import ConfigError
+    with pytest.raises(ConfigError, match="unknown feature groups"):
+        build("layer", features=["normals"])
