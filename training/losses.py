@@ -39,6 +39,23 @@ def smape(denoised: torch.Tensor, reference: torch.Tensor, eps: float = SMAPE_EP
     return torch.mean(torch.abs(denoised - reference) / (torch.abs(denoised) + torch.abs(reference) + eps))
 
 
+@register_loss("smape-temporal")
+def smape_temporal(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """NPPD's loss (Bálint et al. 2023, ``model.py`` of its code) without its learned perceptual terms:
+    both images divided by the reference's mean (per item), then on a window (B, T, 3, H, W)
+    ``2 SMAPE`` over every frame plus ``0.2 SMAPE`` of the differences of consecutive frames (the
+    temporal term; NPPD warps the previous frame first, this compares them in place, as ``l1-temporal``
+    does); a single frame (B, 3, H, W): ``8 SMAPE`` (its one-step weight)."""
+    if denoised.dim() not in (4, 5):
+        raise ConfigError(f"smape-temporal needs frames (B, C, H, W) or clips (B, T, C, H, W), got {tuple(denoised.shape)}")
+    dims = tuple(range(1, reference.dim()))
+    mean = reference.mean(dim=dims, keepdim=True).clamp(min=0.0) + 1e-8
+    x, y = denoised / mean, reference / mean
+    if x.dim() == 4 or x.shape[1] == 1:
+        return 8.0 * smape(x, y)
+    return 2.0 * smape(x, y) + 0.2 * smape(x[:, 1:] - x[:, :-1], y[:, 1:] - y[:, :-1])
+
+
 @register_loss("l2-tonemap")
 def l2_tonemap(denoised: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """Mean squared error on tone-mapped values (eq. 7), the paper's alternative loss (appendix C)."""

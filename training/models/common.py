@@ -362,7 +362,7 @@ class Denoiser(nn.Module):
     def __init__(self, **config):
         super().__init__()
         self.config = dict(config)
-        self.feature_groups: tuple[str, ...] = ALL_FEATURES
+        self.feature_groups: tuple[str, ...] = type(self).inputs.features    # use_features narrows them
 
     def declared_inputs(self) -> InputSpec:
         """The model's input declaration (override where it depends on settings)."""
