@@ -28,8 +28,8 @@ One step, frame ``t`` with the state of frame ``t - 1``:
 6. **Temporal output blend.** The reprojected previous output, filtered with its own 5x5 kernel, is
    blended in with ``t_mu``: the frame's output, which the state carries on.
 
-Defaults are the paper's (its 15M "ConvUNet" network: widths 96-128-192-256-384 and a 512-512-384
-bottleneck, ``K = 5`` levels, 5x5 kernels, a 32-wide sample encoder; Adam at 1e-4 with the loss
+Defaults are the paper's (its 15M "ConvUNet" network, the one of its 2- and 4-spp models: widths
+96-128-192-256-384 and a 512-512-384 bottleneck; its 8-spp ConvNeXt U-net is not built here, ``K = 5`` levels, 5x5 kernels, a 32-wide sample encoder; Adam at 1e-4 with the loss
 ``smape-temporal``). Departures, all stated in docs/training.md: the normals are world-space (the
 format's ``normal``; NPPD turns them into camera space), the U-net is the stack's (its skips are the
 pooled encoder outputs, bilinear upsampling, leaky ReLU 0.01 and outputs bounded per pixel: see
