@@ -18,6 +18,7 @@ import pytest
 from stores.contract import FEATURE_GROUPS as G, FEATURE_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.xdist_group("noisebase")       # one worker renders the module's store once
 RES = 16
 CLIPS = 2                 # clips of FRAMES frames: a moving ball under a moving camera, one with defocus
 FRAMES = 3
@@ -77,11 +78,17 @@ def noisebase_env():
     packages; skipped with the reason where pip cannot install them (no package index)."""
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "denoise-datagen" / "noisebase-1.1.1"
     if not (cache / "noisebase").is_dir():
-        r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(cache),
+        tmp = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")        # moved into place whole
+        r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(tmp),
                             *NB_PACKAGES], capture_output=True, text=True, timeout=600)
         if r.returncode != 0:
             pytest.skip(f"cannot install Noisebase's loader environment ({' '.join(NB_PACKAGES)}): "
                         f"{r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode}")
+        try:
+            os.replace(tmp, cache)
+        except OSError:                 # another process put it there first
+            import shutil
+            shutil.rmtree(tmp, ignore_errors=True)
     return cache
 
 
