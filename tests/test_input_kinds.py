@@ -91,6 +91,8 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
     assert comp["baseline"] == "input" and [r["label"] for r in comp["rows"]] == [run.name, "oidn"]
     lo, hi = comp["rows"][0]["relmse"]["ci95"]
     assert lo <= comp["rows"][0]["relmse"]["mean"] <= hi
+    assert comp["rows"][0]["tpsnr"]["frames"] == CLIPS[2]      # tPSNR paired clip by clip (one run each)
+    assert "ΔtPSNR (95%)" in text
     if kind == "samples":
         assert cli("report", "--runs", run, "--store", clip_store, "--out", tmp_path / "r2", "--no-flip",
                    "--baseline", "nonesuch") == 2

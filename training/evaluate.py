@@ -229,7 +229,7 @@ def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> di
         ms = (time.perf_counter() - t) * 1e3
         ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
         rows.append(frame_row(st, idx, int(clip_of[idx]), out, ref, item.get("stderr"), ms, achieved, with_flip))
-        current.append((out, ref))
+        current.append((out, ref, idx))
         if counts is not None and (sample_map is None or (follows and sample_map["clip"] == int(clip_of[idx]))):
             sample_map = {"index": idx, "clip": int(clip_of[idx]), "counts": counts}
         if pos in keep:
@@ -267,9 +267,11 @@ def summarize(frames: list[dict], runs: list) -> dict:
     out = {"mean": {k: float(np.mean([f[k] for f in frames])) for k in keys},
            "ci95": {k: stats.mean_ci([f[k] for f in frames], clips) for k in keys},
            "by_kind": by_kind(frames, keys)}
-    tp = [metrics.tpsnr(np.stack([o for o, _ in r]), np.stack([g for _, g in r])) for r in runs]
+    tp = [metrics.tpsnr(np.stack([o for o, _, _ in r]), np.stack([g for _, g, _ in r])) for r in runs]
     out["mean"]["tpsnr"] = float(np.mean(tp)) if tp else None
     out["ci95"]["tpsnr"] = stats.mean_ci(tp) if tp else None        # one value a clip: clips resampled whole
+    # each run's tPSNR by its first frame, so a report can pair two methods run by run
+    out["tpsnr_runs"] = {str(r[0][2]): float(v) for r, v in zip(runs, tp)}
     out["clips"] = len(runs)
     ref = reference_summary(frames)
     if ref:

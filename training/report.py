@@ -215,7 +215,7 @@ def evaluate_methods(run_dirs, store, out, split: str = "test", spp: int | None 
 # Comparisons with their confidence
 
 COMPARED = (("relmse", "relMSE", "{:+.4f}", -1), ("psnr", "PSNR", "{:+.2f}", 1), ("ssim", "SSIM", "{:+.4f}", 1),
-            ("flip", "FLIP", "{:+.4f}", -1))          # (key, name, format, +1: higher is better)
+            ("flip", "FLIP", "{:+.4f}", -1), ("tpsnr", "tPSNR", "{:+.2f}", 1))   # (key, name, format, +1: higher is better)
 
 
 def comparisons(results: list[dict], baseline: str | None = None) -> dict:
@@ -241,6 +241,9 @@ def comparisons(results: list[dict], baseline: str | None = None) -> dict:
         for key, *_ in COMPARED:
             if key in base["frames"][0] and r["frames"] and key in r["frames"][0]:
                 row[key] = stats.paired_difference(per_frame(base, key), per_frame(r, key), clip)
+        if base.get("tpsnr_runs") and r.get("tpsnr_runs"):      # one value a run of a clip's frames, paired by run
+            row["tpsnr"] = stats.paired_difference(base["tpsnr_runs"], r["tpsnr_runs"],
+                                                   {k: clip.get(int(k), int(k)) for k in base["tpsnr_runs"]})
         rows.append(row)
     return {"baseline": baseline, "rows": rows}
 
