@@ -36,4 +36,7 @@ def test_bench_suite_runs_at_a_tiny_size(suite, tmp_path):
         assert figures["files"]["12"] < figures["files"]["6"] * 1.5 and "re-run on the complete store" in r.stdout
     else:
         assert list(figures) == [suite] and figures[suite], figures
+    if suite == "render":          # the throughput measure: the dataset run against plain mi.render
+        assert 0 < figures["render"]["dataset_vs_mi_render"] < 100, figures["render"]
+        assert "vs plain mi.render of the same frames and samples" in r.stdout
     assert f"--- {suite} done in" in r.stdout
