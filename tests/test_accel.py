@@ -133,6 +133,30 @@ def test_compiled_inference_gives_the_eager_outputs(tmp_path):
     assert r["compile_max_rel_diff"] < 1e-4 and r["compiled_ms_per_mp"] > 0 and r["compile_speedup"] > 0
 
 
+@pytest.mark.parametrize("name", ["temporal-small", "temporal-uniform"])
+def test_the_temporal_step_compiles_to_one_graph(name):
+    """The sampler's checks and water-filling branch on values only when eager: a compiled step is one
+    graph (its 8 graph breaks held ``--compile`` to 1.07-1.22x), and still gives the eager outputs."""
+    from training.adaptive import compose
+    from stores.errors import SampleCountError
+    torch.manual_seed(0)
+    m = build(name, **get(name).tiny).for_inference()
+    spec = m.input_spec()
+    batch = spec.input_kind.example_batch(1, spec.default_spp, 16, 16, 1, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        state = m.step(batch, None)[1]
+        eager = m.step(batch, state)[0]
+        explained = torch._dynamo.explain(m.step)(batch, state)
+    assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons
+    with pytest.raises(SampleCountError, match="must be in 0..3"):       # eager still checks
+        compose(torch.zeros(1, 2, 3, 4, 4), torch.full((1, 1, 4, 4), 4))
+    torch._dynamo.reset()
+    compiled = torch.compile(m.step, options=accel.COMPILE_OPTIONS)
+    with torch.no_grad():
+        out = compiled(batch, state)[0]
+    assert float((out - eager).abs().max() / eager.abs().max()) < 1e-4
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", names())
 def test_every_family_compiles_to_its_eager_outputs(name):

@@ -38,7 +38,11 @@ WATERFILL_ITERATIONS = 16
 
 
 def check_layer_spp(layer_spp: torch.Tensor) -> int:
-    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``."""
+    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``. Checked eagerly; in a
+    compiled step (``--compile``) the check is left out, since it reads values (a graph break each call),
+    and the counts of the eager path are what the compiled one is checked against."""
+    if torch.compiler.is_compiling():
+        return 2 ** layer_spp.shape[-1] - 1
     spp = torch.as_tensor(layer_spp).reshape(-1, layer_spp.shape[-1])[0].tolist()
     if [int(v) for v in spp] != [2 ** n for n in range(len(spp))] or any(float(v) != int(v) for v in spp):
         raise SampleCountError(f"adaptive sampling needs layers of 1, 2, 4 ... spp, got {spp}")
@@ -53,7 +57,8 @@ def sample_counts(logits: torch.Tensor, n, cap: int) -> tuple[torch.Tensor, torc
     b, _, h, w = logits.shape
     m = h * w
     n = torch.as_tensor(n, dtype=logits.dtype, device=logits.device).reshape(-1, 1, 1, 1).expand(b, 1, 1, 1)
-    if (n <= 0).any() or (n > cap).any():
+    compiling = torch.compiler.is_compiling()      # no data-dependent branches in a compiled step
+    if not compiling and ((n <= 0).any() or (n > cap).any()):
         raise SampleCountError(f"average budget must be in (0, {cap}] samples per pixel, got {n.flatten().tolist()}")
     logits = torch.nan_to_num(logits, nan=0.0, posinf=80.0, neginf=-80.0)
     share = torch.softmax(logits.reshape(b, m), dim=1).reshape(b, 1, h, w)
@@ -65,8 +70,8 @@ def sample_counts(logits: torch.Tensor, n, cap: int) -> tuple[torch.Tensor, torc
             free = (ideal * ~capped).sum(dim=(1, 2, 3), keepdim=True)
             want = m * n - cap * capped.sum(dim=(1, 2, 3), keepdim=True)
             k_new = torch.where(free > 0, want / free.clamp(min=1e-30), k)
-            if torch.allclose(k_new, k, rtol=1e-7, atol=0):
-                break
+            if not compiling and torch.allclose(k_new, k, rtol=1e-7, atol=0):
+                break                             # compiled: all iterations (k is a fixed point by then)
             k = k_new
     cont = torch.minimum(k * ideal, torch.full_like(ideal, float(cap)))
     counts = torch.round(cont.detach()).clamp(0, cap).to(torch.int64)
@@ -119,7 +124,7 @@ def compose(layers: torch.Tensor, counts: torch.Tensor, cont: torch.Tensor | Non
     :func:`sample_counts`) the result carries the approximate renderer gradient to ``cont``."""
     counts = counts.to(torch.int64)
     cap = 2 ** layers.shape[1] - 1
-    if counts.min() < 0 or counts.max() > cap:
+    if not torch.compiler.is_compiling() and (counts.min() < 0 or counts.max() > cap):
         raise SampleCountError(f"per-pixel sample counts must be in 0..{cap}, got "
                                f"{int(counts.min())}..{int(counts.max())}")
     if cont is None:
