@@ -125,8 +125,9 @@ def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: s
         if r.returncode != 0:
             raise RuntimeError("the end-to-end dataset run failed: "
                                + "\n".join((r.stdout + r.stderr).strip().splitlines()[-8:]))
-        samples = 4 * res * res * (8 + 63 + ref_spp)
-        plain = plain_render(Path(tmp) / "e2e.zarr", spp=8 + 63 + ref_spp, threads=workers,
+        spp = 8 + 63 + ref_spp                      # inputs, layers of 1 ... 32 spp, reference
+        samples = 4 * res * res * spp
+        plain = plain_render(Path(tmp) / "e2e.zarr", spp=spp, threads=workers,
                              cfg=dict(res=(res, res), spp=8, layer_levels=6, ref_spp=ref_spp, ref_passes=passes,
                                       ref_min_passes=passes // 2))
     return {"wall_s": wall, "cpu_s": cpu, "samples": samples, "msamples_per_s": samples / wall / 1e6,

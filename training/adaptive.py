@@ -38,9 +38,10 @@ WATERFILL_ITERATIONS = 16
 
 
 def check_layer_spp(layer_spp: torch.Tensor) -> int:
-    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``. Checked eagerly; in a
-    compiled step (``--compile``) the check is left out, since it reads values (a graph break each call),
-    and the counts of the eager path are what the compiled one is checked against."""
+    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``. Checked eagerly; a
+    compiled step (``--compile``, inference) leaves the check out, since reading the values is a graph
+    break on every call: it trusts the layout it is given (a store's layers are 1, 2, 4 ... spp by
+    construction, and training, which checks, always runs eagerly)."""
     if torch.compiler.is_compiling():
         return 2 ** layer_spp.shape[-1] - 1
     spp = torch.as_tensor(layer_spp).reshape(-1, layer_spp.shape[-1])[0].tolist()
