@@ -462,8 +462,13 @@ def part_inference(state: dict, left) -> dict:
                                                                   dev, h, w, "bf16", ready=True)
         except Exception as e:  # noqa: BLE001
             out[name][f"{label}_bf16_compiled_ms"] = f"{type(e).__name__}: {str(e)[:200]}"
-    out["oidn"] = _time_oidn(dev, sizes) if _importable("pyoidn") and dev.type == "cuda" else {
-        "error": "pyoidn is not on this machine (its 87.6 MB wheel does not fit the carried 64 MiB beside Mitsuba)"}
+    if dev.type != "cuda":
+        out["oidn"] = {"error": "not timed: OIDN is timed on the GPU only (its CPU figure is in make bench)"}
+    elif not _importable("pyoidn"):
+        out["oidn"] = {"error": "pyoidn is not on this machine (its 87.6 MB wheel does not fit the carried "
+                                "64 MiB beside Mitsuba)"}
+    else:
+        out["oidn"] = _time_oidn(dev, sizes)
     return out
 
 
