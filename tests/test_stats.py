@@ -53,3 +53,19 @@ def test_a_paired_difference_is_shown_only_when_its_interval_excludes_zero():
     lo_a, hi_a = stats.mean_ci(list(a.values()))
     assert hi_a - lo_a > 20 * (d["ci95"][1] - d["ci95"][0])
     assert stats.paired_difference(a, {100: 1.0}) is None   # no shared frame
+
+
+def test_the_report_says_when_an_interval_cannot_be_known():
+    """Frames of one clip give no interval; the report says so rather than "no difference shown"."""
+    from training.report import _difference_cell
+    a = {i: 0.1 for i in range(8)}
+    b = {i: 0.05 for i in range(8)}
+    one_clip = stats.paired_difference(a, b, {i: 0 for i in range(8)})
+    assert one_clip["ci95"] is None and not one_clip["shown"]
+    assert _difference_cell(one_clip, "{:+.4f}", -1) == "-0.0500 no interval (one clip)"
+    rng = np.random.default_rng(0)
+    c = {i: 0.05 + 0.001 * rng.standard_normal() for i in range(8)}
+    clips = stats.paired_difference(a, c, {i: i // 2 for i in range(8)})
+    assert clips["shown"] and _difference_cell(clips, "{:+.4f}", -1).endswith(" better")
+    level = stats.paired_difference(a, a, {i: i // 2 for i in range(8)})
+    assert _difference_cell(level, "{:+.4f}", -1).endswith("no difference shown")

@@ -6,7 +6,7 @@ training budgets), ``out/speed_vs_error.png`` (ms per megapixel, log scale, agai
 for adaptive samplers (where the samples went), ``out/eval-<name>.json`` and ``out/comparisons.json``.
 Every comparison is stated against one method (the first, or ``--baseline``) as a paired per-frame
 difference with its 95% interval (a bootstrap over clips, :mod:`training.stats`), "no difference shown"
-where the interval holds 0; runs that differ only in their training seed get their spread. Figures:
+where the interval holds 0 and "no interval (one clip)" where it cannot be known; runs that differ only in their training seed get their spread. Figures:
 matplotlib.
 """
 from __future__ import annotations
@@ -249,8 +249,8 @@ def comparisons(results: list[dict], baseline: str | None = None) -> dict:
 
 
 def comparisons_markdown(comp: dict) -> str:
-    """The paired differences as a table: ``mean [low, high]``, and "no difference shown" where the
-    interval holds 0 (or cannot be known: fewer than two clips)."""
+    """The paired differences as a table: ``mean [low, high]``, "no difference shown" where the
+    interval holds 0, and "no interval (one clip)" where it cannot be known."""
     keys = [c for c in COMPARED if any(c[0] in r for r in comp["rows"])]
     lines = ["| method | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
              "|---|" + "---|" * len(keys)]
@@ -285,6 +285,8 @@ def _difference_cell(d, f: str, better: int) -> str:
     if d is None:
         return "–"
     text = f.format(d["mean"]) + ("" if d["ci95"] is None else f" [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]")
+    if d["ci95"] is None:               # the frames are of one clip: no spread between clips to see
+        return text + " no interval (one clip)"
     if not d["shown"]:
         return text + " no difference shown"
     return text + (" better" if d["mean"] * better > 0 else " worse")
@@ -303,7 +305,8 @@ def comparisons_section(results: list[dict], baseline: str | None) -> list[str]:
     return [f"Each method against **{comp['baseline']}**, frame by frame on the same frames: the mean difference "
             "(method minus baseline) with its 95% interval, a bootstrap over the held-out clips (a still is a "
             "clip of one frame; the frames of a clip are resampled together). \"better\"/\"worse\" only where "
-            "the interval excludes 0, \"no difference shown\" where it holds 0.", "", comparisons_markdown(comp), "",
+            "the interval excludes 0, \"no difference shown\" where it holds 0, \"no interval (one clip)\" where "
+            "the frames are all of one clip.", "", comparisons_markdown(comp), "",
             f"ΔrelMSE against **{comp['baseline']}** by kind of frame (frame counts in brackets):", "",
             *table, ""]
 
