@@ -94,8 +94,12 @@ class TestModelContract:
         m2.load_state_dict(m.state_dict())
         assert torch.equal(m_last(m2, batch), out)
         with torch.no_grad():
-            fast = m_last(m.for_inference(), batch)
+            fast_model = m.for_inference()
+            fast = m_last(fast_model, batch)
         assert torch.allclose(fast, out, rtol=1e-4, atol=1e-5)
+        convs = [p for p in fast_model.parameters() if p.dim() == 4]
+        assert convs and all(p.is_contiguous(memory_format=torch.channels_last) for p in convs), \
+            "the inference form's convolution weights are channels-last (the inputs' layout)"
         assert m.param_count() > 0 and m.fmas_per_pixel(8) > m.fmas_per_pixel(1) * 0.99
         assert m.input_spec().default_spp >= 1
 

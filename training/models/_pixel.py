@@ -125,6 +125,3 @@ class PixelDenoiser(Denoiser):
 
     def filter(self, irradiance: torch.Tensor, net_in: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
-
-    def for_inference(self) -> "PixelDenoiser":
-        return self.eval().to(memory_format=torch.channels_last)

@@ -387,9 +387,12 @@ class Denoiser(nn.Module):
         return self
 
     def for_inference(self) -> "Denoiser":
-        """The form ``evaluate`` and ``bench`` run (e.g. with re-parameterised branches fused); the same
-        function as this model in eval mode."""
-        return self.eval()
+        """The form ``evaluate``, ``denoise`` and ``bench`` run (e.g. with re-parameterised branches
+        fused); the same function as this model in eval mode. Its weights are channels-last, the layout
+        its inputs are given in (:func:`training.accel.prepare`): the same outputs bit for bit; on 2 CPU
+        threads at 128x128, nppd 1.13-1.19x faster in three runs of 12-30 paired passes, layer-optimized
+        0.94-1.17x, the other models within 0.98-1.06x."""
+        return self.eval().to(memory_format=torch.channels_last)
 
     @property
     def stepwise(self) -> bool:

@@ -260,9 +260,6 @@ class TemporalDenoiser(Denoiser):
             total += self.sampler.fmas_per_pixel()
         return float(total)
 
-    def for_inference(self) -> "TemporalDenoiser":
-        return self.eval()
-
 
 @register("temporal-small")
 class TemporalSmall(TemporalDenoiser):
