@@ -245,6 +245,9 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from stores.errors import StoreCorruptionError, StoreError
 
+    from .accel import tune_allocator
+    tune_allocator()
+
     from .errors import NonFiniteError, TrainingError
     try:
         return a.fn(a)

@@ -81,6 +81,35 @@ def describe(device: torch.device, precision: str) -> str:
     return f"device {what}, precision {precision}"
 
 
+# glibc's malloc serves blocks above its mmap threshold (128 KiB, raised only after a large block is
+# freed) with fresh pages and hands freed heap tops back at once (trim threshold 128 KiB): an eager
+# forward pass on the CPU, whose activations are 0.1-30 MiB each, then page-faults on every call.
+# Measured at 128x128 on 2 threads, one model in a fresh process, two runs each: eager nppd 10.5-10.8
+# -> 8.9-9.3 s/MP, temporal-small 1.6-2.2 -> 1.3-1.5 s/MP, layer-optimized 7.9 -> 7.0 s/MP; compiled
+# layer-optimized 6.3-7.2 -> 5.6 s/MP, nppd 8.6 -> 7.9-8.0 s/MP; training steps unchanged within noise.
+ALLOCATOR = {"mmap_threshold": 32 << 20, "trim_threshold": 1 << 30}
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def tune_allocator() -> bool:
+    """Keep freed memory in the process for reuse (glibc's ``mallopt``: :data:`ALLOCATOR`), so that CPU
+    passes reuse pages instead of faulting fresh ones in; RSS stays at its peak instead of falling back.
+    Called once at the start of ``python -m training``. False (nothing changed) off glibc or where a
+    ``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_`` environment variable chooses for itself."""
+    import ctypes
+    import ctypes.util
+    import os
+    if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, ALLOCATOR["mmap_threshold"])) and \
+        bool(mallopt(_M_TRIM_THRESHOLD, ALLOCATOR["trim_threshold"]))
+
+
 def prepare(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
     """``model`` on ``device`` with channels-last weights (the layout cuDNN's and oneDNN's convolutions
     prefer, and the one the models' inputs are given in)."""
@@ -89,7 +118,8 @@ def prepare(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
 
 # Inductor's freezing folds the weights into the graph as constants (inference only: the weights may
 # not change after compiling). Measured at 128x128 on 2 CPU threads, compiled against eager: nbg 1.10x
-# -> 2.12x with it, wskpn 1.07x -> 1.31x, temporal-small 0.97x -> 1.70x, layer-optimized 1.20x -> 1.31x.
+# -> 2.12x with it, wskpn 1.07x -> 1.31x, temporal-small 0.97x -> 1.70x, layer-optimized 1.20x -> 1.31x
+# (best-of-5 ratios, before tune_allocator; docs/training.md has the paired medians since).
 COMPILE_OPTIONS = {"freezing": True}
 
 

@@ -92,12 +92,13 @@ def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats:
 
 def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, oidn: bool = True,
         print_table: bool = True, device: str = "cpu", precision: str = "fp32", compile: bool = False) -> dict:
-    from .accel import pick_device, precision_for
+    from .accel import pick_device, precision_for, tune_allocator
     from .models import build, names
     from .models.common import flush_denormals
     from .oidn import oidn_denoise, oidn_denoise_tensor
 
     flush_denormals()
+    tune_allocator()                  # as `python -m training` runs (also when `make bench` calls this)
     dev = pick_device(device)
     precision = precision_for(precision, dev)
     models = list(models) if models else names()
