@@ -94,16 +94,15 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 def tune_allocator() -> bool:
     """Keep freed memory in the process for reuse (glibc's ``mallopt``: :data:`ALLOCATOR`), so that CPU
     passes reuse pages instead of faulting fresh ones in; RSS stays at its peak instead of falling back.
-    Called once at the start of ``python -m training``. False (nothing changed) off glibc or where a
-    ``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_`` environment variable chooses for itself."""
+    Called at the start of ``python -m training`` (again: no change). False (nothing changed) off glibc,
+    or where ``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_`` or ``GLIBC_TUNABLES`` in the
+    environment chooses for itself."""
     import ctypes
-    import ctypes.util
     import os
     if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt      # the process's own libc, without a library search
     except (OSError, AttributeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, ALLOCATOR["mmap_threshold"])) and \

@@ -6,8 +6,8 @@ training budgets), ``out/speed_vs_error.png`` (ms per megapixel, log scale, agai
 for adaptive samplers (where the samples went), ``out/eval-<name>.json`` and ``out/comparisons.json``.
 Every comparison is stated against one method (the first, or ``--baseline``) as a paired per-frame
 difference with its 95% interval (a bootstrap over clips, :mod:`training.stats`), "no difference shown"
-where the interval holds 0 and "no interval (one clip)" where it cannot be known; runs that differ only in their training seed get their spread. Figures:
-matplotlib.
+where the interval holds 0 and "no interval (one clip)" where it cannot be known; runs that differ only
+in their training seed get their spread. Figures: matplotlib.
 """
 from __future__ import annotations
 
@@ -284,9 +284,9 @@ def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: s
 def _difference_cell(d, f: str, better: int) -> str:
     if d is None:
         return "–"
-    text = f.format(d["mean"]) + ("" if d["ci95"] is None else f" [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]")
     if d["ci95"] is None:               # the frames are of one clip: no spread between clips to see
-        return text + " no interval (one clip)"
+        return f.format(d["mean"]) + " no interval (one clip)"
+    text = f"{f.format(d['mean'])} [{f.format(d['ci95'][0])}, {f.format(d['ci95'][1])}]"
     if not d["shown"]:
         return text + " no difference shown"
     return text + (" better" if d["mean"] * better > 0 else " worse")
