@@ -36,7 +36,10 @@ does). Those it does not hold, :data:`MISSING_FEATURES` (specular, roughness, co
 and declared missing: a model that reads them is refused by name
 (:func:`training.inputs.check_features`). The per-pixel guides are the samples' means;
 ``reference/stderr`` is 0 (the format has none). Splits are ours, by sequence
-(:func:`stores.reader.split_of_clip` of the sequence index).
+(:func:`stores.reader.split_of_clip` of the sequence index). A missing file is never zeros here either:
+a chunk missing from a sequence's zip (which zarr reads as its fill value) is ``MissingShardError``, and
+one that does not decode or fails the zip's CRC ``CorruptChunkError``, each naming the sequence, array,
+frame and chunk key (training exits 3, as for a damaged store of ours).
 """
 from __future__ import annotations
 
@@ -46,7 +49,7 @@ import os
 import numpy as np
 
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
-from stores.errors import StoreError, StoreNotFoundError
+from stores.errors import CorruptChunkError, MissingShardError, StoreError, StoreNotFoundError
 
 FORMAT = "sampleset_v1"
 CHUNK_SAMPLES = 4                 # samples a chunk (Noisebase: "chunked for every frame and every 4 samples")
@@ -241,6 +244,7 @@ class NoisebaseStore:
         self.path = os.fspath(path)
         self.files = sequence_files(self.path)
         self._groups: dict[int, object] = {}
+        self._members: dict[int, frozenset] = {}
         self.frames_per_sequence, shapes = [], set()
         for n, f in enumerate(self.files):
             color = self._array(n, "color")
@@ -261,8 +265,12 @@ class NoisebaseStore:
     def _group(self, n: int):
         g = self._groups.get(n)
         if g is None:
+            import zipfile
+
             import zarr
             try:
+                with zipfile.ZipFile(self.files[n]) as z:          # the members: what a read may rely on
+                    self._members[n] = frozenset(z.namelist())
                 g = zarr.open_group(zarr.storage.ZipStore(self.files[n], mode="r"), mode="r", zarr_format=2)
             except Exception as e:                     # zarr raises many kinds for a file that is not a store
                 raise NoisebaseError(f"{self.files[n]} is not a readable Zarr v2 zip store: {e}") from e
@@ -276,6 +284,34 @@ class NoisebaseStore:
             raise NoisebaseError(f"{self.files[n]} has no array {name!r} (sampleset_v1 needs "
                                  f"{', '.join(PER_SAMPLE + PER_FRAME[:6])})") from None
 
+    def _read(self, n: int, name: str, sel, frame: int) -> np.ndarray:
+        """``array[sel]`` of sequence ``n`` (``sel`` within frame ``frame`` of a per-frame array, or the
+        whole of a small per-sequence one). Zarr reads a chunk missing from the zip as its fill value; here
+        a missing chunk of the frame's row is :class:`MissingShardError` and one that does not decode (or
+        fails the zip's CRC) :class:`CorruptChunkError`, each naming the sequence, array and chunk."""
+        a = self._array(n, name)
+        row = frame // a.chunks[0]
+        for key in self._chunk_keys(a, row):
+            if key not in self._members[n]:
+                raise MissingShardError(f"{self.files[n]}: chunk {key} of {name!r} (frame {frame} of the sequence) "
+                                        "is missing from the zip; a missing chunk is lost data, not zeros",
+                                        array=name, frame=frame, path=f"{self.files[n]}:{key}")
+        try:
+            return np.asarray(a[sel])
+        except Exception as e:         # noqa: BLE001  Blosc, zipfile (bad CRC), numcodecs raise many kinds
+            keys = ", ".join(self._chunk_keys(a, row)[:2])
+            raise CorruptChunkError(f"{self.files[n]}: a chunk of {name!r} (frame {frame} of the sequence: {keys}) "
+                                    f"does not decode: {type(e).__name__}: {e}", array=name, frame=frame,
+                                    path=f"{self.files[n]}:{keys}") from e
+
+    @staticmethod
+    def _chunk_keys(a, row: int) -> list[str]:
+        """Zarr v2 keys of every chunk of array ``a`` in chunk row ``row`` of its first axis."""
+        import itertools
+        sep = a.metadata.dimension_separator or "."
+        grid = [range(row, row + 1)] + [range(-(-s // c)) for s, c in zip(a.shape[1:], a.chunks[1:])]
+        return [f"{a.path}/" + sep.join(map(str, idx)) for idx in itertools.product(*grid)]
+
     def _where(self, i: int) -> tuple[int, int]:
         if not 0 <= int(i) < self.num_frames:
             raise IndexError(f"frame {i} out of range: {self.path} has {self.num_frames} frames")
@@ -283,7 +319,7 @@ class NoisebaseStore:
         return n, int(i) - int(self.offsets[n])
 
     def _matrix(self, n: int, f: int) -> np.ndarray:
-        a = lambda k: np.asarray(self._array(n, k)[f], np.float64)     # noqa: E731
+        a = lambda k: np.asarray(self._read(n, k, f, f), np.float64)     # noqa: E731
         return view_proj(a("camera_target"), a("camera_up"), a("camera_position"), a("proj_mat"))
 
     # -- the Store interface
@@ -355,12 +391,12 @@ class NoisebaseStore:
             raise SampleCountError(f"asked for {S} samples per pixel; {self.path} holds 1..{self.layout.spp}")
         win = np.s_[:, y:y + h, x:x + w]
         if path == "reference/radiance":
-            return np.asarray(self._array(n, "reference")[f][win], np.float32)
+            return np.asarray(self._read(n, "reference", (f,) + win, f), np.float32)
         if path == "reference/stderr":
             return np.zeros((3, h, w), np.float32)
         sel = np.s_[f, :, y:y + h, x:x + w, :S]
         if path == "inputs/radiance":
-            rad = rgbe_decode(self._array(n, "color")[sel], self._array(n, "exposure")[f])
+            rad = rgbe_decode(self._read(n, "color", sel, f), self._read(n, "exposure", f, f))
             return np.ascontiguousarray(rad.transpose(3, 0, 1, 2))           # (S, 3, h, w)
         feat = self._features(n, f, sel)                                       # (S, 17, h, w)
         g = FEATURE_GROUPS
@@ -372,17 +408,17 @@ class NoisebaseStore:
 
     def _features(self, n: int, f: int, sel) -> np.ndarray:
         g = FEATURE_GROUPS
-        pos = np.asarray(self._array(n, "position")[sel], np.float64)         # (3, h, w, S)
+        pos = np.asarray(self._read(n, "position", sel, f), np.float64)         # (3, h, w, S)
         S = pos.shape[-1]
         out = np.zeros((S, NUM_FEATURES) + pos.shape[1:3], np.float32)
         T = lambda a: np.moveaxis(np.asarray(a, np.float32), -1, 0)            # noqa: E731  (C,h,w,S)->(S,C,h,w)
-        out[:, g["normal"]] = T(self._array(n, "normal")[sel])
-        out[:, g["albedo"]] = T(self._array(n, "diffuse")[sel])
-        cam = np.asarray(self._array(n, "camera_position")[f], np.float64)
+        out[:, g["normal"]] = T(self._read(n, "normal", sel, f))
+        out[:, g["albedo"]] = T(self._read(n, "diffuse", sel, f))
+        cam = np.asarray(self._read(n, "camera_position", f, f), np.float64)
         out[:, g["depth"]] = T(np.linalg.norm(pos - cam[:, None, None, None], axis=0)[None])
         if f > 0:
             H, W = self.layout.height, self.layout.width
-            m = screen_motion(pos, self._array(n, "motion")[sel], self._matrix(n, f), self._matrix(n, f - 1), H, W)
+            m = screen_motion(pos, self._read(n, "motion", sel, f), self._matrix(n, f), self._matrix(n, f - 1), H, W)
             out[:, g["motion"]] = T(m)
         return out
 
@@ -412,5 +448,5 @@ class NoisebaseStore:
 
     def __getstate__(self):             # DataLoader workers reopen the zip files
         d = dict(self.__dict__)
-        d["_groups"] = {}
+        d["_groups"], d["_members"] = {}, {}
         return d

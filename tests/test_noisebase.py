@@ -268,3 +268,45 @@ def test_unread_features_never_reach_the_network():
     from training.errors import ConfigError
     with pytest.raises(ConfigError, match="unknown feature groups"):
         build("layer", features=["normals"])
+
+
+def _rewrite_zip(src: Path, dst: Path, edit) -> None:
+    """``src`` copied to ``dst`` with every member passed through ``edit(name, bytes) -> bytes | None``
+    (None leaves the member out)."""
+    import zipfile
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_STORED) as zout:
+        for info in zin.infolist():
+            data = edit(info.filename, zin.read(info.filename))
+            if data is not None:
+                zout.writestr(info, data)
+
+
+@pytest.mark.parametrize("member,how", [("color/1.0.0.0.0", "lost"), ("diffuse/1.0.0.0.0", "lost"),
+                                        ("reference/2.0.0.0", "lost"), ("camera_position/0.0", "lost"),
+                                        ("color/1.0.0.0.0", "garbage")])
+def test_a_lost_or_corrupt_chunk_is_named_never_zeros(exported, tmp_path, member, how, capsys):
+    """A chunk missing from a sequence's zip (which zarr would read as its fill value, zeros) or present
+    but garbage is refused by name: sequence, array, chunk; the training command exits 3 (damaged)."""
+    import shutil
+    from stores.errors import CorruptChunkError, MissingShardError
+    from stores.noisebase import NoisebaseStore
+    folder = tmp_path / "nb"
+    shutil.copytree(exported, folder)
+    seq = sorted(folder.glob("*.zip"))[0]
+    assert member in __import__("zipfile").ZipFile(seq).namelist()
+    _rewrite_zip(Path(exported) / seq.name, seq,
+                 lambda name, data: data if name != member else (None if how == "lost" else b"\x07" * len(data)))
+    nb = NoisebaseStore(folder)
+    frame = 0 if member.startswith("camera") else int(member.split("/")[1].split(".")[0])
+    err = MissingShardError if how == "lost" else CorruptChunkError
+    with pytest.raises(err) as e:
+        nb.read_array("inputs/radiance" if member.startswith("color") else
+                      "reference/radiance" if member.startswith("reference") else "inputs/features", frame)
+    assert seq.name in str(e.value) and member in str(e.value) and e.value.frame == frame
+    other = sorted(folder.glob("*.zip"))[1]          # the other sequence reads as before
+    assert np.isfinite(nb.read_array("inputs/radiance", FRAMES + frame)).all()
+    if member == "color/1.0.0.0.0" and how == "lost":
+        assert other.exists() and cli("train", "--model", "nbg", "--store", folder, "--out", tmp_path / "r",
+                                      "--steps", "1", "--batch", "1", "--crop", "8", "--workers", "0",
+                                      "--device", "cpu", "--no-progress") == 3
+        assert member in capsys.readouterr().err
