@@ -335,6 +335,9 @@ class NoisebaseStore:
     def complete_frames(self) -> list[int]:
         return list(range(self.num_frames))
 
+    def incomplete_frames(self) -> list[int]:
+        return []
+
     def meta_column(self, key: str) -> np.ndarray:
         """``clip_id`` (the sequence), ``frame`` (index in it), ``num_frames``; ``has_motion`` (any non-zero
         world motion or camera change in the sequence), ``has_defocus`` (False: the format has no lens),

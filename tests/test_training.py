@@ -426,3 +426,30 @@ def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err and "resumes" in err
+
+
+def test_an_incomplete_frame_is_refused_by_name_or_left_out_and_recorded(tmp_path, capsys):
+    """A finished store with one frame's completion flag turned off (validate: exit 1) is refused by train
+    and evaluate, naming the frame and --skip-bad-frames, instead of being used without it; with the flag
+    the frame is left out in one warning line and recorded: in the checkpoint and evaluate's JSON."""
+    from stores.reader import open_store
+    from training.__main__ import main
+    path = make_store(tmp_path / "s.zarr")
+    frame = open_store(path).frames_in_split("train")[1]
+    _zarr_set(path, "status/complete", frame, False)
+    args = ["train", "--model", "nbg", "--store", path, "--out", str(tmp_path / "run"), "--steps", "1",
+            "--crop", "16", "--batch", "2", "--no-progress", "--val-every", "0"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"frame {frame}: incomplete" in err and "--skip-bad-frames" in err
+    with pytest.warns(UserWarning, match=f"skipping 1 flagged frames .*frame {frame}: incomplete"):
+        assert main(args + ["--skip-bad-frames"]) == 0
+    assert ckpt.load(tmp_path / "run" / "checkpoint.pt")["store"]["left_out"] == {str(frame): ["incomplete"]}
+    ev = ["evaluate", "--checkpoint", "input", "--store", path, "--split", "train", "--out", str(tmp_path / "e.json"),
+          "--no-flip"]
+    assert main(ev) == 2
+    assert f"frame {frame}: incomplete" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match=f"frame {frame}: incomplete"):
+        assert main(ev + ["--skip-bad-frames"]) == 0
+    res = json.loads((tmp_path / "e.json").read_text())
+    assert res["left_out"] == {str(frame): ["incomplete"]} and frame not in [f["index"] for f in res["frames"]]

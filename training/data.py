@@ -60,12 +60,16 @@ def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: 
     return ds
 
 
-def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> int:
-    """Refuse (or, with ``skip``, drop with a warning naming them) the items of ``ds`` that use a frame
+def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> dict[int, list[str]]:
+    """Refuse (or, with ``skip``, drop with one warning naming them) the items of ``ds`` that use a frame
     ``validate`` flags: :func:`stores.fitness.check_frames`, the one fitness check (NaN/Inf or
     out-of-range values in any stored array, negative references or standard errors, an all-zero
-    reference under a non-zero input, NaN/Inf the renderer replaced). Returns the number of frames
-    dropped. The store datasets list their frames in ``frames`` (one per item) or ``windows`` (tuples)."""
+    reference under a non-zero input, NaN/Inf the renderer replaced), and every incomplete frame of the
+    store (a frame not yet written, failed, or unflagged: the datasets hold complete frames only, so
+    without this a partial store would be used without a word; an unwritten frame's split is not known,
+    so any incomplete frame counts). Returns the frames left out, frame -> problems, also kept as
+    ``ds.left_out``. The store datasets list their frames in ``frames`` (one per item) or ``windows``
+    (tuples)."""
     from stores.fitness import check_frames, describe
     attr = "frames" if hasattr(ds, "frames") else "windows"
     items = list(getattr(ds, attr))
@@ -73,21 +77,24 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
     # a source other than our stores (a Noisebase folder) brings its own check of what it holds
     check = getattr(store, "check_frames", None) or (lambda frames, progress: check_frames(store, frames,
                                                                                            progress=progress))
-    bad = check(used, progress=progress)
+    bad = check(sorted(set(used) | set(store.incomplete_frames())), progress=progress)
+    ds.left_out = bad
     if not bad:
-        return 0
+        return bad
     listed = describe(bad)
     if not skip:
-        raise DataError(f"{len(bad)} of the {len(used)} frames of split {split!r} of {store.path!s} would be "
-                        f"flagged by validate: {listed}; re-render them (python -m pipeline dataset resumes), "
-                        "or pass --skip-bad-frames to leave them out")
+        inside = len(set(used) & set(bad))
+        rest = f"; {len(bad) - inside} more incomplete" if len(bad) > inside else ""
+        raise DataError(f"{len(bad)} frames of {store.path!s} would be flagged by validate ({inside} of the "
+                        f"{len(used)} of split {split!r}{rest}): {listed}; re-render them (python -m pipeline "
+                        "dataset resumes and finishes a partial store), or pass --skip-bad-frames to leave them out")
     keep = [it for it in items if not any(int(i) in bad for i in (it if isinstance(it, tuple) else (it,)))]
     if not keep:
         raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}")
     setattr(ds, attr, keep)
-    warnings.warn(f"skipping {len(bad)} flagged frames of split {split!r} ({len(items) - len(keep)} items): "
-                  f"{listed}", stacklevel=3)
-    return len(bad)
+    warnings.warn(f"skipping {len(bad)} flagged frames of {store.path!s} ({len(items) - len(keep)} items of split "
+                  f"{split!r}): {listed}", stacklevel=3)
+    return bad
 
 
 def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:

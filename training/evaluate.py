@@ -338,6 +338,7 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     done = evaluate_frames(m, ds, st, n, runner(m, dev, precision), with_flip, keep)
     info = {"split": split, "store": str(st.path), "torch_threads": torch.get_num_threads(), "device": str(dev),
             "precision": precision, "compiled": bool(compile), **m.info, "spp": m.spp, "frames": done["frames"],
+            "left_out": {str(i): list(p) for i, p in sorted(ds.left_out.items())},
             **summarize(done["frames"], done["runs"])}
     if done["sample_map"] is not None:
         info["sample_map"] = done["sample_map"]

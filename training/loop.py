@@ -190,7 +190,7 @@ def check_same_store(ck: dict, now: dict, path) -> None:
             except Exception:  # noqa: BLE001 - an unreadable old layout is simply different
                 return was[k] == now[k]
         return was[k] == now[k]
-    diff = {k: (was[k], now[k]) for k in now if k in was and not same(k)}
+    diff = {k: (was[k], now[k]) for k in now if k in was and k != "left_out" and not same(k)}
     if diff:
         raise CheckpointError(f"{path} was trained on another store (field: (checkpoint, now)): {diff}; "
                               "resume on the same store, or train into a new --out")
@@ -257,6 +257,8 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
                           f"{dist.world} ranks; use a multiple of {dist.world}")
     run = _Run(cfg, store, out, device, precision, dist)
     train_ds, val_ds = _datasets(cfg, run.module.input_spec(), store)
+    left_out = {**getattr(val_ds, "left_out", {}), **train_ds.left_out}      # --skip-bad-frames: kept on record
+    run.store_info["left_out"] = {str(i): list(p) for i, p in sorted(left_out.items())}
     todo = max(cfg.steps - run.step, 0) if stop_after is None else max(min(cfg.steps - run.step, stop_after), 0)
     t0 = time.perf_counter()
     loss, val = _loop(run, train_ds, val_ds, todo, progress, t0)
