@@ -398,14 +398,17 @@ class Store:
 
     def _clip_start(self, table: dict, i: int) -> int:
         """The frame holding frame ``i``'s SceneSpec JSON in a v3 store: its clip's first frame, ``i -
-        frame_in_clip`` (a dataset writes a clip's frames one after another), else another frame of its
-        clip with ``frame_in_clip`` 0, else ``i`` itself."""
-        clip, fic = table["clip_id"], table["frame"]
+        frame_in_clip`` (a dataset writes a clip's frames one after another, and stores the JSON there
+        before any of them), when that frame is of the clip or not committed yet (its ``frames/*`` still
+        hold fill values: an interrupted run); else a complete frame of its clip with ``frame_in_clip``
+        0, else ``i`` itself."""
+        clip, fic, done = table["clip_id"], table["frame"], table["complete"]
         j = i - int(fic[i])
-        if 0 <= j < len(fic) and int(fic[j]) == 0 and clip[j] == clip[i]:
+        if 0 <= j < len(fic) and (not done[j] or (int(fic[j]) == 0 and clip[j] == clip[i])):
             return j
         if self._clip_starts is None:
-            self._clip_starts = {int(clip[k]): int(k) for k in np.nonzero(np.asarray(fic) == 0)[0][::-1]}
+            firsts = np.nonzero((np.asarray(fic) == 0) & np.asarray(done, bool))[0]
+            self._clip_starts = {int(clip[k]): int(k) for k in firsts[::-1]}
         return self._clip_starts.get(int(clip[i]), i)
 
     def _lost_scene_json(self, table: dict, done: list[int]) -> dict[int, tuple[int, str]]:

@@ -138,6 +138,13 @@ class StoreReport:
                 if verbose and f.ranges:
                     for k, (lo, hi) in f.ranges.items():
                         lines.append(f"      {k:18s} [{lo:.4g}, {hi:.4g}] nonfinite={f.nonfinite.get(k, 0)}")
+        if self.incomplete:
+            failed = sum(1 for f in self.frames if not f.complete and any("error:" in p for p in f.problems))
+            why = f", {failed} of them failed" if failed else ""
+            lines.append(f"  {len(self.incomplete)} of {len(self.frames)} frames are incomplete (an interrupted or "
+                         f"unfinished run{why}): the same `python -m pipeline dataset` command (same config and "
+                         "--out) finishes them and keeps the complete ones; until then train and evaluate use "
+                         "the complete frames only with --skip-bad-frames")
         lines.append("STORE DAMAGED" if self.damaged else "OK" if self.ok else "PROBLEMS FOUND")
         return "\n".join(lines)
 

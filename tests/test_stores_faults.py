@@ -581,3 +581,28 @@ def test_v3_a_lost_scene_json_is_damage(store, capsys):
     assert code == EXIT_DAMAGED and "frames/scene_json: frame 2" in text and f in text, text
     with pytest.raises(MissingShardError, match="frames/scene_json: frame 2"):
         open_store(store).clips()
+
+
+def test_v3_a_clip_committed_before_its_first_frame_is_incomplete_not_damaged(tmp_path, capsys):
+    """A dataset run killed after a metadata commit that holds a clip's later frames but not yet its first
+    (the frames' tasks end in any order; the clip's SceneSpec JSON was stored before any of them): the
+    store is incomplete (exit 1, frames left, a re-run finishes them), never damaged; every complete
+    frame reads its scene, and the resume completes the store."""
+    from test_stores_synthetic import synthetic_frame as sf
+    path = tmp_path / "s.zarr"
+    frames = [sf(5, H, W, S, frame=k, num_frames=4, scene_seed=5) for k in range(4)]
+    for k, fr in enumerate(frames):
+        fr["meta"].update(frame=k, num_frames=4, clip_id=42)
+    w = open_or_create(path, StoreLayout(num_frames=6, height=H, width=W, spp=S, tile=8), {})
+    w.write_frame(0, sf(1, H, W, S))                       # a still before the clip: clip frames 2..5
+    w.write_frame(1, sf(2, H, W, S))
+    w.write_scene_json(2, frames[0]["meta"]["scene_json"])  # what the scene task stores first
+    w.commit({i: w.write_frame_data(i, frames[i - 2]) for i in (4, 5)})
+    code, text = _validate(path, capsys)
+    assert code == EXIT_PROBLEMS and "DAMAGE" not in text and "--mark-damaged" not in text, text
+    assert "2 of 6 frames are incomplete" in text and "python -m pipeline dataset" in text, text
+    st = open_store(path)
+    assert st.metadata_damage() == {} and st.complete_frames() == [0, 1, 4, 5]
+    assert st.scene_json(5) == frames[0]["meta"]["scene_json"] and st.clips()[42] == [4, 5]
+    w.commit({i: w.write_frame_data(i, frames[i - 2]) for i in (2, 3)})
+    assert _validate(path, capsys)[0] == EXIT_OK
