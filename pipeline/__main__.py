@@ -4,7 +4,8 @@ Each sub-command lives in its own module with ``add_arguments(parser)`` and ``ru
 this file only dispatches and turns library errors into one-line messages and exit codes, the same
 for every command (``EXIT_CODES_HELP``): 0 ok; 1 problems found or frames failed; 2 bad input (a bad
 config or argument, a path that is not a readable store, an unreachable cluster, a locked store);
-3 the store is damaged (``stores.errors.StoreCorruptionError``); 130 interrupted.
+3 the store is damaged (``stores.errors.StoreCorruptionError``); 4 the store's disk is full; 5 the object
+store holding it could not be reached (``StoreUnreachableError``); 130 interrupted.
 """
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ COMMANDS = {
 EXIT_CODES_HELP = ("exit status: 0 ok; 1 problems found (validate) or frames failed (dataset); 2 bad input "
                    "(config, arguments, a path that is not a readable store, an unreachable cluster, a store "
                    "in use); 3 the store is damaged (missing or corrupt chunk files, array metadata that "
-                   "disagrees with the schema); 130 interrupted")
+                   "disagrees with the schema); 4 the store's disk is full; 5 the store's object store (S3 endpoint) "
+                   "could not be reached: run again once it is back; 130 interrupted")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
             p.epilog = p.epilog or EXIT_CODES_HELP
             p.set_defaults(_run=mod.run)
     args = parser.parse_args(argv)
+    from stores.objectstore import quiet_abandoned_requests, retry_defaults
+    retry_defaults()
+    quiet_abandoned_requests()
     from pipeline.errors import PipelineError
     from stores.errors import StoreCorruptionError, StoreError
     from scene_gen.errors import SceneGenError

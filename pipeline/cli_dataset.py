@@ -30,7 +30,7 @@ import numpy as np
 
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import ConfigError, PipelineError
-from stores.errors import is_disk_full, store_full
+from stores.errors import is_disk_full, store_full, unreachable_cause
 
 DEFAULT_CONFIG = "configs/default.yaml"
 
@@ -145,8 +145,19 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     ``overwrite`` deletes what is at the store path first. ``functions`` replaces the graph's task
     functions (tests inject failures with it).
     """
-    from stores.lock import StoreLock
     store = cfg.store_path(out)
+    try:
+        return _run_dataset(cfg, store, scheduler=scheduler, workers=workers, progress=progress,
+                            functions=functions, overwrite=overwrite)
+    except Exception as e:
+        from stores.errors import store_unreachable, unreachable_cause
+        if "://" in store and unreachable_cause(e) is not None:
+            raise store_unreachable(store, e) from None       # one line, exit 5: the store resumes
+        raise
+
+
+def _run_dataset(cfg: DatasetConfig, store: str, *, scheduler, workers, progress, functions, overwrite) -> dict:
+    from stores.lock import StoreLock
     cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
     check_cluster_settings(cfg, scheduler=scheduler, workers=workers)
     check_memory_before_start(cfg, scheduler=scheduler, workers=workers)
@@ -428,7 +439,8 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     seconds, instead of waiting for ever. A write that finds the store's file system full stops the
     run at once (every other write would fail alike): the rest is cancelled and
     ``on_disk_full(frames_left)`` (a ``StoreFullError``) raised; the failed frame stays incomplete, so a
-    re-run after freeing space resumes it. Whatever stops the run, the frames finished before are
+    re-run after freeing space resumes it. So does a write that cannot reach the object store after
+    botocore's retries (:mod:`stores.objectstore`). Whatever stops the run, the frames finished before are
     committed first (best effort), so the resume does not render them again."""
     import threading
     ts = time.perf_counter()
@@ -477,6 +489,8 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
                 exc = fut.exception()
                 if is_disk_full(exc):
                     raise full(exc)
+                if unreachable_cause(exc) is not None:
+                    raise exc               # the object store is gone: every other write would fail alike
                 text = f"{type(exc).__name__}: {exc}"
                 failed[idx] = text
                 commit.fail(idx, text)

@@ -39,7 +39,8 @@ def gpu_for_worker(name: str, visible: str | None) -> str | None:
 
 
 def prepare_environment() -> None:
-    """drjit's libLLVM and single-threaded BLAS/OpenMP pools (inherited by worker processes)."""
+    """drjit's libLLVM, single-threaded BLAS/OpenMP pools and botocore's retries (inherited by worker
+    processes)."""
     from scene_gen.variant import VariantError, find_libllvm
     try:
         lib = find_libllvm()
@@ -49,6 +50,9 @@ def prepare_environment() -> None:
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", lib)
     for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(k, "1")
+    from stores.objectstore import quiet_abandoned_requests, retry_defaults
+    retry_defaults()                # botocore's bounded retries for stores at s3:// URLs
+    quiet_abandoned_requests()      # and no traceback of each request dropped when they are spent
 
 
 def ignore_interrupts() -> None:

@@ -144,6 +144,50 @@ def store_full(path, doing: str, need_bytes: int | None = None) -> StoreFullErro
                           "or choose another --out; complete frames stay, and the same command resumes")
 
 
+class StoreUnreachableError(StoreError, ConnectionError):
+    """The object store holding the store (an ``s3://`` URL's endpoint) could not be reached, after
+    botocore's retries (:mod:`stores.objectstore`). Its own exit code (``exit_code``, 5): nothing is wrong
+    with the config or the store; what was committed stays, and the same command resumes once the
+    endpoint is back."""
+    exit_code = 5
+
+
+# botocore's and aiohttp's errors of a connection that failed, timed out or was cut (not of a request the
+# server answered): matched by name so that code without the S3 extras installed needs neither package
+_UNREACHABLE = {("botocore.exceptions", "ConnectionError"), ("botocore.exceptions", "HTTPClientError"),
+                ("aiohttp.client_exceptions", "ClientConnectionError"), ("aiohttp.client_exceptions",
+                                                                         "ServerTimeoutError")}
+
+
+def unreachable_cause(e: BaseException) -> BaseException | None:
+    """The exception in ``e``'s chain (itself, its cause or context) that is a failed connection to an object
+    store (botocore ``EndpointConnectionError``, ``ConnectTimeoutError``, ``ReadTimeoutError``,
+    ``ConnectionClosedError``; aiohttp's connection errors), else None."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, StoreUnreachableError) or any(
+                (c.__module__, c.__name__) in _UNREACHABLE for c in type(e).__mro__):
+            return e
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreachableError:
+    """The :class:`StoreUnreachableError` of ``store`` for the failed connection ``e``: one line naming the
+    endpoint, the last error and what to do."""
+    from stores.objectstore import endpoint, retry_window
+    cause = unreachable_cause(e) or e
+    if isinstance(cause, StoreUnreachableError):
+        return cause
+    text = str(cause).split("\n")[0]
+    return StoreUnreachableError(
+        f"the object store of {store} at {endpoint()} could not be reached{' ' + doing if doing else ''} "
+        f"({retry_window()}; last error: {type(cause).__name__}: {text}): what was committed stays; run the same "
+        "command again once the endpoint is back and it resumes (an endpoint that comes back empty has lost the "
+        "store: the run then builds it again from the start)")
+
+
 class StoreExistsError(StoreError, FileExistsError):
     """A store already exists where a new one was to be created (``overwrite`` not given)."""
 

@@ -16,13 +16,15 @@ time and start time (JSON), with a kernel ``flock`` on it while the run lives::
 - Stores at ``s3://`` URLs are locked by a **lease object** ``<store>/dataset.lock`` (:class:`S3Lease`):
   created with a conditional PUT (``If-None-Match: *``), so of two runs exactly one creates it (S3
   conditional writes are atomic and S3 reads are strongly consistent); the holder renews it (a PUT with
-  ``If-Match`` on its ETag) every ``LEASE_SECONDS / 3`` while it runs and deletes it at the end. A
-  lease not renewed for ``LEASE_SECONDS`` (its run was killed), or held by a dead process of this host,
-  is taken over with a PUT ``If-Match`` on
-  the ETag the taker read, so two runs racing for a dead lease cannot both win. A holder whose renewal
-  fails (it stalled past its lease and another run took over) knows it has lost the store: its next
-  commit raises (``StoreLock.check``). Other URL protocols have no lock (``StoreLock.supported`` False):
-  one run at a time is then up to the user.
+  ``If-Match`` on its ETag) every ``LEASE_SECONDS / 3`` while it runs and deletes it at the end (a
+  ``DELETE`` with ``If-Match``: only its own). A lease not renewed for ``LEASE_SECONDS`` by the object
+  store's clock (its ``LastModified`` against the ``Date`` of the response that read it: the hosts'
+  clocks never meet), or held by a dead process of this host, is taken over with a PUT ``If-Match`` on
+  the ETag the taker read, so two runs racing for a dead lease cannot both win. A holder knows when it
+  has lost the store, and its next commit raises (``StoreLock.check``): a renewal refused (another run
+  took over), or no renewal for half the lease (the endpoint is gone: it stops writing before the
+  lease can expire). Other URL protocols have no lock (``StoreLock.supported`` False): one run at a time
+  is then up to the user.
 """
 from __future__ import annotations
 
@@ -32,7 +34,8 @@ import os
 import socket
 import time
 
-from stores.errors import StoreLockedError, StorePathError, is_disk_full, store_full
+from stores.errors import StoreLockedError, StorePathError, StoreUnreachableError, is_disk_full, store_full
+from stores.objectstore import endpoint
 from stores.procinfo import holder_record, pid_alive
 from stores.schema import LOCK_NAME
 
@@ -47,13 +50,28 @@ def describe(holder: dict) -> str:
             + (f" ({holder.get('command')})" if holder.get("command") else ""))
 
 
-LEASE_SECONDS = 60.0        # an S3 lease not renewed for this long belongs to a dead run
+LEASE_SECONDS = 60.0        # an S3 lease not renewed for this long (by the object store's clock) is dead
+RENEW_EVERY = 1 / 3         # the holder renews every third of its lease...
+GIVE_UP_AFTER = 1 / 2       # ...and stops writing when it has not managed to for half of it
+
+
+def _code(e) -> str:
+    """botocore's error code of ``e`` ('' for errors without a response: no connection)."""
+    return str(getattr(e, "response", {}).get("Error", {}).get("Code", ""))
 
 
 class S3Lease:
     """The writer lock of a store at an ``s3://`` URL (module docstring): a lease object renewed while
     the run lives. Endpoint and credentials come from the standard AWS environment and config files
-    (botocore), never from the store; messages name the URL and the holder, never a credential."""
+    (botocore), never from the store; messages name the URL and the holder, never a credential.
+
+    Time is the object store's: a lease's age is the ``Date`` of the response that read it minus the
+    object's ``LastModified`` (both set by the server), so the clocks of the hosts never meet (a host
+    whose clock is off can neither keep a dead lease alive nor take a live one). A server without a
+    ``Date`` header leaves the reader's own clock. Release deletes the lease only if it is still the
+    one this run wrote (``DeleteObject`` with ``If-Match`` on its ETag); a server that does not support
+    conditional deletes (``NotImplemented``) falls back to reading the ETag, then deleting, which can
+    delete a lease another run took in between (AWS S3 and moto support them)."""
 
     def __init__(self, url: str, record: dict, lease: float = LEASE_SECONDS):
         bucket_key = url.split("://", 1)[1].rstrip("/")
@@ -63,54 +81,74 @@ class S3Lease:
         self.record, self.lease = dict(record), float(lease)
         self.etag: str | None = None
         self.took_over: dict | None = None
-        self.lost: str | None = None
+        self.taken: str | None = None           # another run took the lease over
+        self.renewed_at: float | None = None    # monotonic time of the last write of the lease
+        self.renew_error: BaseException | None = None
+        self._gave_up: str | None = None
         self._stop = None
         import boto3
-        self.s3 = boto3.client("s3")
+        from botocore.config import Config
+        # few, short attempts: a renewal must fail (and be tried again) well within the lease
+        self.s3 = boto3.client("s3", config=Config(retries={"mode": "standard", "max_attempts": 3},
+                                                   connect_timeout=5, read_timeout=10))
 
     def _body(self) -> bytes:
-        return json.dumps({**self.record, "expires": time.time() + self.lease, "lease_s": self.lease}).encode()
+        return json.dumps({**self.record, "lease_s": self.lease}).encode()
 
     def _failed(self, e) -> bool:
         """Whether ``e`` is a refused conditional write (another run's lease is there)."""
-        code = getattr(e, "response", {}).get("Error", {}).get("Code", "")
-        return code in ("PreconditionFailed", "412", "ConditionalRequestConflict")
+        return _code(e) in ("PreconditionFailed", "412", "ConditionalRequestConflict")
 
-    def _holder(self) -> tuple[dict | None, str | None]:
+    def _put(self, **cond) -> str:
+        etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(), **cond)["ETag"]
+        self.renewed_at = time.monotonic()
+        return etag
+
+    def _holder(self) -> tuple[dict | None, str | None, float]:
+        """The lease there: ``(record, etag, seconds left)`` by the object store's clock (module docstring),
+        ``(None, None, 0)`` when there is none."""
         try:
             r = self.s3.get_object(Bucket=self.bucket, Key=self.key)
         except self.s3.exceptions.NoSuchKey:
-            return None, None
+            return None, None, 0.0
         try:
             d = json.loads(r["Body"].read().decode())
         except ValueError:
             d = None
-        return (d if isinstance(d, dict) else {}), r["ETag"]
+        d = d if isinstance(d, dict) else {}
+        from email.utils import parsedate_to_datetime
+        date = r.get("ResponseMetadata", {}).get("HTTPHeaders", {}).get("date")
+        now = parsedate_to_datetime(date).timestamp() if date else time.time()
+        age = now - r["LastModified"].timestamp()
+        try:
+            lease = float(d.get("lease_s", LEASE_SECONDS))
+        except (TypeError, ValueError):
+            lease = LEASE_SECONDS
+        return d, r["ETag"], lease - age
 
     def acquire(self) -> "S3Lease":
         for _ in range(5):
             try:
-                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
-                                               IfNoneMatch="*")["ETag"]
+                self.etag = self._put(IfNoneMatch="*")
                 break
             except Exception as e:  # noqa: BLE001 - botocore's ClientError
+                if _code(e) == "NoSuchBucket":
+                    raise StorePathError(f"the bucket {self.bucket!r} of {self.url.rsplit('/', 1)[0]} does not exist "
+                                         f"at {endpoint()}: create it, or choose another --out") from None
                 if not self._failed(e):
                     raise
-            holder, etag = self._holder()
+            holder, etag, left = self._holder()
             if holder is None:
                 continue                        # released in between: try to create it again
-            left = float(holder.get("expires", 0)) - time.time()
             dead_here = (holder.get("host") == socket.gethostname() and holder.get("pid") != os.getpid()
                          and not pid_alive(holder.get("pid", -1), holder.get("proc_start")))
             if left > 0 and not dead_here:      # alive, or on another host and within its lease
-                until = time.strftime("%H:%M:%SZ", time.gmtime(float(holder["expires"])))
                 raise StoreLockedError(
                     f"the store {self.url.rsplit('/', 1)[0]} is in use by another dataset run: {describe(holder)}; "
-                    f"its lease object {self.url} runs until {until} and is renewed while that run lives "
-                    "(wait for it to finish, or stop it)", holder=holder)
+                    f"its lease object {self.url} lasts {left:.0f} s more by the object store's clock and is "
+                    "renewed while that run lives (wait for it to finish, or stop it)", holder=holder)
             try:                                # expired: take it over, unless another run does first
-                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
-                                               IfMatch=etag)["ETag"]
+                self.etag = self._put(IfMatch=etag)
                 self.took_over = holder
                 break
             except Exception as e:  # noqa: BLE001
@@ -124,26 +162,52 @@ class S3Lease:
         return self
 
     def _renew(self) -> None:
-        while not self._stop.wait(self.lease / 3):
+        while not self._stop.wait(self.lease * RENEW_EVERY):
             try:
-                self.etag = self.s3.put_object(Bucket=self.bucket, Key=self.key, Body=self._body(),
-                                               IfMatch=self.etag)["ETag"]
+                self.etag = self._put(IfMatch=self.etag)
+                self.renew_error = None
             except Exception as e:  # noqa: BLE001
                 if self._failed(e):
-                    self.lost = (f"the lease {self.url} was taken over by another run (this run did not renew "
-                                 f"it within {self.lease:g} s); this run stops writing the store")
+                    self.taken = (f"the lease {self.url} was taken over by another run (this run did not renew "
+                                  f"it within {self.lease:g} s); this run stops writing the store")
                     return
-                # a network error: try again next time; the lease lasts 3 renewal periods
+                self.renew_error = e            # no connection: try again; `lost` tells when to stop
+
+    @property
+    def lost(self) -> str | None:
+        """Why this run must stop writing the store, or None: another run took the lease over, or it has
+        not been renewed for ``GIVE_UP_AFTER`` of its length (the endpoint is gone), so that the run stops
+        before the lease can expire and another run may take it. Once lost, always lost."""
+        if self.taken:
+            return self.taken
+        if not self._gave_up and self.renewed_at is not None:
+            since = time.monotonic() - self.renewed_at
+            if since > self.lease * GIVE_UP_AFTER:
+                err = self.renew_error
+                self._gave_up = (f"could not renew the lease {self.url} for {since:.0f} s of its {self.lease:g} s"
+                                 + (f" (last error: {type(err).__name__}: {str(err).splitlines()[0]})" if err else "")
+                                 + "; this run stops writing the store before another run may take it over")
+        return self._gave_up
 
     def release(self) -> None:
+        """Delete the lease if it is still this run's. Best effort: a lease that cannot be deleted (the
+        endpoint is gone) ends by itself ``lease`` seconds after its last renewal, and a run on this host
+        takes over one whose process is dead at once."""
         if self._stop is not None:
             self._stop.set()
-        if self.lost or self.etag is None:
+        etag, self.etag = self.etag, None
+        if self.taken or etag is None:
             return
-        holder, etag = self._holder()
-        if etag == self.etag:                   # still ours: delete it
-            self.s3.delete_object(Bucket=self.bucket, Key=self.key)
-        self.etag = None
+        try:
+            self.s3.delete_object(Bucket=self.bucket, Key=self.key, IfMatch=etag)
+        except Exception as e:  # noqa: BLE001
+            if _code(e) not in ("NotImplemented", "501"):
+                return                          # not ours any more, already gone, or no connection
+            try:                                # a server without conditional deletes
+                if self._holder()[1] == etag:
+                    self.s3.delete_object(Bucket=self.bucket, Key=self.key)
+            except Exception:  # noqa: BLE001
+                pass
 
 
 class StoreLock:
@@ -285,9 +349,14 @@ class StoreLock:
         return self._fd is not None or self._lease is not None
 
     def check(self) -> None:
-        """Raise StoreLockedError if this run lost the store (an S3 lease another run took over)."""
-        if self._lease is not None and self._lease.lost:
-            raise StoreLockedError(self._lease.lost)
+        """Raise if this run lost the store: StoreLockedError when another run took its S3 lease over,
+        StoreUnreachableError when it could not renew the lease for half its length (``S3Lease.lost``)."""
+        lost = self._lease.lost if self._lease is not None else None
+        if lost:
+            if self._lease.taken:
+                raise StoreLockedError(lost)
+            raise StoreUnreachableError(f"the object store of {self.store} at {endpoint()} could not be reached: "
+                                        f"{lost}; run the same command again once it is back, and it resumes")
 
     def __enter__(self) -> "StoreLock":
         return self.acquire()

@@ -38,25 +38,46 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+class _S3:
+    """A moto S3 server on 127.0.0.1 that a test can stop and start again on the same port, with the same
+    data (moto keeps it in this process); calling it gives a fresh ``s3://`` URL in the test bucket."""
+
+    def __init__(self):
+        self.port = _free_port()
+        self.endpoint = f"http://127.0.0.1:{self.port}"
+        self.srv = None
+        self.n = iter(range(10 ** 6))
+
+    def start(self) -> None:
+        self.srv = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=self.port, verbose=False)
+        self.srv.start()
+
+    def stop(self) -> None:
+        self.srv.stop()
+        self.srv = None
+
+    def __call__(self, name: str, bucket: str = BUCKET) -> str:
+        return f"s3://{bucket}/{name}-{next(self.n)}.zarr"
+
+
 @pytest.fixture(scope="module")
 def s3():
-    """A moto S3 server on 127.0.0.1, the AWS_* environment pointing at it (restored afterwards) and a
-    bucket; yields a function giving a fresh ``s3://`` URL."""
+    """A moto S3 server (:class:`_S3`), the AWS_* environment pointing at it (restored afterwards) and a
+    bucket."""
     logging.getLogger("werkzeug").setLevel(logging.ERROR)
-    port = _free_port()
-    srv = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
-    srv.start()
-    env = {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "testing-key-id",
+    server = _S3()
+    server.start()
+    env = {"AWS_ENDPOINT_URL": server.endpoint, "AWS_ACCESS_KEY_ID": "testing-key-id",
            "AWS_SECRET_ACCESS_KEY": SECRET, "AWS_DEFAULT_REGION": "us-east-1"}
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     try:
         import boto3
         boto3.client("s3").create_bucket(Bucket=BUCKET)
-        n = iter(range(10 ** 6))
-        yield lambda name: f"s3://{BUCKET}/{name}-{next(n)}.zarr"
+        yield server
     finally:
-        srv.stop()
+        if server.srv is not None:
+            server.stop()
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
@@ -67,11 +88,11 @@ def s3():
 def _objects(prefix_url: str) -> dict[str, bytes]:
     import boto3
     s3 = boto3.client("s3")
-    prefix = prefix_url.split(f"s3://{BUCKET}/", 1)[1]
+    bucket, _, prefix = prefix_url.split("://", 1)[1].partition("/")
     out = {}
-    for page in s3.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix):
+    for page in s3.get_paginator("list_objects_v2").paginate(Bucket=bucket, Prefix=prefix):
         for o in page.get("Contents", []):
-            out[o["Key"]] = s3.get_object(Bucket=BUCKET, Key=o["Key"])["Body"].read()
+            out[o["Key"]] = s3.get_object(Bucket=bucket, Key=o["Key"])["Body"].read()
     return out
 
 
@@ -87,28 +108,47 @@ def _arrays(store) -> dict:
     return {f"{grp}/{name}": a[...] for grp, sub in g.groups() for name, a in sub.arrays()}
 
 
-# ---- a dataset run on S3: killed, resumed, equal to a local run -------------------------------------
-def test_a_dataset_on_s3_is_killed_resumed_and_equals_a_local_run(s3, tmp_path):
-    url = s3("smoke")
+# ---- a dataset run on S3: its endpoint goes away, comes back, the store resumes and equals a local run ----
+def _keys(prefix_url: str) -> list[str]:
+    import boto3
+    bucket, _, prefix = prefix_url.split("://", 1)[1].partition("/")
+    pages = boto3.client("s3").get_paginator("list_objects_v2").paginate(Bucket=bucket, Prefix=prefix)
+    return [o["Key"] for page in pages for o in page.get("Contents", [])]
+
+
+def test_a_dataset_on_s3_outlives_its_endpoint_going_away_and_equals_a_local_run(s3, tmp_path):
+    """The S3 server stops while a run renders into its store: after botocore's retries (a short window
+    here, AWS_MAX_ATTEMPTS=2) the run stops with one line naming the endpoint and the last error (exit 5,
+    no traceback), leaving its lease behind; with the server back (same data) the same command takes the
+    lease over, resumes and makes a store equal to a local run's. Back empty (the store's bucket gone),
+    validate finds no store and the run names the missing bucket (exit 2); nothing prints a credential."""
+    import boto3
+    boto3.client("s3").create_bucket(Bucket="denoise-gone")
+    url = s3("smoke", bucket="denoise-gone")
+    env = {**_env(), "AWS_MAX_ATTEMPTS": "2"}
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", "dataset", "--config", str(SMOKE), "--out", url,
-                             "--no-progress"], env=_env(), cwd=ROOT, stdout=subprocess.PIPE,
+                             "--no-progress"], env=env, cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    import zarr
     try:
-        t0, done = time.monotonic(), 0
-        while proc.poll() is None and time.monotonic() - t0 < 300 and not done:
-            try:
-                done = int(zarr.open_group(url, mode="r")["status/complete"][:].sum())
-            except Exception:  # noqa: BLE001 - not created yet
-                pass
-            time.sleep(0.3)
+        t0 = time.monotonic()           # the scenes' JSON is stored: the store is made and frames render now
+        while proc.poll() is None and time.monotonic() - t0 < 300 and not any(
+                "/frames/scene_json/c/" in k for k in _keys(url)):
+            time.sleep(0.2)
+        s3.stop()
+        first = proc.communicate(timeout=300)[0]
     finally:
-        kill_group(proc)                     # SIGKILL mid-run (after its first commit, or before it)
-    first = proc.stdout.read()
+        kill_group(proc)
+        if s3.srv is None:
+            s3.start()
+    errors = [ln for ln in first.splitlines() if ln.startswith("error:")]
+    assert proc.returncode == 5 and len(errors) == 1, first[-3000:]
+    assert s3.endpoint in errors[0] and "could not be reached" in errors[0] and "EndpointConnectionError" in errors[0]
+    assert "run the same command again" in errors[0] and "Traceback" not in first, first[-6000:]
+    assert any(k.endswith("/dataset.lock") for k in _keys(url))      # it could not delete its lease
     r = _dataset(url)
     assert r.returncode == 0, first[-2000:] + r.stdout[-3000:] + r.stderr[-3000:]
     assert "4/4 complete" in r.stdout and "validation: ok" in r.stdout
-    assert "took over" in r.stdout and "lease" not in r.stderr      # the killed run's lease was taken over
+    assert "took over" in r.stdout and "lease" not in r.stderr      # the stopped run's lease was taken over
     local = tmp_path / "local.zarr"
     assert _dataset(local).returncode == 0
     a, b = _arrays(url), _arrays(local)
@@ -123,9 +163,24 @@ def test_a_dataset_on_s3_is_killed_resumed_and_equals_a_local_run(s3, tmp_path):
     for text in (first, r.stdout, r.stderr, v.stdout, v.stderr):         # no credential in any output...
         assert SECRET not in text and "testing-key-id" not in text
     assert not any(SECRET.encode() in body for body in _objects(url).values())   # ...nor in the store
+    # back empty: the store (here its whole bucket) is gone
+    s3c = boto3.client("s3")
+    for k in _keys("s3://denoise-gone/"):
+        s3c.delete_object(Bucket="denoise-gone", Key=k)
+    s3c.delete_bucket(Bucket="denoise-gone")
+    v = subprocess.run([sys.executable, "-m", "pipeline", "validate", url], env=_env(), cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert v.returncode == 2 and f"no store at {url}" in v.stderr, v.stderr
+    r = _dataset(url, timeout=120)
+    assert r.returncode == 2 and "bucket 'denoise-gone'" in r.stderr and "does not exist" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and "dashboard" not in r.stdout
 
 
 # ---- the lease ----------------------------------------------------------------------------------------
+def _lease_key(url: str) -> str:
+    return url.split(f"s3://{BUCKET}/", 1)[1] + "/dataset.lock"
+
+
 def test_a_second_run_is_refused_while_the_lease_lives_and_a_dead_lease_is_taken_over(s3):
     import boto3
 
@@ -141,12 +196,16 @@ def test_a_second_run_is_refused_while_the_lease_lives_and_a_dead_lease_is_taken
     finally:
         lock.release()
     assert not _objects(url)                                        # released: the lease object is gone
-    # a run killed while holding it: its lease expired (written by hand here, 1 s old)
-    s3c = boto3.client("s3")
-    key = url.split(f"s3://{BUCKET}/", 1)[1] + "/dataset.lock"
-    dead = {"host": "elsewhere", "pid": 77, "started": "then", "expires": time.time() - 1}
-    s3c.put_object(Bucket=BUCKET, Key=key, Body=json.dumps(dead).encode())
+    # leases of other hosts, judged by the object store's clock, never by the time a holder wrote in them
+    s3c, key = boto3.client("s3"), _lease_key(url)
+    behind = {"host": "elsewhere", "pid": 76, "started": "then", "expires": time.time() - 3600, "lease_s": 60}
+    s3c.put_object(Bucket=BUCKET, Key=key, Body=json.dumps(behind).encode())    # renewed now, by a slow clock
+    with pytest.raises(StoreLockedError, match="pid 76 on host elsewhere.* lasts (59|60) s more"):
+        StoreLock(url).acquire()
+    ahead = {"host": "elsewhere", "pid": 77, "started": "then", "expires": time.time() + 3600, "lease_s": 1}
+    s3c.put_object(Bucket=BUCKET, Key=key, Body=json.dumps(ahead).encode())     # a fast clock, not renewed
     stale = s3c.head_object(Bucket=BUCKET, Key=key)["ETag"]
+    time.sleep(2.1)                                                  # LastModified counts whole seconds
     a = StoreLock(url).acquire()
     try:
         assert a.took_over["pid"] == 77
@@ -161,20 +220,58 @@ def test_a_second_run_is_refused_while_the_lease_lives_and_a_dead_lease_is_taken
         a.release()
 
 
-def test_a_run_that_lost_its_lease_writes_nothing_more(s3):
-    from stores.errors import StoreLockedError
+def _short_lock(url: str, lease: float):
+    """A StoreLock holding an S3 lease of ``lease`` seconds (renewed every third of it)."""
     from stores.lock import S3Lease, StoreLock
+    lock = StoreLock(url)
+    lock._lease = S3Lease(url, lock._record(), lease=lease).acquire()
+    return lock
+
+
+def test_a_run_whose_lease_is_taken_over_stops_writing_and_leaves_the_new_lease(s3):
+    """A renewal refused for real (another writer's lease replaced this one): the next commit's check
+    raises, and the release deletes nothing (DELETE If-Match on this run's ETag)."""
+    import boto3
+
+    from stores.errors import StoreLockedError
     url = s3("lost")
-    lock = StoreLock(url).acquire()
-    lease = lock._lease
-    lease.s3.put_object(Bucket=BUCKET, Key=lease.key, Body=b'{"host": "thief", "pid": 1, "expires": 1e12}')
-    lease._stop.set()
-    with pytest.raises(Exception) as e:                   # what the renewal thread meets
-        lease.s3.put_object(Bucket=BUCKET, Key=lease.key, Body=b"{}", IfMatch=lease.etag)
-    assert isinstance(lease, S3Lease) and lease._failed(e.value)
-    lease.lost = "the lease was taken over"
-    with pytest.raises(StoreLockedError, match="taken over"):
+    lock = _short_lock(url, 1.5)
+    lock.check()                                                      # held: nothing to say
+    thief = b'{"host": "thief", "pid": 1, "lease_s": 60}'
+    boto3.client("s3").put_object(Bucket=BUCKET, Key=_lease_key(url), Body=thief)
+    t0 = time.monotonic()
+    while lock._lease.lost is None and time.monotonic() - t0 < 10:
+        time.sleep(0.1)
+    with pytest.raises(StoreLockedError, match="taken over by another run"):
         lock.check()
+    lock.release()
+    assert _objects(url)[_lease_key(url)] == thief
+    # a lease released while still ours is deleted, but only by its own ETag
+    mine = _short_lock(s3("mine"), 60)
+    mine._lease.etag = '"0123456789abcdef0123456789abcdef"'          # as if another run had renewed it since
+    mine.release()
+    assert len(_objects(mine.store)) == 1
+
+
+def test_a_run_that_cannot_renew_its_lease_stops_writing_before_it_expires(s3):
+    """The endpoint goes away: renewals fail for real, and once the lease has gone unrenewed for half its
+    length the run's check raises StoreUnreachableError (exit 5), before another run could take it."""
+    from stores.errors import StoreUnreachableError
+    url = s3("unrenewed")
+    lock = _short_lock(url, 3.0)
+    s3.stop()
+    try:
+        time.sleep(0.5)
+        lock.check()                                                  # within half the lease: still held
+        t0 = time.monotonic()
+        while lock._lease.lost is None and time.monotonic() - t0 < 20:
+            time.sleep(0.1)
+        with pytest.raises(StoreUnreachableError, match="could not renew the lease .* for [12] s of its 3 s"):
+            lock.check()
+        assert time.monotonic() - lock._lease.renewed_at < 3.0           # said before the lease could end
+        lock.release()                                                # no connection: no error either
+    finally:
+        s3.start()
 
 
 # ---- integrity: a missing or corrupted object is named, never zeros -----------------------------------

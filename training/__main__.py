@@ -245,8 +245,11 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from stores.errors import StoreCorruptionError, StoreError
 
+    from stores.objectstore import retry_defaults
+
     from .accel import tune_allocator
     tune_allocator()
+    retry_defaults()
 
     from .errors import NonFiniteError, TrainingError
     try:
