@@ -10,7 +10,8 @@ finds nothing:
   non-finite stored value was written by something else, e.g. zarr-python);
 - radiance, layers and reference are >= 0, and so is the reference's standard error;
 - features and guides lie in their ranges (albedo, roughness and time in [0, 1], lens positions in the
-  unit disk, depth >= 0, normals of unit length or 0 on a miss), widened by what the store's rounding
+  unit disk, depth >= 0, normals of unit length or 0 on a miss, per-pixel normals no longer than 1:
+  a mean of unit vectors), widened by what the store's rounding
   may add (:func:`rounding_tols`);
 - its reference is not all zero while its input radiance is not;
 - the renderer replaced no NaN/Inf in it (``frames/nonfinite_*``: the stored values are finite, but
@@ -73,16 +74,16 @@ def rounding_tols(layout) -> dict[str, float]:
     return out
 
 
-def _range(name, a, lo=None, hi=None, problems=None, tol=TOL) -> None:
+def _range(name, a, lo=None, hi=None, problems=None, tol=TOL, what: str = "values above") -> None:
     fin = a[np.isfinite(a)]
     if fin.size == 0:
         return
     if lo is not None and fin.min() < lo - tol:
         n = int((fin < lo - tol).sum())
-        what = "negative values" if lo == 0 else f"values below {lo:g}"
-        problems.append(f"{name} has {n} {what} (min {fin.min():.4g})")
+        below = "negative values" if lo == 0 else f"values below {lo:g}"
+        problems.append(f"{name} has {n} {below} (min {fin.min():.4g})")
     if hi is not None and fin.max() > hi + tol:
-        problems.append(f"{name} has {int((fin > hi + tol).sum())} values above {hi:g} (max {fin.max():.4g})")
+        problems.append(f"{name} has {int((fin > hi + tol).sum())} {what} {hi:g} (max {fin.max():.4g})")
 
 
 def check_values(fr: dict, layout=None) -> ValueCheck:
@@ -122,8 +123,11 @@ def check_values(fr: dict, layout=None) -> ValueCheck:
         _range("guides_albedo", fr["guides_albedo"], 0.0, 1.0, p, tol.get("guides_albedo", TOL))
     if "guides_depth" in fr:
         _range("guides_depth", fr["guides_depth"], 0.0, None, p)
-    if "guides_normal" in fr:
-        _range("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=max(1e-2, tol.get("guides_normal", 0.0)))
+    if "guides_normal" in fr:              # a mean of unit vectors: each component, and its length, at most 1
+        slack = max(1e-2, tol.get("guides_normal", 0.0))
+        _range("guides_normal", fr["guides_normal"], -1.0, 1.0, p, tol=slack)
+        length = np.linalg.norm(np.asarray(fr["guides_normal"], np.float64), axis=-1)
+        _range("guides_normal", length, None, 1.0, p, tol=slack, what="pixels longer than")
     if "reference" in fr and "radiance" in fr and not np.any(fr["reference"]) and np.any(fr["radiance"]):
         p.append(f"reference is all zero while the input radiance is not "
                  f"(max {float(np.nanmax(fr['radiance'])):.4g})")

@@ -303,6 +303,21 @@ def test_all_zero_reference_with_nonzero_input_is_flagged(tmp_path, capsys):
     assert any("negative" in p for p in p2) and any("5 NaN/Inf values in its input samples" in p for p in p2)
 
 
+def test_a_guide_normal_longer_than_one_is_flagged(tmp_path, capsys):
+    """A per-pixel normal is the mean of unit vectors, never longer than 1: (0.95, 0.95, 0.95) (length
+    1.65, each component in range) is flagged; a mean that is short (0.5) or a miss (0) is not."""
+    path = tmp_path / "s.zarr"
+    frames = [synthetic_frame(i, H, W, S) for i in range(3)]
+    frames[1]["guides_normal"][2, 3] = 0.95
+    frames[2]["guides_normal"][2, 3] = [0.5, 0.0, 0.0]
+    frames[2]["guides_normal"][4, 4] = 0.0
+    _write(path, frames=frames)
+    code, text = _validate(path, capsys)
+    assert code == EXIT_PROBLEMS and "guides_normal has 1 pixels longer than 1 (max 1.65" in text, text
+    st = open_store(path)
+    assert frame_problems(st, 0) == [] and frame_problems(st, 2) == []
+
+
 def test_black_frame_is_not_flagged(tmp_path):
     path = tmp_path / "s.zarr"
     fr = synthetic_frame(0, H, W, S)
