@@ -175,3 +175,32 @@ def test_two_ranks_train_every_kind_to_the_one_process_weights(probes, clip_stor
         torch.manual_seed(4)
         start = build(probes[kind]).state_dict()
         assert any(not torch.equal(start[k], a[k]) for k in a), f"{kind}: the steps changed no weight"
+
+
+def test_evaluate_times_only_warm_calls_of_each_shape(probes, clip_store, monkeypatch):
+    """A compiled model compiles again for each new input shape and for a recurrent model's first step
+    with a state (torch.compile's guards): evaluate runs each such call once untimed, so no frame's time
+    holds a compilation (here: 0.3 s the first time a call signature is seen), and says how many frames
+    it timed."""
+    import time as _time
+
+    from training import evaluate as ev
+    from training.models import build
+    seen, real = set(), ev.runner
+
+    def compiling_runner(m, dev, precision):
+        run = real(m, dev, precision)
+
+        def slow_first(item, state=None):
+            sig = (tuple(tuple(v.shape) for v in item.values()), state is None)
+            if sig not in seen:
+                seen.add(sig)
+                _time.sleep(0.3)
+            return run(item, state)
+        return slow_first
+    monkeypatch.setattr(ev, "runner", compiling_runner)
+    res = ev.evaluate(build(probes["clips"]), clip_store, split="test", with_flip=False, device="cpu")
+    assert len(seen) == 2                                   # a clip's first step, and steps with a state
+    assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
+    assert res["timing"]["frames_timed"] == len(res["frames"]) == TEST_FRAMES
+    assert res["timing"]["untimed_warmups"] == 2
