@@ -115,6 +115,23 @@ def test_a_checkpoint_that_carries_code_is_refused_and_nothing_runs(tmp_path, wr
     assert marker.exists()
 
 
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
+@pytest.mark.parametrize("obj", [np.arange(3), {"rng": np.zeros(2, np.uint32)}])
+def test_a_bare_pickle_is_refused_in_our_words_never_with_torchs_unsafe_advice(tmp_path, obj):
+    """torch's refusal goes on to suggest weights_only=False or allow-listing the object: the unsafe path.
+    The message says only that the file is not a checkpoint this project wrote, and how one it did wrote
+    in an older format is converted."""
+    path = tmp_path / "raw.pt"
+    with open(path, "wb") as f:
+        pickle.dump(obj, f, protocol=2)
+    with pytest.raises(CheckpointError) as e:
+        ckpt.load(path)
+    msg = str(e.value)
+    assert "is not a checkpoint this project wrote (a bare pickle" in msg and "Nothing in it was run" in msg
+    assert "weights_only" not in msg and "safe_globals" not in msg and "torch.serialization" not in msg, msg
+    assert "python -m training.checkpoint upgrade FILE converts one" in msg
+
+
 class Payload:
     """Unpickling this calls ``func(*args)``: a crafted checkpoint's way to run code."""
 

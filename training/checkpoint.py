@@ -172,6 +172,34 @@ def _unpickler_reason(e: Exception) -> str:
     return " ".join(text.split()) or type(e).__name__
 
 
+def _refusal(path: Path, e: Exception) -> CheckpointError:
+    """Why ``path`` was refused by torch's restricted unpickler, in our words (torch's own message goes on
+    to suggest the unsafe way round it, which is never repeated here): damaged or foreign, not a
+    checkpoint this project wrote, or an old-format one of ours with the command that converts it."""
+    import re
+    import zipfile
+    why = _unpickler_reason(e)
+    named = re.findall(r"GLOBAL ([\w.]+)", why)
+    if not named:                                 # no object asked for: a damaged or foreign file
+        return CheckpointError(f"cannot read checkpoint {path}: {why.split('. ')[0]}")
+    needs = _unsafe_globals(path) or named
+    foreign = [n for n in needs if not _is_old_global(n)]
+    ours = zipfile.is_zipfile(path)               # torch.save's format: every checkpoint this project wrote
+    if foreign or not ours:
+        return CheckpointError(
+            f"refusing to load {path}: it is not a checkpoint this project wrote"
+            + ("" if ours else " (a bare pickle, not torch's checkpoint format)")
+            + f": it asks pickle for {', '.join(needs)} (a checkpoint holds only {PLAIN_DATA}), and unpickling "
+            "it could run code the file carries. Nothing in it was run. Do not load it: ask its author for a "
+            "checkpoint of this project, or retrain."
+            + ("" if foreign else " (A checkpoint an older version of this project wrote is a torch zip file: "
+               "python -m training.checkpoint upgrade FILE converts one.)"))
+    return CheckpointError(
+        f"refusing to load {path}: it is an old-format checkpoint that needs the Python objects {needs} (a "
+        f"checkpoint now holds only {PLAIN_DATA}). Convert it once: python -m training.checkpoint upgrade "
+        f"{path} (it reads the file without running any code and refuses anything but those objects).")
+
+
 def load(path, map_location="cpu") -> dict:
     """Read a checkpoint with ``torch.load(..., weights_only=True)``: only plain data is accepted, so
     nothing in the file runs. Raises :class:`CheckpointError` for a missing, corrupt, pickle-needing or
@@ -183,22 +211,7 @@ def load(path, map_location="cpu") -> dict:
     try:
         ck = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
-        why = _unpickler_reason(e)
-        if "GLOBAL" not in why:                       # no object asked for: a damaged or foreign file
-            raise CheckpointError(f"cannot read checkpoint {path}: {why}") from e
-        needs = _unsafe_globals(path)
-        what = f"the Python objects {needs}" if needs else f"Python objects beyond plain data ({why})"
-        foreign = [n for n in needs if not _is_old_global(n)] if needs else [why]
-        if foreign:             # not what an old checkpoint of ours holds: never suggest unpacking it
-            raise CheckpointError(
-                f"refusing to load {path}: it asks pickle for {', '.join(foreign)}, which no checkpoint of "
-                f"this project holds (a checkpoint holds only {PLAIN_DATA}); unpickling it could run code the "
-                "file carries. Nothing in it was run. Do not load it: ask its author for a plain-data "
-                "checkpoint, or retrain.") from e
-        raise CheckpointError(
-            f"refusing to load {path}: it is an old-format checkpoint that needs {what} (a checkpoint now "
-            f"holds only {PLAIN_DATA}). Convert it once: python -m training.checkpoint upgrade {path} "
-            "(it reads the file without running any code and refuses anything but those objects).") from e
+        raise _refusal(path, e) from e
     except Exception as e:   # torch raises many types for a corrupt file
         raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
