@@ -200,6 +200,7 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
         raise ExportError("no frames to export")
     idx = screen(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}", progress=True)
     write = WRITERS[fmt]
+    made = _missing_parents(out)
     try:
         os.makedirs(out, exist_ok=True)
     except OSError as e:
@@ -207,11 +208,28 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     import shutil
     import tempfile
     tmp = tempfile.mkdtemp(prefix=".export-", dir=out)
+    done = False
     try:
         files = write(store, idx, tmp, name)
+        done = True
         return _into_place(tmp, out, files)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        if not done:                    # a refused export leaves no folder it made behind
+            for d in made:
+                try:
+                    os.rmdir(d)
+                except OSError:
+                    break
+
+
+def _missing_parents(out: str) -> list[str]:
+    """The folders ``os.makedirs(out)`` would make, deepest first."""
+    made, d = [], os.path.abspath(out)
+    while not os.path.exists(d):
+        made.append(d)
+        d = os.path.dirname(d)
+    return made
 
 
 # format -> writer(store, frames, out, name) -> files. Other packages add formats that need more than the
