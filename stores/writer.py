@@ -152,9 +152,17 @@ class StoreWriter:
         return record
 
     def write_scene_json(self, first: int, scene_json: str) -> None:
-        """Store a clip's SceneSpec JSON at its first frame ``first`` (schema v3; one file a clip). The
-        same bytes for every frame of the clip, so writing it again (a re-run) changes nothing."""
-        self._array("frames/scene_json")[self._check_index(first)] = str(scene_json)
+        """Store a clip's SceneSpec JSON at its first frame ``first`` (schema v3; one file a clip), unless
+        it is there already: a resume (the same config gives the same bytes) reads it and writes nothing,
+        so a complete frame's file is never rewritten and a store at a URL pays a read, not a write. A
+        missing or damaged chunk is written."""
+        arr, first = self._array("frames/scene_json"), self._check_index(first)
+        try:
+            if str(arr[first]) == str(scene_json):
+                return
+        except Exception:  # noqa: BLE001 - zarr/numcodecs raise many kinds for a damaged chunk: write it again
+            pass
+        arr[first] = str(scene_json)
 
     def _write_meta_v2(self, index: int, record: dict) -> None:
         meta = record["meta"]

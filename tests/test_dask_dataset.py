@@ -75,18 +75,21 @@ def _arrays(store: Path) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def local_store(tmp_path_factory):
-    """The smoke dataset on a LocalCluster: the CLI (and its worker processes) SIGKILLed after the first
-    complete frame, then the same command again. Returns what the test needs to judge the resume."""
+    """The smoke dataset on a LocalCluster: the CLI (and its worker processes) SIGKILLed right after its
+    first commit (the run pauses there: ``DENOISE_TEST_COMMIT_PAUSE``, so where the kill lands does not
+    depend on timing), then the same command again. Returns what the test needs to judge the resume."""
     d = tmp_path_factory.mktemp("local")
-    out = d / "smoke.zarr"
-    p = subprocess.Popen(_cli(out, d / "first.json"), env=_env(), cwd=ROOT, start_new_session=True,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out, flag = d / "smoke.zarr", d / "committed"
+    p = subprocess.Popen(_cli(out, d / "first.json"), env={**_env(), "DENOISE_TEST_COMMIT_PAUSE": str(flag)},
+                         cwd=ROOT, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        before = _wait_for_frames(out, p, 1, timeout=400).copy()
-        killed_running = p.poll() is None
+        t0 = time.monotonic()
+        while not flag.exists() and p.poll() is None and time.monotonic() - t0 < 400:
+            time.sleep(0.2)
+        killed_running = p.poll() is None and flag.exists()
     finally:
         kill_group(p)
-    before = _complete(out)                     # the kill may have landed after one more frame
+    before = _complete(out)
     mtimes = {i: _frame_files(out, i) for i in np.nonzero(before)[0]}
     t0 = time.monotonic()
     r = subprocess.run(_cli(out, d / "second.json"), env=_env(), cwd=ROOT, capture_output=True, text=True,

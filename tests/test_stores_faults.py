@@ -621,3 +621,26 @@ def test_v3_a_clip_committed_before_its_first_frame_is_incomplete_not_damaged(tm
     assert st.scene_json(5) == frames[0]["meta"]["scene_json"] and st.clips()[42] == [4, 5]
     w.commit({i: w.write_frame_data(i, frames[i - 2]) for i in (2, 3)})
     assert _validate(path, capsys)[0] == EXIT_OK
+
+
+def test_v3_a_clips_scene_json_is_written_only_where_it_is_missing_or_damaged(tmp_path):
+    """A resume stores each clip's SceneSpec JSON again (its scene task runs for the clip's incomplete
+    frames): the file of a complete frame is not rewritten when it holds those bytes (on S3 each write is
+    a request), and a lost or damaged one is written again."""
+    from test_stores_synthetic import synthetic_frame as sf
+    path = tmp_path / "s.zarr"
+    frames = [sf(5, H, W, S, frame=k, num_frames=2, scene_seed=5) for k in range(2)]
+    for k, fr in enumerate(frames):
+        fr["meta"].update(frame=k, num_frames=2, clip_id=9)
+    _write(path, StoreLayout(num_frames=2, height=H, width=W, spp=S, tile=8), frames=frames)
+    f = _shard(path, "frames/scene_json", 0)
+    text = frames[0]["meta"]["scene_json"]
+    os.utime(f, ns=(1, 1))
+    StoreWriter(path).write_scene_json(0, text)
+    assert os.stat(f).st_mtime_ns == 1                       # there already: not written
+    _flip(f)
+    StoreWriter(path).write_scene_json(0, text)
+    assert os.stat(f).st_mtime_ns != 1 and open_store(path).scene_json(1) == text
+    os.unlink(f)
+    StoreWriter(path).write_scene_json(0, text)
+    assert validate_store(path).ok
