@@ -640,12 +640,37 @@ def probe_scheduler(address: str, timeout: float, security=None) -> None:
                            f"({type(e).__name__}: {e}); is `dask scheduler` running there?") from None
 
 
+class _DashboardNoise(logging.Filter):
+    """Drops a log record whose error was raised inside Bokeh's server code: the dashboard's own trouble
+    with a browser tab (a websocket the tab closed while a message was on its way ends in an
+    ``AssertionError`` traceback from ``bokeh.server.connection``), never the run's."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        tb = record.exc_info[2] if record.exc_info else None
+        while tb is not None:
+            if f"{os.sep}bokeh{os.sep}" in tb.tb_frame.f_code.co_filename:
+                return False
+            tb = tb.tb_next
+        return True
+
+
+def quiet_dashboard() -> None:
+    """Keep the terminal to the run's own lines while this process serves a dashboard (a LocalCluster's
+    or a batch cluster's scheduler runs here): Bokeh's server errors, and tornado's reports of errors
+    raised in Bokeh's code, are left out (distributed's logging config prints both to stderr)."""
+    logging.getLogger("bokeh").setLevel(logging.CRITICAL)
+    app = logging.getLogger("tornado.application")
+    if not any(isinstance(f, _DashboardNoise) for f in app.filters):
+        app.addFilter(_DashboardNoise())
+
+
 def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | None = None) -> Connection:
     """Start or reach the cluster. ``scheduler`` (the CLI's ``--scheduler``) wins over ``cfg``;
     ``workers`` overrides the local worker count or the number of batch jobs (the workers of an
     existing scheduler are not ours to size, so it is ignored there). With ``cfg.security`` the
     client speaks TLS, and an address without a scheme is taken as ``tls://``."""
     from distributed import Client
+    quiet_dashboard()
     address = scheduler or (cfg.address if cfg.kind in ("scheduler", "local") else None)
     if address:
         security = make_security(cfg.security)

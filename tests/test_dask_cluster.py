@@ -150,3 +150,36 @@ def test_a_gpu_machine_gets_one_worker_per_gpu_each_seeing_its_own(monkeypatch):
         assert sorted(conn.client.run(_gpu_env).values()) == ["0", "1"]
     finally:
         conn.close()
+
+
+def test_the_dashboards_own_errors_stay_out_of_the_terminal(capsys):
+    """A browser tab that drops its websocket mid-message makes Bokeh's server raise (the AssertionError of
+    ``ServerConnection.session`` on a detached session), logged through tornado with its traceback: left
+    out once a cluster is connected; tornado's other errors and distributed's own records still print."""
+    import logging
+    import sys
+
+    from bokeh.server.connection import ServerConnection
+
+    from pipeline.cluster import quiet_dashboard
+    quiet_dashboard()
+    handler = logging.StreamHandler(sys.stderr)
+    app = logging.getLogger("tornado.application")
+    app.addHandler(handler)
+    try:
+        conn = ServerConnection.__new__(ServerConnection)
+        conn._session = None
+        try:
+            conn.session                                 # what a closed tab's message meets
+        except AssertionError:
+            app.error("Exception in callback", exc_info=True)
+            logging.getLogger("bokeh.server.views.ws").error("Handler or its work threw", exc_info=True)
+        try:
+            raise KeyError("the run's own")
+        except KeyError:
+            app.error("Uncaught exception in the scheduler", exc_info=True)
+    finally:
+        app.removeHandler(handler)
+    err = capsys.readouterr().err
+    assert "AssertionError" not in err and "Handler or its work" not in err
+    assert "Uncaught exception in the scheduler" in err and "the run's own" in err
