@@ -1,7 +1,9 @@
-"""The store schema: versioned tables of arrays (v1, v2), the layout, and store creation/opening.
+"""The store schema: versioned tables of arrays (v1, v2, v3), the layout, and store creation/opening.
 
-``create_store`` writes schema v2 (``TABLES[2]``); ``open_group`` reads v1 and v2 and checks every
-array's ``zarr.json`` against its version's table (``array_problems``). v2 over v1: a ``crc32c``
+``create_store`` writes schema v3 (``TABLES[3]``); ``open_group`` reads v1, v2 and v3 and checks every
+array's ``zarr.json`` against its version's table (``array_problems``). v3 over v2: the per-frame
+metadata, camera matrices and status in chunks of :data:`META_CHUNK` frames committed by one process,
+and the SceneSpec JSON once a clip (:func:`_v3`; ``stores/SCHEMA.md`` has the table). v2 over v1: a ``crc32c``
 checksum on every chunk (the inner chunks of shards too), ``frames/frame`` renamed
 ``frames/frame_in_clip``, coordinates for xarray (``G/frame`` 0..F-1 in every group, ``rgb``/``xyz``/
 ``uv`` labels, ``layers/level`` with ``layers/spp`` as its non-index coordinate), consolidated
