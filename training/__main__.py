@@ -243,13 +243,13 @@ def main(argv=None) -> int:
     f.set_defaults(fn=_fma)
 
     a = p.parse_args(argv)
-    from stores.errors import StoreCorruptionError, StoreError
-
-    from stores.objectstore import retry_defaults
+    from stores.errors import StoreCorruptionError, StoreError, store_unreachable, unreachable_cause
+    from stores.objectstore import quiet_abandoned_requests, retry_defaults
 
     from .accel import tune_allocator
     tune_allocator()
     retry_defaults()
+    quiet_abandoned_requests()
 
     from .errors import NonFiniteError, TrainingError
     try:
@@ -264,16 +264,24 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception as err:
+        if unreachable_cause(err) is None:
+            raise
+        where = getattr(a, "store", None) or "the store"          # an s3:// store whose endpoint is gone
+        print(f"error: {store_unreachable(where, err)}", file=sys.stderr)
+        return EXIT_UNREACHABLE
 
 
 EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values
 EXIT_ERROR = 2      # bad settings, a store that cannot be used as asked, a bad checkpoint
 EXIT_DAMAGED = 3    # the store is damaged (missing, truncated or corrupt files): see `python -m pipeline validate`
+EXIT_UNREACHABLE = 5   # the object store of an s3:// store could not be reached (botocore's retries spent)
 EXIT_INTERRUPTED = 130
 EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/Inf) or hard-cases found problems "
                    "(non-finite outputs or stored values); 2 bad settings, or a store, split or checkpoint that "
                    "cannot be used as asked (frames validate flags included: --skip-bad-frames leaves them out); "
-                   "3 the store is damaged (see python -m pipeline validate); 130 interrupted")
+                   "3 the store is damaged (see python -m pipeline validate); 5 the S3 endpoint of an s3:// store "
+                   "could not be reached (run again once it is back); 130 interrupted")
 
 
 def _message(err: BaseException) -> str:
