@@ -176,6 +176,7 @@ def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None) -> dic
                for lab in labels if m in models[lab]["curves"]]
     runs = [{"name": j.name, "model": j.label, "kind": j.kind, "seed": j.seed, "frames": j.frames,
              "clips": len(j.clips), "share": j.share, "family": j.family, "seconds": records[j.name].get("seconds"),
+             "cpu_seconds": records[j.name].get("cpu_seconds"),
              "mean": records[j.name]["evaluation"]["mean"], "ci95": records[j.name]["evaluation"]["ci95"]}
             for j in jobs if j.name in records]
     return {"heldout": {"frames": len(clips), "clips": len(set(clips)),

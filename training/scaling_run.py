@@ -84,7 +84,7 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
     job = Job(**{k: (tuple(v) if k == "clips" else v) for k, v in job.items()})
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with open(run_dir / "run.log", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log), \
             warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="training without validation")   # judged on the held-out store
@@ -99,22 +99,36 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
                            precision=cfg.precision)
     res = {k: v for k, v in res.items() if k not in ("images", "sample_map")}
     seconds = time.perf_counter() - t0
-    write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds, "evaluation": res})
-    return {"name": job.name, "mean": res["mean"], "seconds": seconds}
+    write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds,
+                                  "cpu_seconds": time.process_time() - c0, "evaluation": res})
+    return {"name": job.name, "mean": res["mean"], "seconds": seconds, "cpu_seconds": time.process_time() - c0}
 
 
-def _pool(parallel: int):
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-    return ProcessPoolExecutor(parallel, mp_context=multiprocessing.get_context("spawn"))
+def _ignore_interrupt() -> None:
+    """Pool worker initializer: Ctrl-C is the parent's to handle (it terminates the workers), so a worker
+    prints no traceback of its own; checkpoints and records are written atomically, so a killed run
+    resumes from its last checkpoint."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _next(done, timeout: float = 1.0):
+    """The next finished job from the pool's callbacks (waits in short steps, so Ctrl-C is seen at once)."""
+    import queue
+    while True:
+        try:
+            return done.get(timeout=timeout)
+        except queue.Empty:
+            continue
 
 
 def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, parallel: int, threads: int,
              flip: bool, log=print) -> dict[str, dict]:
     """Every job's record (``name -> record``): finished ones read back, the others run ``parallel`` at a
-    time in fresh worker processes (training and evaluating; one line each as they end). Ctrl-C stops
-    the pool: finished runs stay, interrupted ones resume from their checkpoints."""
-    from concurrent.futures import as_completed
+    time in fresh worker processes (training and evaluating; one line each as they end). Ctrl-C, or a run
+    that fails, stops every worker: finished runs stay, interrupted ones resume from their checkpoints."""
+    import multiprocessing
+    import queue
 
     from .data import open_store
     heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
@@ -130,22 +144,28 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
         f"({parallel} at a time, {threads} thread(s) each)")
     if not todo:
         return records
-    t0 = time.perf_counter()
-    pool = _pool(parallel)
+    t0, done = time.perf_counter(), queue.Queue()
+    pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
     try:
-        futs = {pool.submit(run_job, j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
-                            heldout): j for j in todo}
-        for k, fut in enumerate(as_completed(futs), 1):
-            job = futs[fut]
-            res = fut.result()
-            records[job.name] = json.loads((runs / job.name / RECORD).read_text())
+        for j in todo:
+            pool.apply_async(run_job, (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
+                                       heldout), callback=lambda r: done.put((r, None)),
+                             error_callback=lambda e, name=j.name: done.put((name, e)))
+        for k in range(1, len(todo) + 1):
+            res, err = _next(done)
+            if err is not None:
+                log(f"scaling: run {res} failed: {type(err).__name__}: {err}")
+                raise err
+            records[res["name"]] = json.loads((runs / res["name"] / RECORD).read_text())
             m = res["mean"]
-            log(f"  [{k}/{len(todo)}] {job.name}: relMSE {m['relmse']:.4g}, PSNR {m['psnr']:.2f} dB "
-                f"({res['seconds']:.0f} s; {time.perf_counter() - t0:.0f} s so far)")
+            log(f"  [{k}/{len(todo)}] {res['name']}: relMSE {m['relmse']:.4g}, PSNR {m['psnr']:.2f} dB "
+                f"({res['seconds']:.0f} s, {res['cpu_seconds']:.0f} CPU-s; {time.perf_counter() - t0:.0f} s so far)")
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
+        pool.terminate()
+        pool.join()
         raise
-    pool.shutdown()
+    pool.close()
+    pool.join()
     return records
 
 
