@@ -281,7 +281,11 @@ def main(argv=None) -> int:
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return EXIT_DAMAGED if damaged else EXIT_ERROR
     except KeyboardInterrupt:
-        print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
+        if a.cmd == "scaling":
+            print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
+                  "command resumes", file=sys.stderr)
+        else:
+            print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 
