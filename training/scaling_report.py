@@ -377,16 +377,16 @@ def plot_scaling(result: dict, path) -> None:
 def _plain_log_axes(ax, log_y: bool, ticks) -> None:
     """Log x with the sizes as plain-number ticks (and log y, plain numbers, for relMSE)."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    from .report import plain_log_ticks
     ax.set_xscale("log")
     if ticks:
         ax.set_xticks(ticks)
-    plain = FuncFormatter(lambda v, _: f"{v:g}")
-    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.xaxis.set_minor_formatter(NullFormatter())
     if log_y:
         ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(plain)
-        ax.yaxis.set_minor_formatter(plain)
+        plain_log_ticks(ax.yaxis)
 
 
 def _plain_result(result: dict) -> dict:
