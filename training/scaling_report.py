@@ -128,10 +128,9 @@ def variety_matrix(jobs, records: dict, label: str, metric: str, held: dict) -> 
     return {"model": label, "metric": metric, "evaluated_on": evals, "rows": rows}
 
 
-def target_answer(label: str, metric: str, target: float, curve: dict, costs: dict | None) -> dict:
-    """The frames ``label`` needs for ``target`` of ``metric`` with their rendering cost, or why there is no
-    answer (no supported fit; the target beyond the fitted floor, which is named)."""
-    from .scaling_run import cost_of
+def target_answer(label: str, metric: str, target: float, curve: dict) -> dict:
+    """The frames ``label`` needs for ``target`` of ``metric`` (:func:`price` adds what rendering them costs),
+    or why there is no answer (no supported fit; the target beyond the fitted floor, which is named)."""
     out = {"model": label, "metric": metric, "target": float(target)}
     if curve["fit"] is None or not curve["support"]["supported"]:
         return {**out, "refused": f"no fit to invert: {curve['support']['reason']}"}
@@ -142,10 +141,17 @@ def target_answer(label: str, metric: str, target: float, curve: dict, costs: di
     out.update(ans)
     top = max(s["n"] for s in curve["sizes"])
     out["beyond_measured"] = ans["frames"] > top
-    if costs:
-        out["cost"] = cost_of(ans["frames"], costs)
-        out["cost_ci95"] = [cost_of(n, costs) if math.isfinite(n) else None for n in (ans["ci95"] or [])]
     return out
+
+
+def price(answers: list[dict], costs: dict) -> None:
+    """Add to every answered target what rendering its frames (and its interval's ends) costs (``costs``:
+    ``training.scaling_run.rendering_costs``)."""
+    from .scaling_run import cost_of
+    for a in answers:
+        if "frames" in a:
+            a["cost"] = cost_of(a["frames"], costs)
+            a["cost_ci95"] = [cost_of(n, costs) if math.isfinite(n) else None for n in (a["ci95"] or [])]
 
 
 def baselines(jobs, records: dict, metrics) -> list[dict]:
@@ -159,7 +165,7 @@ def baselines(jobs, records: dict, metrics) -> list[dict]:
     return out
 
 
-def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None) -> dict:
+def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None) -> dict:
     """The study's numbers from its jobs and their records (module docstring)."""
     held = heldout_frames(records)
     clips = held["clip"]
@@ -172,8 +178,10 @@ def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None) -> dic
                          "verdicts": {m: verdict(label, m, c) for m, c in curves.items()}}
     v = scfg.variety_plan()
     variety = [variety_matrix(jobs, records, lab, m, held) for lab in (v["models"] if v else []) for m in scfg.metrics]
-    answers = [target_answer(lab, m, t, models[lab]["curves"][m], costs) for m, t in targets.items()
+    answers = [target_answer(lab, m, t, models[lab]["curves"][m]) for m, t in targets.items()
                for lab in labels if m in models[lab]["curves"]]
+    if costs:
+        price(answers, costs)
     runs = [{"name": j.name, "model": j.label, "kind": j.kind, "seed": j.seed, "frames": j.frames,
              "clips": len(j.clips), "share": j.share, "family": j.family, "seconds": records[j.name].get("seconds"),
              "cpu_seconds": records[j.name].get("cpu_seconds"),

@@ -211,7 +211,7 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
     added to the config's. Returns the result written to ``scaling.json``."""
     from .data import open_store
     from .report import provenance
-    from .scaling_report import analyse, write_report
+    from .scaling_report import analyse, price, write_report
     t0 = time.perf_counter()
     out = Path(out or scfg.out or f"data/{scfg.name}")
     workers = workers or scfg.workers
@@ -224,14 +224,17 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
     parallel = scfg.parallel or max(1, cores // scfg.threads)
     records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log)
     targets = {k: float(v) for k, v in {**scfg.targets, **(targets or {})}.items() if v is not None}
-    costs = rendering_costs(train_cfg, out, workers, train_store, log) if targets else None
-    result = analyse(scfg, jobs, records, targets, costs)
+    result = analyse(scfg, jobs, records, targets)
+    if any("frames" in a for a in result["targets"]):           # an answer to price: calibrate (or read the cache)
+        result["costs"] = rendering_costs(train_cfg, out, workers, train_store, log)
+        price(result["targets"], result["costs"])
     result.update(config=scfg.to_dict(), stores={"train": train_path, "heldout": held_path}, plan=record,
                   seconds=time.perf_counter() - t0,
                   provenance=provenance([], {"train": train_path, "heldout": held_path}, {"out": str(out)}))
     write_report(out, result, scfg)
     log(f"scaling: wrote {out / 'scaling.md'}, scaling.png and scaling.json in {result['seconds']:.0f} s")
     from .scaling_report import targets_markdown
-    for line in [mod["verdict"] for mod in result["models"].values()] + targets_markdown(result["targets"], costs):
+    for line in [mod["verdict"] for mod in result["models"].values()] + targets_markdown(result["targets"],
+                                                                                           result["costs"]):
         log("  " + line.lstrip("- ").replace("**", ""))
     return result
