@@ -30,7 +30,7 @@ import numpy as np
 from scene_gen.checks import is_int, is_number, known_keys, need, need_int
 
 from .config import TrainConfig
-from .errors import ConfigError, DataError
+from .errors import ConfigError, DataError, UnknownModelError
 from .scaling_fit import LOWER_IS_BETTER
 
 SUBSET_SALT = 0x5CA1E
@@ -106,7 +106,10 @@ class ScalingConfig:
             for k in ("seed", "train_clips"):
                 need(k not in m and k not in self.train, f"scaling.models[{i}].{k}", "left to the study", k,
                      ConfigError)
-            cfg = TrainConfig.from_dict({**self.train, **m})
+            try:
+                cfg = TrainConfig.from_dict({**self.train, **m})
+            except (ConfigError, UnknownModelError) as e:
+                raise ConfigError(f"scaling.models[{i}] ({label}): {e}") from e
             out.append((label, cfg))
         labels = [lab for lab, _ in out]
         need(len(set(labels)) == len(labels) and all("/" not in lab for lab in labels), "scaling.models",
@@ -155,13 +158,16 @@ class ScalingConfig:
 
 
 def load_scaling_config(path) -> ScalingConfig:
-    """Read and check a scaling YAML; ConfigError naming the file and the field."""
+    """Read and check a scaling YAML, its two dataset configs included (before anything is rendered);
+    ConfigError naming the file and the field."""
     import yaml
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"scaling config {str(p)!r} is not a file")
     try:
-        return ScalingConfig.from_dict(yaml.safe_load(p.read_text()))
+        scfg = ScalingConfig.from_dict(yaml.safe_load(p.read_text()))
+        scfg.dataset_configs()
+        return scfg
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
     except (ConfigError, TypeError) as e:
