@@ -9,7 +9,7 @@ export DENOISE_DATA ?= $(CURDIR)/data
 # test processes (pytest-xdist): one a core, at most 4 (each loads torch and Mitsuba); TEST_JOBS=0 runs in one process
 TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n < 4 ? n : 4 )))
 
-.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd hard-cases preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd scaling hard-cases preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -107,6 +107,11 @@ compare-nppd: setup ## nppd beside layer, temporal (if trained) and OIDN at 2, 4
 	  $(PY) -m training report --runs data/runs-nppd/nppd-$${s}spp data/runs-nppd/layer-$${s}spp $$extra \
 	    --store data/eval-temporal-cpu.zarr --out data/report-nppd-$${s}spp --baseline nppd-$${s}spp || exit 1; \
 	done
+
+SCALING_CONFIG ?= configs/scaling-cpu.yaml
+scaling: setup   ## what the data buys: quality against training frames and scene variety, with fits (configs/scaling-cpu.yaml: about 2.5 hours on 2 cores; resumes; TARGET_RELMSE=X TARGET_PSNR=Y)
+	$(PY) -m training scaling --config $(SCALING_CONFIG) $(if $(OUT),--out $(OUT)) $(if $(WORKERS),--workers $(WORKERS)) \
+	  $(if $(TARGET_RELMSE),--target-relmse $(TARGET_RELMSE)) $(if $(TARGET_PSNR),--target-psnr $(TARGET_PSNR))
 
 HARD_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt)
 hard-cases: setup ## render configs/hard-cases.yaml, then evaluate RUNS (default: every trained run), OIDN and the input per case

@@ -52,6 +52,11 @@ def test_cli_train_evaluate_report(store, tmp_path):
                   "relMSE by kind of frame"):
         assert label in md
     assert Image.open(rep / "speed_vs_error.png").size[0] > 100
+    # inference timed at the bench's size, not on the store's small frames; the noisy input has no time
+    assert "ms/MP @128²" in md and "one 128x128 frame" in md
+    speed = json.loads((rep / "comparisons.json").read_text())["speed"]
+    assert speed["input"] is None and speed["layer"]["size"] == 128 and speed["oidn"]["ms_per_mp"] > 0
+    assert next(ln for ln in md.splitlines() if ln.startswith("| input |")).split("|")[9].strip() == "–"
     crops = Image.open(rep / "crops.png")
     assert crops.size[0] > 4 * crops.size[1] > 400          # 5 panels side by side: input, 2 models, oidn, reference
     assert res["mean"]["tpsnr"] is None and res["mean"]["spp"] == 2   # stills only: no temporal PSNR
@@ -122,3 +127,26 @@ def test_bench_runs_small():
     res = run(size=32, spp=2, repeats=1, models=("pixelgather", "layer-optimized"), print_table=False)
     assert set(res) == {"pixelgather", "layer-optimized", "oidn"}
     assert all(v["ms_per_mp"] > 0 and v["ms_per_720p"] > 0 for v in res.values())
+
+
+def test_speed_vs_error_marks_what_it_cannot_place(tmp_path, monkeypatch):
+    """A log relMSE axis over 4 decades from the best method: one far above is drawn on the top edge and
+    named with its value, one that a log axis cannot hold is named, the input (no time) is a line."""
+    from training import report
+    drawn = {}
+
+    def keep(fig_self, path, *a, **k):
+        ax = fig_self.axes[0]
+        drawn.update(ylim=ax.get_ylim(), labels=ax.get_legend().get_texts() and
+                     [t.get_text() for t in ax.get_legend().get_texts()], yscale=ax.get_yscale())
+    from matplotlib.figure import Figure
+    monkeypatch.setattr(Figure, "savefig", keep)
+    results = [{"label": "input", "mean": {"relmse": 0.57}},
+               {"label": "nbg", "mean": {"relmse": 57.0}, "speed": {"ms_per_mp": 700.0}},
+               {"label": "oidn", "mean": {"relmse": 0.046}, "speed": {"ms_per_mp": 1300.0}},
+               {"label": "diverged", "mean": {"relmse": 5e4}, "speed": {"ms_per_mp": 900.0}},
+               {"label": "broken", "mean": {"relmse": float("nan")}, "speed": {"ms_per_mp": 100.0}}]
+    report.plot_speed_vs_error(results, tmp_path / "p.png")
+    assert drawn["yscale"] == "log" and drawn["ylim"][0] < 0.046 and 57.0 < drawn["ylim"][1] < 5e4
+    assert drawn["labels"] == ["input (no time)", "nbg", "oidn", "diverged (relMSE 5e+04: above the plot)",
+                               "broken (relMSE nan: not plotted)"]

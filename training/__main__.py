@@ -1,4 +1,4 @@
-"""``python -m training train|evaluate|report|bench|denoise|hard-cases|fma`` (see ``--help`` of each)."""
+"""``python -m training train|evaluate|report|bench|denoise|hard-cases|scaling|fma`` (see ``--help`` of each)."""
 from __future__ import annotations
 
 import argparse
@@ -79,6 +79,14 @@ def _denoise(a) -> int:
 def _fma(a) -> int:
     from .fma import figure10, figure10_markdown
     print(figure10_markdown(figure10()))
+    return 0
+
+
+def _scaling(a) -> int:
+    from .scaling import load_scaling_config
+    from .scaling_run import run_study
+    targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
+    run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
     return 0
 
 
@@ -239,6 +247,20 @@ def main(argv=None) -> int:
     d.add_argument("--out", required=True, help="denoised radiance, written as OpenEXR")
     d.set_defaults(fn=_denoise)
 
+    s = sub.add_parser("scaling", help="quality against the number of training frames and their scene variety, "
+                                       "with a fit and intervals: OUT/scaling.md, scaling.png, scaling.json (resumes)")
+    s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
+    s.add_argument("--out", help="folder for the stores, runs and the three files (default: the config's out, "
+                                 "else data/NAME)")
+    s.add_argument("--target-relmse", type=float, default=None,
+                   help="the smallest number of training frames the fit predicts reaches this relMSE, with its "
+                        "interval and rendering cost (pipeline estimate); refused below the fitted floor")
+    s.add_argument("--target-psnr", type=float, default=None, help="the same for a PSNR (dB); refused above the "
+                                                                   "fitted ceiling")
+    s.add_argument("--workers", type=int, default=None, help="render workers (default: the config's, else one a core)")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(fn=_scaling)
+
     f = sub.add_parser("fma", help="figure 10: FMAs against spp")
     f.set_defaults(fn=_fma)
 
@@ -262,7 +284,11 @@ def main(argv=None) -> int:
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return EXIT_DAMAGED if damaged else EXIT_ERROR
     except KeyboardInterrupt:
-        print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
+        if a.cmd == "scaling":
+            print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
+                  "command resumes", file=sys.stderr)
+        else:
+            print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:
         if unreachable_cause(err) is None:

@@ -90,56 +90,70 @@ def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats:
             "compile_max_rel_diff": diff, "compile_pairs": len(ratio)}
 
 
+def time_model(m, spp: int, size: int, repeats: int, dev, precision: str, compile: bool = False) -> dict:
+    """Inference time of model ``m`` (in any state: random or trained weights) on a random batch of its
+    input kind at ``spp`` and ``size`` x ``size`` (:func:`_row`, with ``size`` and, with ``compile``,
+    :func:`_compiled`'s figures). A recurrent model is timed on one frame's step with a history."""
+    spec = m.input_spec()
+    stepwise = getattr(m, "stepwise", False)     # recurrent: one frame's step with a history
+    frames = 1 if stepwise else spec.frames
+    batch = spec.input_kind.example_batch(1, spp, size, size, frames, torch.Generator().manual_seed(0))
+    batch = {k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in batch.items()}
+    fast = m.to(dev).for_inference()
+    state = None
+    if stepwise:
+        with torch.no_grad():
+            state = fast.step(batch, None)[1]
+    mp = size * size / 1e6
+    s, c = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
+    row = _row(s, c, mp, spp=spp, fmas_per_pixel=float(fast.fmas_per_pixel(spp)), params=m.param_count(),
+               device=str(dev), precision=precision, size=size)
+    if compile:
+        row.update(_compiled(fast, batch, stepwise, state, dev, precision, max(4 * repeats, 12), mp))
+    return row
+
+
+def time_oidn(size: int, repeats: int, dev) -> dict:
+    """OIDN's time on a random ``size`` x ``size`` image with albedo and normal (on CUDA: OIDN's CUDA
+    device, on tensors already on the GPU), as :func:`_row`."""
+    from .oidn import oidn_denoise, oidn_denoise_tensor
+    rng = np.random.default_rng(0)
+    color = rng.random((size, size, 3), dtype=np.float32) * 4
+    alb = rng.random((size, size, 3), dtype=np.float32)
+    nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
+    if dev.type == "cuda":
+        ct, at, nt = (torch.from_numpy(x).to(dev) for x in (color, alb, nrm))
+
+        def run_oidn():
+            oidn_denoise_tensor(ct, at, nt)
+            torch.cuda.synchronize(dev)
+    else:
+        def run_oidn():
+            oidn_denoise(color, alb, nrm)
+    s, c = _best(run_oidn, repeats)
+    return _row(s, c, size * size / 1e6, spp=None, fmas_per_pixel=None, params=None, device=str(dev), size=size)
+
+
 def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, oidn: bool = True,
         print_table: bool = True, device: str = "cpu", precision: str = "fp32", compile: bool = False) -> dict:
     from .accel import pick_device, precision_for, tune_allocator
     from .models import build, names
     from .models.common import flush_denormals
-    from .oidn import oidn_denoise, oidn_denoise_tensor
 
     flush_denormals()
     tune_allocator()                  # as `python -m training` runs (also when `make bench` calls this)
     dev = pick_device(device)
     precision = precision_for(precision, dev)
     models = list(models) if models else names()
-    mp = size * size / 1e6
     res = {}
     for name in models:
         torch.manual_seed(0)
         m = build(name)
-        spec = m.input_spec()
-        n = spec.default_spp if spp is None else int(spp)
-        stepwise = getattr(m, "stepwise", False)     # recurrent: one frame's step with a history
-        frames = 1 if stepwise else spec.frames
-        batch = spec.input_kind.example_batch(1, n, size, size, frames, torch.Generator().manual_seed(0))
-        batch = {k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in batch.items()}
-        fast = m.to(dev).for_inference()
-        state = None
-        if stepwise:
-            with torch.no_grad():
-                state = fast.step(batch, None)[1]
-        s, c = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
-        res[name] = _row(s, c, mp, spp=n, fmas_per_pixel=float(fast.fmas_per_pixel(n)), params=m.param_count(),
-                         device=str(dev), precision=precision)
-        if compile:
-            res[name].update(_compiled(fast, batch, stepwise, state, dev, precision, max(4 * repeats, 12), mp))
-        del m, fast
+        n = m.input_spec().default_spp if spp is None else int(spp)
+        res[name] = time_model(m, n, size, repeats, dev, precision, compile)
+        del m
     if oidn:
-        rng = np.random.default_rng(0)
-        color = rng.random((size, size, 3), dtype=np.float32) * 4
-        alb = rng.random((size, size, 3), dtype=np.float32)
-        nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
-        if dev.type == "cuda":                   # OIDN's CUDA device, on tensors already on the GPU
-            ct, at, nt = (torch.from_numpy(x).to(dev) for x in (color, alb, nrm))
-
-            def run_oidn():
-                oidn_denoise_tensor(ct, at, nt)
-                torch.cuda.synchronize(dev)
-        else:
-            def run_oidn():
-                oidn_denoise(color, alb, nrm)
-        s, c = _best(run_oidn, repeats)
-        res["oidn"] = _row(s, c, mp, spp=None, fmas_per_pixel=None, params=None, device=str(dev))
+        res["oidn"] = time_oidn(size, repeats, dev)
     if print_table:
         where = f"{torch.get_num_threads()} CPU threads" if dev.type == "cpu" else str(dev)
         print(f"inference at {size}x{size}, {where}, {precision} (best of {repeats})")

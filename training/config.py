@@ -31,7 +31,9 @@ class TrainConfig:
     Settings left at None take the model's own defaults (its class's ``train_defaults``, e.g. NBG's L1
     loss at lr 1e-4 and WSKPN's SMAPE at lr 1e-3, without clamping or warm-up, and ``spp`` from its
     input declaration: 1 for the per-pixel models), else the layer family's values above; the
-    resolved values are what a checkpoint records. ``workers`` is the number of DataLoader worker
+    resolved values are what a checkpoint records. ``train_clips`` restricts training to those clips
+    (scenes) of the train split, kept whole (``training.scaling``'s nested subsets); it is part of the
+    run's identity, so a run resumes only on the same frames. ``workers`` is the number of DataLoader worker
     processes (0: load in the training process); it does not change what is trained. ``device`` and
     ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
     on a GPU in bf16 resumes on a CPU in fp32)."""
@@ -58,6 +60,7 @@ class TrainConfig:
     precision: str = "auto"     # auto: bf16 on a GPU that has it, else fp32; bf16, fp16 or fp32
     workers: int = 1            # DataLoader worker processes (0: in-process)
     skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
+    train_clips: list | None = None  # train only on these clip ids of the train split (None: all of it)
 
     def __post_init__(self):
         self._resolve_defaults()
@@ -74,6 +77,11 @@ class TrainConfig:
         for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
             need_int(f'"{name}"', getattr(self, name), 0, None, ConfigError)
         need(isinstance(self.model_cfg, dict), '"model_cfg"', "a dict of model settings", self.model_cfg, ConfigError)
+        if self.train_clips is not None:
+            clips = self.train_clips
+            need(isinstance(clips, (list, tuple)) and len(clips) > 0 and all(is_int(c, numpy=True) for c in clips),
+                 '"train_clips"', "null or a non-empty list of clip ids", clips, ConfigError)
+            object.__setattr__(self, "train_clips", sorted({int(c) for c in clips}))
         from .accel import check_device, check_precision
         check_device(self.device)
         check_precision(self.precision)

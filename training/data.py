@@ -41,11 +41,12 @@ def open_store(store):
 
 
 def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: int, full_windows: bool = True,
-                  skip_bad_frames: bool = False, progress: bool = False):
+                  skip_bad_frames: bool = False, progress: bool = False, clips=None):
     """The dataset of input declaration ``spec`` (:class:`training.inputs.InputSpec`) on ``store``'s
     ``split``: checks that the store holds every array the kind needs and the sample count, refuses
     frames that ``validate`` would flag (see :func:`screen_frames`; ``skip_bad_frames`` leaves them out
-    with a warning naming them), and turns store errors into :class:`DataError`."""
+    with a warning naming them), and turns store errors into :class:`DataError`. ``clips``: keep only
+    the items of these clip ids (:func:`keep_clips`; None: every clip of the split)."""
     from stores.errors import StoreError
     st = open_store(store)
     kind = spec.input_kind
@@ -54,10 +55,33 @@ def model_dataset(spec, store, split: str, spp: int, crop, augment: bool, seed: 
     kind.check_spp(st, spp)
     try:
         ds = kind.dataset(st, split, spp, crop, augment, seed, frames=spec.frames, full_windows=full_windows)
+        if clips is not None:
+            keep_clips(ds, st, split, clips)
         screen_frames(ds, st, split, skip_bad_frames, progress)
     except StoreError as e:
         raise DataError(f"{split!r} data from {st.path!s}: {e}") from e
     return ds
+
+
+def keep_clips(ds, store, split: str, clips) -> None:
+    """Restrict ``ds`` (a store dataset: ``frames`` or ``windows``) to the items whose frames all belong to
+    the clips ``clips`` (ids of ``frames/clip_id``); DataError naming the ids the split does not hold, or
+    when no item is left (say, clips shorter than the model's window)."""
+    want = {int(c) for c in clips}
+    have = set(store.clips(split))
+    absent = sorted(want - have)
+    if absent:
+        more = " ..." if len(absent) > 8 else ""
+        raise DataError(f"split {split!r} of {store.path!s} has no clip {absent[:8]}{more} "
+                        f"({len(absent)} of the {len(want)} clip ids asked for)")
+    clip_of = store.meta_column("clip_id")
+    attr = "frames" if hasattr(ds, "frames") else "windows"
+    items = list(getattr(ds, attr))
+    keep = [it for it in items if all(int(clip_of[int(i)]) in want for i in (it if isinstance(it, tuple) else (it,)))]
+    if not keep:
+        raise DataError(f"none of the {len(items)} items of split {split!r} of {store.path!s} lies in the "
+                        f"{len(want)} clip(s) asked for (a model that reads windows needs clips at least that long)")
+    setattr(ds, attr, keep)
 
 
 def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> dict[int, list[str]]:

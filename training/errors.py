@@ -23,3 +23,8 @@ class DataError(TrainingError, RuntimeError):
 
 class NonFiniteError(TrainingError, FloatingPointError):
     """A loss or gradient became NaN/Inf during training."""
+
+
+class TargetBelowFloorError(ConfigError):
+    """A quality target lies beyond what the fitted scaling curve can reach with any number of frames (its
+    floor, or for PSNR its ceiling); the message names the limit and its interval."""

@@ -321,10 +321,11 @@ class _Run:
 
 
 def _datasets(cfg: TrainConfig, spec, store):
-    """The training split's dataset and the validation split's (every frame, whole frames of a small
-    store; None, with a warning, when the store has no such split)."""
+    """The training split's dataset (only the clips ``cfg.train_clips`` when set) and the validation
+    split's (every frame, whole frames of a small store; None, with a warning, when the store has no
+    such split)."""
     train_ds = model_dataset(spec, store, "train", cfg.spp, cfg.crop, augment=True, seed=cfg.seed,
-                             skip_bad_frames=cfg.skip_bad_frames)
+                             skip_bad_frames=cfg.skip_bad_frames, clips=cfg.train_clips)
     lay = store.layout
     val_crop = min(cfg.val_crop, lay.height, lay.width) if cfg.val_crop else None
     try:

@@ -1,7 +1,7 @@
 """Markdown report of trained runs against the noisy input and OIDN on held-out frames.
 
 ``report(runs, store, out)`` writes ``out/report.md`` (quality/speed table, figure-10 FMA table,
-training budgets), ``out/speed_vs_error.png`` (ms per megapixel, log scale, against relMSE),
+training budgets), ``out/speed_vs_error.png`` (ms per megapixel at 128x128 against relMSE, both log),
 ``out/crops.png`` (input / each model / OIDN / reference, tone-mapped), ``out/sample_map-<run>.png``
 for adaptive samplers (where the samples went), ``out/eval-<name>.json`` and ``out/comparisons.json``.
 Every comparison is stated against one method (the first, or ``--baseline``) as a paired per-frame
@@ -28,9 +28,14 @@ from .hardcases import hard_case_report
 from .jsonio import write as write_strict
 from .tonemap import tonemap
 
+# Inference is timed on one BENCH_SIZE x BENCH_SIZE frame, the size of `python -m training bench`: on a
+# store's own small frames (32x32 for the default dataset) fixed costs per call dominate (nbg read 9,090
+# ms/MP there and OIDN 4,390, while at 128x128 nbg is about twice as fast as OIDN).
+BENCH_SIZE = 128
+SPEED = "speed_ms_per_mp"           # the table's time column: ``result["speed"]["ms_per_mp"]``
 COLUMNS = (("relmse", "relMSE ↓", "{:.4f}"), ("smape", "SMAPE ↓", "{:.4f}"), ("psnr", "PSNR ↑", "{:.2f}"),
            ("ssim", "SSIM ↑", "{:.4f}"), ("flip", "FLIP ↓", "{:.4f}"), ("tpsnr", "tPSNR ↑", "{:.2f}"),
-           ("spp", "spp", "{:.2f}"), ("ms_per_megapixel", "ms/MP ↓", "{:.0f}"))
+           ("spp", "spp", "{:.2f}"), (SPEED, f"ms/MP @{BENCH_SIZE}² ↓", "{:.0f}"))
 
 
 def _fmt(v, f):
@@ -41,7 +46,7 @@ def table_markdown(results: list[dict]) -> str:
     head = "| method | " + " | ".join(c[1] for c in COLUMNS) + " | params | FMAs/pixel |"
     lines = [head, "|---|" + "---|" * (len(COLUMNS) + 2)]
     for r in results:
-        m = r["mean"]
+        m = {**r["mean"], SPEED: (r.get("speed") or {}).get("ms_per_mp")}
         cells = [_fmt(m.get(k), f) for k, _, f in COLUMNS]
         fm = r.get("fmas_per_pixel")
         lines.append(f"| {r['label']} | " + " | ".join(cells) +
@@ -80,27 +85,83 @@ def _pyplot():
     return plt
 
 
-def plot_speed_vs_error(results: list[dict], path) -> None:
-    """Scatter of ms per megapixel (log x) against relMSE (y), one labelled point per method."""
+def plain_log_ticks(axis) -> None:
+    """Ticks of a log axis as plain numbers (0.05, 2, 300) at 1, 2 and 5 times the powers of ten."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def speed_of(r: dict) -> float | None:
+    """A method's ms per megapixel at :data:`BENCH_SIZE` (:func:`time_at_bench_size`; None: not timed)."""
+    v = (r.get("speed") or {}).get("ms_per_mp")
+    return float(v) if v is not None and math.isfinite(v) and v > 0 else None
+
+
+def plot_speed_vs_error(results: list[dict], path, decades: float = 4.0) -> None:
+    """ms per megapixel at :data:`BENCH_SIZE` (log x) against relMSE (log y), one marker per method; a
+    method without a time (the noisy input) is a horizontal line. The y range spans the methods within
+    ``decades`` of the lowest relMSE: one far above (a model early in training) is drawn on the top edge
+    as an upward triangle, and one that cannot be drawn on a log axis (NaN, infinite, 0) is named in the
+    legend, each with its value."""
     plt = _pyplot()
-    pts = [(r["label"], r["mean"]["ms_per_megapixel"], r["mean"]["relmse"]) for r in results
-           if (r["mean"].get("ms_per_megapixel") or 0) > 0]
-    from matplotlib.ticker import NullFormatter
+    from matplotlib.lines import Line2D
+    vals = [float(r["mean"].get("relmse", math.nan)) for r in results]
+    ok = [v for v in vals if math.isfinite(v) and v > 0]
+    lo = min(ok) if ok else 1e-3
+    top = min(max(ok), lo * 10 ** decades) if ok else 1.0
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
-    markers = "osD^v<>p*hX"
-    for i, (label, x, y) in enumerate(pts):            # a legend, not annotations: close points stay legible
-        ax.scatter([x], [y], s=36, marker=markers[i % len(markers)], label=label)
+    markers, extra = "osDphXP*<>", []       # no "^": an upward triangle marks a method above the plot
+    for i, (r, v) in enumerate(zip(results, vals)):
+        x, label = speed_of(r), r["label"]
+        colour, above = f"C{i % 10}", f"relMSE {v:.3g}: above the plot"
+        if not (math.isfinite(v) and v > 0):
+            extra.append(Line2D([], [], linestyle="", marker="x", color="grey",
+                                label=f"{label} (relMSE {v}: not plotted)"))
+        elif x is None:
+            ax.axhline(min(v, top), linestyle="--", linewidth=1, color=colour,
+                       label=f"{label} (no time{'; ' + above if v > top else ''})")
+        elif v > top:
+            ax.scatter([x], [top], s=60, marker="^", color=colour, label=f"{label} ({above})")
+        else:
+            ax.scatter([x], [v], s=36, marker=markers[i % len(markers)], color=f"C{i % 10}", label=label)
     ax.set_xscale("log")
-    ax.xaxis.set_minor_formatter(NullFormatter())
-    if pts:
-        ax.legend(fontsize=8, loc="best")
-    ax.set_xlabel("ms per megapixel (this machine)")
-    ax.set_ylabel("relMSE")
-    ax.set_ylim(bottom=0)
+    ax.set_yscale("log")
+    ax.set_ylim(lo / 1.6, top * 1.6)
+    plain_log_ticks(ax.xaxis)
+    plain_log_ticks(ax.yaxis)
+    handles, labels = ax.get_legend_handles_labels()
+    if handles or extra:
+        ax.legend(handles=handles + extra, fontsize=7, loc="best")
+    ax.set_xlabel(f"ms per megapixel at {BENCH_SIZE}x{BENCH_SIZE} (this machine)")
+    ax.set_ylabel("relMSE (log)")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def time_at_bench_size(results: list[dict], size: int = BENCH_SIZE, repeats: int = 3) -> None:
+    """Give every result its ``speed``: inference on one ``size`` x ``size`` frame (``training.bench``, best
+    of ``repeats`` after a warm-up, on the device and precision it was evaluated with): a model from its
+    checkpoint at its spp, OIDN on a random image of that size (one timing for every spp); the noisy
+    input has none. The per-frame times on the store's own frames stay in each result's frames."""
+    import torch
+
+    from .bench import time_model, time_oidn
+    oidn_row = {}
+    for r in results:
+        dev = torch.device(r.get("device", "cpu"))
+        if r.get("checkpoint"):
+            model = ckpt.build_model(ckpt.load(r["checkpoint"], map_location=str(dev)), str(dev))
+            r["speed"] = time_model(model, int(r["spp"]), size, repeats, dev, r.get("precision", "fp32"))
+        elif r.get("method") == "oidn":
+            if str(dev) not in oidn_row:
+                oidn_row[str(dev)] = time_oidn(size, repeats, dev)
+            r["speed"] = oidn_row[str(dev)]
+        else:
+            r["speed"] = None
 
 
 def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64) -> None:
@@ -390,13 +451,17 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
                                                    progress, skip_bad_frames)
     results = inputs + models + oidns
     comparisons(results, baseline)                       # an unknown --baseline fails before the figures
+    time_at_bench_size(results)
     maps = write_figures(results, models, store, out)
     lines = main_section(results, store, split, spps, maps, baseline)
     extra = {"comparisons": comparisons(results, baseline), "comparisons_by_kind": comparisons_by_kind(results, baseline),
-             "seed_spread": seed_spread(results)}
+             "seed_spread": seed_spread(results), "speed": {r["label"]: r["speed"] for r in results}}
     if clips_store is not None:
         clip_results = sum(evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
                                             skip_bad_frames, prefix="clips-")[:3], [])
+        speeds = {r["label"]: r["speed"] for r in results}      # the same methods: timed once
+        for r in clip_results:
+            r["speed"] = speeds.get(r["label"])
         lines += clips_section(clip_results, clips_store, out, baseline)
         extra["clips"] = [{k: v for k, v in r.items() if k != "images"} for r in clip_results]
         extra["clips_comparisons"] = comparisons(clip_results, baseline)
@@ -442,8 +507,11 @@ def main_section(results: list[dict], store, split: str, spps, maps, baseline: s
     lines = [f"# Denoiser report: {split} split of `{store}` at {at} spp", "",
              f"{len(results[0]['frames'])} held-out frames (split by scene). relMSE and SMAPE on linear radiance; "
              "PSNR and SSIM on tone-mapped values (sRGB(log(x+1)), eq. 7); FLIP is HDR-FLIP. "
-             f"Times are wall-clock per frame on this machine ({results[0]['torch_threads']} torch threads), "
-             "after one warm-up frame. Each model is evaluated at the samples per pixel it was trained at; "
+             f"ms/MP @{BENCH_SIZE}² is the wall-clock inference time of one {BENCH_SIZE}x{BENCH_SIZE} frame (the size "
+             "of `python -m training bench`; best of 3 after a warm-up) on this machine "
+             f"({results[0]['torch_threads']} torch threads), a model with its trained weights at its spp; on the "
+             "store's own small frames fixed costs per call dominate, and those per-frame times are in each "
+             "eval-*.json (`ms_per_megapixel`). Each model is evaluated at the samples per pixel it was trained at; "
              "the noisy input and OIDN at each of those counts.", "", *reference_note(results),
              table_markdown(results), "", *comparisons_section(results, baseline), *seed_spread_section(results),
              "![speed against error](speed_vs_error.png)", "",

@@ -1,0 +1,211 @@
+"""The scaling study (training.scaling*): nested subsets by clip on a tiny store, the fit on synthetic points
+with known a, b, c, the target inversion and its refusal below the floor, the report writer on synthetic
+results (no rendering, no training), and one tiny run that a second call finds finished."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from training.errors import ConfigError, TargetBelowFloorError
+from training.scaling import (Job, ScalingConfig, clip_table, family_subsets, load_scaling_config, nested_subsets,
+                              plan)
+from training.scaling_fit import bootstrap_fit, frames_for_target, power_law, support
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_family_store(path, stills=6, clips=2, clip_frames=3, h=16, w=16, split=None):
+    """Stills and clips of two scene families (indoor, outdoor alternating), every scene in one split."""
+    from stores.schema import StoreLayout
+    from stores.writer import open_or_create
+    from test_stores_synthetic import synthetic_frame
+    scenes = [(s, 1) for s in range(stills)] + [(100 + c, clip_frames) for c in range(clips)]
+    layout = StoreLayout(num_frames=sum(n for _, n in scenes), height=h, width=w, spp=2, tile=16)
+    writer = open_or_create(str(path), layout, {"test": True, "split": split or {"train": 1}})
+    i = 0
+    for k, (seed, n) in enumerate(scenes):
+        for f in range(n):
+            fr = synthetic_frame(seed, h, w, 2, frame=f, num_frames=n, sun=False, scene_seed=seed,
+                                 motion=n > 1)
+            fr["meta"]["scene_json"] = json.dumps({"kind": ("indoor", "outdoor")[k % 2], "seed": seed})
+            writer.write_frame(i, fr)
+            i += 1
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scaling")
+    return (make_family_store(d / "train.zarr"),
+            make_family_store(d / "heldout.zarr", stills=4, clips=1, split={"test": 1}))
+
+
+def test_subsets_are_nested_clips_whole_and_a_function_of_the_seed(stores):
+    from training.data import model_dataset, open_store
+    from training.models import get
+    st = open_store(stores[0])
+    table = clip_table(st, "train")
+    frames = {c: len(v["frames"]) for c, v in table.items()}
+    assert sorted(frames.values()) == [1] * 6 + [3, 3] and {v["family"] for v in table.values()} == {"indoor", "outdoor"}
+    subs = nested_subsets(frames, [0.25, 0.5, 1.0], seed=3)
+    assert subs == nested_subsets(frames, [1.0, 0.5, 0.25], seed=3)          # a function of the seed alone
+    assert any(nested_subsets(frames, [0.25, 0.5, 1.0], seed=s) != subs for s in range(4, 8))
+    for small, big in zip(subs, subs[1:]):
+        assert set(small["clips"]) < set(big["clips"])                          # nested
+    assert subs[-1]["frames"] == 12 and set(subs[-1]["clips"]) == set(frames)
+    for sub in subs:
+        assert sub["frames"] == sum(frames[c] for c in sub["clips"])             # clips whole
+        assert abs(sub["frames"] - sub["share"] * 12) <= 3                       # nearest prefix
+    # training reads exactly the frames of the subset's clips
+    ds = model_dataset(get("nbg").inputs, st, "train", 1, None, augment=False, seed=0, clips=subs[1]["clips"])
+    used = sorted(i for w in ds.windows for i in w)
+    assert used == sorted(i for c in subs[1]["clips"] for i in table[c]["frames"])
+    # the variety axis: the same frames of one family, or of both
+    fam = family_subsets(frames, {c: v["family"] for c, v in table.items()}, 4, seed=0)
+    assert set(fam) == {"indoor", "outdoor", "both"}
+    for name, sub in fam.items():
+        kinds = {table[c]["family"] for c in sub["clips"]}
+        assert kinds == ({"indoor", "outdoor"} if name == "both" else {name}) and abs(sub["frames"] - 4) <= 2
+
+
+def _points(a, b, c, sign, sizes=(8, 16, 32, 64, 128), seeds=3, frames=40, noise=0.01, seed=0):
+    """Runs on the same held-out frames: the curve plus a frame's own difficulty, a seed's offset and noise."""
+    rng = np.random.default_rng(seed)
+    difficulty = rng.normal(0, 5 * noise, frames)
+    return [{"n": n, "seed": s, "values": power_law(n, a, b, c, sign) + difficulty + rng.normal(0, noise)
+             + rng.normal(0, noise, frames)} for n in sizes for s in range(seeds)], np.arange(frames) // 2
+
+
+@pytest.mark.parametrize("a,b,c,sign,metric", [(3.0, 0.8, 0.05, 1, "relmse"), (40.0, 0.6, 28.0, -1, "psnr")])
+def test_fit_recovers_known_parameters_within_its_intervals(a, b, c, sign, metric):
+    noise = 0.004 if sign > 0 else 0.05
+    points, clips = _points(a, b, c, sign, noise=noise)
+    fit = bootstrap_fit(points, clips, sign, resamples=200)
+    assert fit["failed"] == 0
+    for k, v in (("a", a), ("b", b), ("c", c)):
+        lo, hi = fit["ci95"][k]
+        assert lo <= v <= hi, (k, v, fit["ci95"][k])
+        assert lo <= fit[k] <= hi
+    assert fit["ci95"]["b"][1] - fit["ci95"]["b"][0] < 0.5
+    assert support(points, clips, sign)["supported"]
+    # flat points (no gain with more frames) do not support a fit, and say why
+    flat, _ = _points(0.0, 0.5, c, sign, noise=noise)
+    why = support(flat, clips, sign)
+    assert not why["supported"] and "not shown to differ" in why["reason"]
+
+
+def test_target_inversion_and_its_refusal_below_the_floor():
+    points, clips = _points(3.0, 0.8, 0.05, 1, noise=0.004)
+    fit = bootstrap_fit(points, clips, 1, resamples=200)
+    ans = frames_for_target(fit, 0.08, "relmse")
+    expect = (fit["a"] / (0.08 - fit["c"])) ** (1 / fit["b"])
+    assert ans["frames"] == pytest.approx(expect)
+    assert ans["ci95"][0] <= ans["frames"] <= ans["ci95"][1]
+    assert ans["ci95"][0] <= (3.0 / 0.03) ** (1 / 0.8) <= ans["ci95"][1]          # the true N, within the interval
+    assert power_law(ans["frames"], fit["a"], fit["b"], fit["c"]) == pytest.approx(0.08)
+    with pytest.raises(TargetBelowFloorError, match=r"below the fitted floor 0\.0\d+ \(95% interval"):
+        frames_for_target(fit, 0.01, "relmse")
+    points, clips = _points(40.0, 0.6, 28.0, -1, noise=0.05)
+    fit = bootstrap_fit(points, clips, -1, resamples=200)
+    assert frames_for_target(fit, 27.0, "psnr")["frames"] > 0
+    with pytest.raises(TargetBelowFloorError, match="above the fitted ceiling 2[78]"):
+        frames_for_target(fit, 40.0, "psnr")
+
+
+def _config(**kw) -> ScalingConfig:
+    base = dict(train_data={}, heldout_data={}, models=[{"model": "nbg", "steps": 2}],
+                subsets=[0.125, 0.25, 0.5, 1.0], seeds=[0, 1], variety={"seeds": [0]},
+                train={"batch": 2, "crop": 16, "val_every": 0, "workers": 0}, resamples=100)
+    return ScalingConfig(**{**base, **kw})
+
+
+def _synthetic_records(jobs, held=20):
+    """Evaluations as ``scaling_run`` writes them, made up: relMSE and PSNR on a known curve, the variety runs
+    better on their own family."""
+    rng = np.random.default_rng(1)
+    fams = ["indoor", "outdoor"] * (held // 2)
+    out = {}
+    for j in jobs:
+        n = j.frames or 10_000
+        frames = []
+        for i in range(held):
+            own = j.family in (None, "both", fams[i])
+            rel = power_law(n, 2.0, 0.7, 0.04) * (1.0 if own else 1.5) + rng.normal(0, 0.002)
+            frames.append({"index": 100 + i, "clip": i // 2, "scene_kind": fams[i], "relmse": rel,
+                           "psnr": power_law(n, 30.0, 0.5, 30.0, -1) + rng.normal(0, 0.05)})
+        mean = {k: float(np.mean([f[k] for f in frames])) for k in ("relmse", "psnr")}
+        out[j.name] = {"job": j.to_dict(), "seconds": 1.0,
+                       "evaluation": {"frames": frames, "mean": mean, "ci95": dict.fromkeys(mean)}}
+    return out
+
+
+def test_report_writer_on_synthetic_results(tmp_path):
+    from training.scaling_report import analyse, write_report
+    scfg = _config()
+    table = {c: {"frames": [c], "family": ("indoor", "outdoor")[c % 2]} for c in range(64)}
+    jobs, record = plan(scfg, table)
+    assert {j.kind for j in jobs} == {"subset", "variety", "baseline"}
+    assert sorted({j.frames for j in jobs if j.kind == "subset"}) == [8, 16, 32, 64]
+    costs = {"dataset": "synthetic", "core_hours_per_frame": 0.01, "bytes_per_frame": 5e5, "store_fixed_bytes": 1e4,
+             "workers": 2, "threads": 1}
+    res = analyse(scfg, jobs, _synthetic_records(jobs), {"relmse": 0.06, "psnr": 31.0}, costs)
+    res.update(config=scfg.to_dict(), stores={"train": "t.zarr", "heldout": "h.zarr"}, plan=record, seconds=3.0)
+    write_report(tmp_path, res, scfg)
+    md = (tmp_path / "scaling.md").read_text()
+    assert (tmp_path / "scaling.png").read_bytes()[:4] == b"\x89PNG"
+    for text in ("## Verdicts", "nbg: more data helps: relMSE", "| 8 | 0, 1 |", "| 64 | 0, 1 |",
+                 "| nbg | relMSE |", "| yes |", "## Scene variety", "| indoor | 32 |", "| both | 32 |",
+                 "vs both", "## Frames for a target", "core-hours", "PSNR 31: refused: psnr target 31 is above the "
+                 "fitted ceiling", "input @1spp", "oidn @1spp"):
+        assert text in md, text
+    data = json.loads((tmp_path / "scaling.json").read_text())
+    fit = data["models"]["nbg"]["curves"]["relmse"]["fit"]
+    assert fit["ci95"]["b"][0] <= 0.7 <= fit["ci95"]["b"][1] and fit["ci95"]["c"][0] <= 0.04 <= fit["ci95"]["c"][1]
+    assert "samples" not in fit and data["plan"]["subsets"]["0"][0]["clips"]
+    answer = next(t for t in data["targets"] if t["metric"] == "relmse")
+    assert answer["frames"] > 0 and answer["cost"]["core_hours"] == pytest.approx(0.01 * answer["frames"])
+    indoor = next(r for r in data["variety"][0]["rows"] if r["trained_on"] == "indoor")
+    assert indoor["cells"]["outdoor"]["vs_both"]["shown"] and indoor["cells"]["outdoor"]["vs_both"]["mean"] > 0
+
+
+def test_config_checks_and_the_shipped_configs():
+    for name in ("scaling-smoke.yaml", "scaling-cpu.yaml"):
+        scfg = load_scaling_config(ROOT / "configs" / name)
+        train, held = scfg.dataset_configs()
+        assert set(held.scene_splits()) == {"test"} and set(train.scene_splits()) == {"train"}
+        assert not {s.seed for s in [train]} & {s.seed for s in [held]}      # other seeds, other scenes
+    with pytest.raises(ConfigError, match="scaling.subsets"):
+        _config(subsets=[0.5, 1.5])
+    with pytest.raises(ConfigError, match="scaling.variety.models"):
+        _config(variety={"models": ["wskpn"]})
+    with pytest.raises(ConfigError, match="train_clips"):
+        _config(models=[{"model": "nbg", "train_clips": [1]}])
+
+
+def test_a_run_is_trained_once_and_then_found_finished(stores, tmp_path):
+    import torch
+
+    from training.data import open_store
+    from training.scaling_run import RECORD, finished, heldout_identity, run_job, run_jobs
+    scfg = _config(subsets=[0.5, 1.0], seeds=[0], variety=None)
+    jobs, _ = plan(scfg, clip_table(open_store(stores[0]), "train"))
+    job = next(j for j in jobs if j.kind == "subset")
+    held = json.loads(json.dumps(heldout_identity(open_store(stores[1]))))
+    threads = torch.get_num_threads()
+    try:
+        res = run_job(job.to_dict(), stores[0], stores[1], str(tmp_path / "runs" / job.name), 1, False, held)
+    finally:
+        torch.set_num_threads(threads)
+    rec = finished(job, tmp_path / "runs" / job.name, held)
+    assert rec is not None and rec["evaluation"]["train_steps"] == 2 and np.isfinite(res["mean"]["relmse"])
+    assert rec["job"]["clips"] == list(job.clips) and len(rec["evaluation"]["frames"]) == 7
+    assert (tmp_path / "runs" / job.name / "checkpoint.pt").is_file()
+    lines = []
+    got = run_jobs([job], stores[0], stores[1], tmp_path, 1, 1, False, log=lines.append)    # no pool: finished
+    assert got[job.name]["seconds"] == rec["seconds"] and "1 finished, 0 to run" in lines[0]
+    other = Job(**{**job.to_dict(), "clips": tuple(job.clips), "train_config": {**job.train_config, "steps": 3}})
+    assert finished(other, tmp_path / "runs" / job.name, held) is None                       # more steps: not done
+    assert json.loads((tmp_path / "runs" / job.name / RECORD).read_text())["heldout"] == held

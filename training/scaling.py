@@ -1,0 +1,317 @@
+"""What the data buys: denoiser quality against the number of training frames and their scene variety.
+
+``python -m training scaling --config configs/scaling-cpu.yaml [--out DIR] [--target-relmse X]`` (and
+``make scaling``) renders (or resumes) a training store and a held-out store of other seeds, trains each
+model of the config on nested subsets of the training frames (the same steps for every size, several
+seeds), evaluates every run on the same held-out frames, fits ``error(N) = a N^(-b) + c`` per model and
+metric (:mod:`training.scaling_fit`) and writes ``scaling.png``, ``scaling.md`` and ``scaling.json``
+(:mod:`training.scaling_report`). This module holds the settings and the plan; the runs are in
+:mod:`training.scaling_run`.
+
+* **Nested subsets by clip** (:func:`nested_subsets`): the training clips (a still is a clip of one
+  frame) in an order drawn from the seed; the subset of each size is the prefix of that order whose
+  frame count is nearest to the size's share of the frames. Every smaller set is inside the larger
+  one, a clip's frames stay together, and each training seed draws its own order (so the seeds' spread
+  includes which frames were drawn, not only the initial weights).
+* **Variety** (:func:`family_subsets`): the same number of frames from one scene family (indoor, outdoor)
+  or from both (half each), evaluated on each family of the held-out frames.
+* **Resumable**: a run folder whose evaluation is written for its settings, its final step and this
+  held-out store counts as finished and is not trained or evaluated again; a run interrupted mid-way
+  resumes from its checkpoint (``training.loop.train``).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+
+from .config import TrainConfig
+from .errors import ConfigError, DataError, UnknownModelError
+from .scaling_fit import LOWER_IS_BETTER
+
+SUBSET_SALT = 0x5CA1E
+FAMILY_MIX = "both"
+
+
+@dataclass(frozen=True)
+class ScalingConfig:
+    """A scaling study (``configs/scaling-*.yaml``). ``train_data`` and ``heldout_data``: dataset configs
+    (``pipeline.config``; a mapping, or the path of a dataset YAML), trained on their ``train`` and
+    evaluated on their ``test`` split; ``models``: TrainConfig settings a run (``model`` required; an
+    optional ``label`` names it), over the settings every run shares (``train``); ``subsets``: shares of
+    the training frames in (0, 1]; ``seeds``: training seeds (each draws its own nested subsets);
+    ``variety``: ``{models: [labels], seeds: [...], frames: N or null}`` (null: the frames of the smaller
+    family); ``metrics`` fitted; ``targets``: ``{relmse: X, psnr: Y}`` to invert; ``parallel`` runs at a
+    time of ``threads`` torch threads each (0: cores / threads); ``workers``: render workers (null: one a
+    core), also the workers of the rendering cost's wall time."""
+
+    train_data: dict | str
+    heldout_data: dict | str
+    models: tuple
+    name: str = "scaling"
+    out: str | None = None
+    subsets: tuple = (0.0625, 0.125, 0.25, 0.5, 1.0)
+    seeds: tuple = (0, 1, 2)
+    train: dict = field(default_factory=dict)
+    variety: dict | None = None
+    metrics: tuple = ("relmse", "psnr")
+    targets: dict = field(default_factory=dict)
+    parallel: int = 0
+    threads: int = 1
+    flip: bool = False
+    resamples: int = 1000
+    workers: int | None = None
+
+    def __post_init__(self):
+        for k in ("models", "subsets", "seeds", "metrics"):
+            object.__setattr__(self, k, tuple(getattr(self, k) or ()))
+        s = self.subsets
+        need(len(s) >= 1 and all(is_number(v, finite=True) and 0 < v <= 1 for v in s) and len(set(s)) == len(s),
+             "scaling.subsets", "a list of distinct shares of the training frames in (0, 1]", list(s), ConfigError)
+        object.__setattr__(self, "subsets", tuple(sorted(float(v) for v in s)))
+        need(len(self.seeds) >= 1 and all(is_int(v) and v >= 0 for v in self.seeds) and
+             len(set(self.seeds)) == len(self.seeds), "scaling.seeds", "a list of distinct integers >= 0",
+             list(self.seeds), ConfigError)
+        need(len(self.metrics) >= 1 and all(m in LOWER_IS_BETTER for m in self.metrics), "scaling.metrics",
+             f"a list of {sorted(LOWER_IS_BETTER)}", list(self.metrics), ConfigError)
+        known_keys(self.targets, LOWER_IS_BETTER, "scaling.targets", ConfigError)
+        for k, v in self.targets.items():
+            need(v is None or is_number(v, finite=True), f"scaling.targets.{k}", "a number or null", v, ConfigError)
+        need_int("scaling.parallel", self.parallel, 0, 256, ConfigError)
+        need_int("scaling.threads", self.threads, 1, 1024, ConfigError)
+        need_int("scaling.resamples", self.resamples, 50, 100_000, ConfigError)
+        need(self.workers is None or (is_int(self.workers) and self.workers >= 1), "scaling.workers",
+             "null (one a core) or an integer >= 1", self.workers, ConfigError)
+        need(isinstance(self.flip, bool), "scaling.flip", "true or false", self.flip, ConfigError)
+        need(isinstance(self.name, str) and self.name and "/" not in self.name, "scaling.name",
+             "a name without '/'", self.name, ConfigError)
+        self.model_plans()
+        self.variety_plan()
+
+    def model_plans(self) -> list[tuple[str, TrainConfig]]:
+        """``(label, TrainConfig)`` of each model (seed 0, every clip: the template of its runs)."""
+        known_keys(self.train, TrainConfig, "scaling.train", ConfigError, noun="setting(s)")
+        need(len(self.models) >= 1, "scaling.models", "a non-empty list of {model: NAME, ...}", self.models,
+             ConfigError)
+        out = []
+        for i, m in enumerate(self.models):
+            need(isinstance(m, dict) and "model" in m, f"scaling.models[{i}]", "a mapping with a model name", m,
+                 ConfigError)
+            m = dict(m)
+            label = str(m.pop("label", m["model"]))
+            for k in ("seed", "train_clips"):
+                need(k not in m and k not in self.train, f"scaling.models[{i}].{k}", "left to the study", k,
+                     ConfigError)
+            try:
+                cfg = TrainConfig.from_dict({**self.train, **m})
+            except (ConfigError, UnknownModelError) as e:
+                raise ConfigError(f"scaling.models[{i}] ({label}): {e}") from e
+            out.append((label, cfg))
+        labels = [lab for lab, _ in out]
+        need(len(set(labels)) == len(labels) and all("/" not in lab for lab in labels), "scaling.models",
+             "models with distinct labels (set `label`) without '/'", labels, ConfigError)
+        return out
+
+    def variety_plan(self) -> dict | None:
+        """``{"models": [labels], "seeds": [...], "frames": N or None}``, or None without a variety axis."""
+        if not self.variety:
+            return None
+        v = known_keys(self.variety, ("models", "seeds", "frames"), "scaling.variety", ConfigError)
+        labels = [lab for lab, _ in self.model_plans()]
+        models = list(v.get("models") or labels[:1])
+        need(all(m in labels for m in models), "scaling.variety.models", f"labels of scaling.models {labels}",
+             models, ConfigError)
+        seeds = list(v.get("seeds") or self.seeds)
+        need(all(is_int(s) and s >= 0 for s in seeds), "scaling.variety.seeds", "integers >= 0", seeds, ConfigError)
+        frames = v.get("frames")
+        need(frames is None or (is_int(frames) and frames >= 1), "scaling.variety.frames", "null or an integer >= 1",
+             frames, ConfigError)
+        return {"models": models, "seeds": seeds, "frames": frames}
+
+    def dataset_configs(self) -> tuple:
+        """The training and held-out ``pipeline.config.DatasetConfig``."""
+        from pipeline.config import DatasetConfig, load_config
+        from pipeline.errors import ConfigError as PipelineConfigError
+        out = []
+        for key in ("train_data", "heldout_data"):
+            d = getattr(self, key)
+            try:
+                out.append(load_config(d) if isinstance(d, str) else DatasetConfig.from_dict(d))
+            except PipelineConfigError as e:
+                raise ConfigError(f"scaling.{key}: {e}") from e
+        return tuple(out)
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(asdict(self)))
+
+    @classmethod
+    def from_dict(cls, d) -> "ScalingConfig":
+        d = known_keys(d, cls, "scaling", ConfigError)
+        for k in ("train_data", "heldout_data", "models"):
+            if k not in d:
+                raise ConfigError(f"scaling.{k} is required")
+        return cls(**d)
+
+
+def load_scaling_config(path) -> ScalingConfig:
+    """Read and check a scaling YAML, its two dataset configs included (before anything is rendered);
+    ConfigError naming the file and the field."""
+    import yaml
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"scaling config {str(p)!r} is not a file")
+    try:
+        scfg = ScalingConfig.from_dict(yaml.safe_load(p.read_text()))
+        scfg.dataset_configs()
+        return scfg
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {e}") from e
+    except (ConfigError, TypeError) as e:
+        raise ConfigError(f"{p}: {e}") from e
+
+
+# --------------------------------------------------------------------------------------------
+# Subsets: clips whole, nested, a function of the seed
+
+
+def _order(ids, seed: int, salt: int) -> list[int]:
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(salt)]))
+    ids = sorted(int(c) for c in ids)
+    return [ids[i] for i in rng.permutation(len(ids))]
+
+
+def _nearest_prefix(order: list[int], frames: dict, want: float) -> list[int]:
+    """The prefix of ``order`` (at least one clip) whose frame count is nearest to ``want``."""
+    cum = np.cumsum([frames[c] for c in order])
+    return order[:int(np.argmin(np.abs(cum - want))) + 1]
+
+
+def nested_subsets(clip_frames: dict, shares, seed: int) -> list[dict]:
+    """Nested subsets of the clips (``clip_frames``: clip id -> its frames) for each share of the frames,
+    smallest first: ``[{"share", "frames", "clips"}]``. The clips are ordered by ``seed``; a subset is the
+    prefix of that order whose frame count is nearest to ``share`` x all frames, so every subset holds
+    the smaller ones and each clip is whole."""
+    if not clip_frames:
+        raise DataError("no training clip to draw subsets from")
+    order = _order(clip_frames, seed, SUBSET_SALT)
+    total = sum(clip_frames.values())
+    out = []
+    for share in sorted(shares):
+        clips = _nearest_prefix(order, clip_frames, share * total)
+        out.append({"share": float(share), "frames": int(sum(clip_frames[c] for c in clips)), "clips": sorted(clips)})
+    return out
+
+
+def family_subsets(clip_frames: dict, clip_family: dict, frames: int | None, seed: int) -> dict:
+    """``frames`` training frames of each scene family alone and of all families mixed (``"both"``, the
+    families taking turns, the one with fewer frames so far first): ``{family: {"frames", "clips"}}``.
+    ``frames`` None: the frames of the smallest family. A family with fewer frames gives all it has."""
+    fams = sorted(set(clip_family.values()))
+    if len(fams) < 2:
+        raise DataError(f"the training clips are of one scene family ({fams}): the variety axis needs two")
+    orders = {f: _order([c for c in clip_frames if clip_family[c] == f], seed, SUBSET_SALT + 1) for f in fams}
+    sizes = {f: sum(clip_frames[c] for c in orders[f]) for f in fams}
+    n = min(sizes.values()) if frames is None else int(frames)
+    out = {f: _nearest_prefix(orders[f], clip_frames, n) for f in fams}
+    mixed, taken, pos = [], dict.fromkeys(fams, 0), dict.fromkeys(fams, 0)
+    while any(pos[f] < len(orders[f]) for f in fams):
+        f = min((f for f in fams if pos[f] < len(orders[f])), key=lambda f: (taken[f], f))
+        c = orders[f][pos[f]]
+        mixed.append(c)
+        pos[f], taken[f] = pos[f] + 1, taken[f] + clip_frames[c]
+    out[FAMILY_MIX] = _nearest_prefix(mixed, clip_frames, n)
+    return {f: {"frames": int(sum(clip_frames[c] for c in v)), "clips": sorted(v)} for f, v in out.items()}
+
+
+def clip_table(store, split: str) -> dict[int, dict]:
+    """clip id -> ``{"frames": [store frame indices], "family": scene family}`` of a store split (the family
+    from the clip's SceneSpec JSON, '' where there is none)."""
+    out = {}
+    for clip, idx in store.clips(split).items():
+        try:
+            fam = str(json.loads(store.scene_json(idx[0]) or "{}").get("kind", ""))
+        except ValueError:
+            fam = ""
+        out[int(clip)] = {"frames": [int(i) for i in idx], "family": fam}
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The plan: one job a run
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run (``kind`` ``subset`` or ``variety``) or one baseline evaluation (``baseline``):
+    its folder under ``OUT/runs`` (``name``), model ``label``, seed, training frames and clips, the
+    subset's ``share`` or the variety ``family``, and its TrainConfig as a dict (a baseline: ``method``
+    and ``spp``, ``baseline_input``)."""
+    name: str
+    label: str
+    kind: str
+    seed: int = 0
+    frames: int = 0
+    clips: tuple = ()
+    share: float | None = None
+    family: str | None = None
+    train_config: dict | None = None
+    method: str | None = None
+    spp: int | None = None
+    baseline_input: str | None = None
+
+    def config(self) -> TrainConfig:
+        return TrainConfig.from_dict(self.train_config)
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+def _train_job(label: str, cfg: TrainConfig, kind: str, seed: int, sub: dict, name: str, **kw) -> Job:
+    run_cfg = cfg.replace(seed=int(seed), train_clips=list(sub["clips"]))
+    return Job(name=f"{label}/{name}", label=label, kind=kind, seed=int(seed), frames=int(sub["frames"]),
+               clips=tuple(sub["clips"]), train_config=run_cfg.to_dict(), **kw)
+
+
+def baseline_jobs(plans) -> list[Job]:
+    """The noisy input and OIDN at each (spp, baseline input) of the models (``training.evaluate``)."""
+    from .inputs import KINDS
+    from .models import get
+    seen = sorted({(cfg.spp, KINDS[get(cfg.model).inputs.kind].baseline_input) for _, cfg in plans})
+    return [Job(name=f"baselines/{m}-{spp}spp-{b}", label=f"{m} @{spp}spp", kind="baseline", method=m, spp=int(spp),
+                baseline_input=b) for spp, b in seen for m in ("input", "oidn")]
+
+
+def plan(scfg: ScalingConfig, table: dict) -> tuple[list[Job], dict]:
+    """Every job of the study over the training clips ``table`` (:func:`clip_table`), and the record of the
+    subsets drawn (``{"subsets": {seed: [...]}, "variety": {seed: {...}}}``). Jobs run seed by seed, each
+    seed's sizes smallest first, so an early stop leaves whole curves of the first seeds."""
+    frames = {c: len(v["frames"]) for c, v in table.items()}
+    family = {c: v["family"] for c, v in table.items()}
+    plans = scfg.model_plans()
+    jobs, record = [], {"training_frames": sum(frames.values()), "training_clips": len(frames),
+                        "subsets": {}, "variety": {}}
+    for seed in scfg.seeds:
+        subs = nested_subsets(frames, scfg.subsets, seed)
+        record["subsets"][str(seed)] = subs
+        done = set()
+        for sub in subs:
+            if sub["frames"] in done:               # two shares of a small store gave the same clips
+                continue
+            done.add(sub["frames"])
+            for label, cfg in plans:
+                jobs.append(_train_job(label, cfg, "subset", seed, sub, f"n{sub['frames']:05d}-s{seed}",
+                                       share=sub["share"]))
+    v = scfg.variety_plan()
+    by_label = dict(plans)
+    for seed in (v["seeds"] if v else []):
+        fs = family_subsets(frames, family, v["frames"], seed)
+        record["variety"][str(seed)] = fs
+        for label in v["models"]:
+            for fam, sub in fs.items():
+                jobs.append(_train_job(label, by_label[label], "variety", seed, sub,
+                                       f"variety-{fam}-n{sub['frames']:05d}-s{seed}", family=fam))
+    return jobs + baseline_jobs(plans), record

@@ -1,0 +1,240 @@
+"""Running a scaling study (:mod:`training.scaling`): its stores, its runs side by side, their evaluation
+on the held-out frames, and what rendering costs (``pipeline.estimate``).
+
+Each job runs in a worker process (``parallel`` at a time, ``threads`` torch threads each) and writes its
+folder under ``OUT/runs``: ``checkpoint.pt`` and ``metrics.csv`` (``training.loop.train``), ``run.log``
+(what training printed) and ``scaling-run.json``: the job (its settings and clips), the held-out store's
+identity and the evaluation (``training.evaluate``: per-frame metrics, means, ``ci95``). A job whose
+``scaling-run.json`` matches it is finished and skipped; one interrupted mid-way resumes from its
+checkpoint. The stores are ``pipeline dataset`` runs (``pipeline.cli_dataset.run_dataset``), which
+resume too.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import time
+import warnings
+from pathlib import Path
+
+from .errors import DataError
+from .jsonio import write as write_json
+from .scaling import Job, ScalingConfig, clip_table, plan
+
+RECORD = "scaling-run.json"
+
+
+def ensure_store(dcfg, out: Path, workers: int | None, progress: bool) -> str:
+    """Render (or resume, or find complete) the store of dataset config ``dcfg``: at its ``out`` if it
+    names one, else ``OUT/stores/<name>.zarr``. DataError when frames failed (a rerun retries them)."""
+    from pipeline.cli_dataset import run_dataset
+    from pipeline.errors import PipelineError
+    from stores.errors import StoreError
+    path = dcfg.store_path(dcfg.out or f"{out / 'stores'}/")
+    try:
+        summary = run_dataset(dcfg, out=path, workers=workers, progress=progress)
+    except (PipelineError, StoreError) as e:
+        raise DataError(f"dataset {dcfg.name!r} at {path}: {e}") from e
+    if not summary["ok"]:
+        raise DataError(f"dataset {dcfg.name!r} at {path} is not complete and valid ({summary['complete']}/"
+                        f"{summary['frames']} frames, failed: {sorted(summary['failed'])}); run the command again "
+                        "to retry the frames that failed")
+    return path
+
+
+def heldout_identity(store) -> dict:
+    from .loop import store_identity
+    return store_identity(store)
+
+
+def finished(job: Job, run_dir: Path, heldout: dict) -> dict | None:
+    """The job's record when its folder holds one for exactly this job and held-out store, else None."""
+    f = run_dir / RECORD
+    if not f.is_file():
+        return None
+    try:
+        rec = json.loads(f.read_text())
+    except (OSError, ValueError):
+        return None
+    return rec if rec.get("job") == json.loads(json.dumps(job.to_dict())) and rec.get("heldout") == heldout else None
+
+
+def _trained(run_dir: Path, steps: int) -> bool:
+    """Whether the run folder's checkpoint reached ``steps`` (train would do nothing more)."""
+    ck = run_dir / "checkpoint.pt"
+    if not ck.is_file():
+        return False
+    from . import checkpoint
+    return int(checkpoint.load(ck)["step"]) >= steps
+
+
+def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threads: int, flip: bool,
+            heldout: dict) -> dict:
+    """Train (or resume) and evaluate one job in this process (a worker of :func:`run_jobs`); writes its
+    record and returns ``{"name", "mean", "seconds"}``. Training's output goes to ``run_dir/run.log``."""
+    import torch
+
+    from .accel import tune_allocator
+    from .evaluate import evaluate
+    from .loop import train
+    tune_allocator()
+    torch.set_num_threads(int(threads))
+    job = Job(**{k: (tuple(v) if k == "clips" else v) for k, v in job.items()})
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    with open(run_dir / "run.log", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log), \
+            warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="training without validation")   # judged on the held-out store
+        if job.kind == "baseline":
+            res = evaluate(job.method, heldout_store, split="test", spp=job.spp, with_flip=flip,
+                           baseline_input=job.baseline_input, device="auto")
+        else:
+            cfg = job.config()
+            if not _trained(run_dir, cfg.steps):
+                train(cfg, train_store, run_dir, progress=False)
+            res = evaluate(run_dir / "checkpoint.pt", heldout_store, split="test", with_flip=flip, device=cfg.device,
+                           precision=cfg.precision)
+    res = {k: v for k, v in res.items() if k not in ("images", "sample_map")}
+    seconds = time.perf_counter() - t0
+    write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds,
+                                  "cpu_seconds": time.process_time() - c0, "evaluation": res})
+    return {"name": job.name, "mean": res["mean"], "seconds": seconds, "cpu_seconds": time.process_time() - c0}
+
+
+def _ignore_interrupt() -> None:
+    """Pool worker initializer: Ctrl-C is the parent's to handle (it terminates the workers), so a worker
+    prints no traceback of its own; checkpoints and records are written atomically, so a killed run
+    resumes from its last checkpoint."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _next(done, timeout: float = 1.0):
+    """The next finished job from the pool's callbacks (waits in short steps, so Ctrl-C is seen at once)."""
+    import queue
+    while True:
+        try:
+            return done.get(timeout=timeout)
+        except queue.Empty:
+            continue
+
+
+def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, parallel: int, threads: int,
+             flip: bool, log=print) -> dict[str, dict]:
+    """Every job's record (``name -> record``): finished ones read back, the others run ``parallel`` at a
+    time in fresh worker processes (training and evaluating; one line each as they end). Ctrl-C, or a run
+    that fails, stops every worker: finished runs stay, interrupted ones resume from their checkpoints."""
+    import multiprocessing
+    import queue
+
+    from .data import open_store
+    heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
+    runs = out / "runs"
+    records, todo = {}, []
+    for job in jobs:
+        rec = finished(job, runs / job.name, heldout)
+        if rec is None:
+            todo.append(job)
+        else:
+            records[job.name] = rec
+    log(f"scaling: {len(jobs)} runs and baselines, {len(records)} finished, {len(todo)} to run "
+        f"({parallel} at a time, {threads} thread(s) each)")
+    if not todo:
+        return records
+    t0, done = time.perf_counter(), queue.Queue()
+    pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
+    try:
+        for j in todo:
+            pool.apply_async(run_job, (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
+                                       heldout), callback=lambda r: done.put((r, None)),
+                             error_callback=lambda e, name=j.name: done.put((name, e)))
+        for k in range(1, len(todo) + 1):
+            res, err = _next(done)
+            if err is not None:
+                log(f"scaling: run {res} failed: {type(err).__name__}: {err}")
+                raise err
+            records[res["name"]] = json.loads((runs / res["name"] / RECORD).read_text())
+            m = res["mean"]
+            log(f"  [{k}/{len(todo)}] {res['name']}: relMSE {m['relmse']:.4g}, PSNR {m['psnr']:.2f} dB "
+                f"({res['seconds']:.0f} s, {res['cpu_seconds']:.0f} CPU-s; {time.perf_counter() - t0:.0f} s so far)")
+    except BaseException:
+        pool.terminate()
+        pool.join()
+        raise
+    pool.close()
+    pool.join()
+    return records
+
+
+def rendering_costs(dcfg, out: Path, workers: int | None, store=None, log=print) -> dict:
+    """What a frame of the training config costs to render and store, by ``pipeline.estimate``'s
+    calibration on this machine (cached in ``OUT/estimate.json`` for this config), with the store's own
+    measured render seconds a frame beside it (``frames/render_seconds``) when ``store`` is given."""
+    from pipeline.estimate import calibrate, local_slots, predict
+    key = hashlib.sha256(json.dumps(dcfg.content_dict(), sort_keys=True, default=str).encode()).hexdigest()
+    path = out / "estimate.json"
+    if path.is_file():
+        cached = json.loads(path.read_text())
+        if cached.get("config_sha256") == key:
+            return cached
+    threads = dcfg.cluster.threads_per_worker
+    workers = workers or local_slots(threads)
+    log(f"scaling: calibrating the rendering cost of {dcfg.name!r} (pipeline estimate)")
+    cal = calibrate(dcfg, per_group=1, threads=threads, concurrent=min(workers, local_slots(threads)), log=log)
+    p = predict(dcfg, cal, workers)
+    costs = {"config_sha256": key, "dataset": dcfg.name, "core_hours_per_frame": p["core_hours"] / p["frames"],
+             "bytes_per_frame": cal["bytes_per_frame"], "store_fixed_bytes": cal["store_fixed_bytes"],
+             "workers": workers, "threads": threads, "calibration_frames": len(cal["frames"])}
+    if store is not None:
+        import numpy as np
+        secs = np.asarray(store.meta_column("render_seconds"), np.float64) * threads   # a task's wall x its threads
+        costs["measured_core_hours_per_frame"] = float(secs[secs > 0].mean() / 3600.0) if (secs > 0).any() else None
+    write_json(path, costs)
+    return costs
+
+
+def cost_of(frames: float, costs: dict) -> dict:
+    """Core-hours, store bytes and wall hours on the costs' workers of rendering ``frames`` frames."""
+    core = frames * costs["core_hours_per_frame"]
+    return {"frames": frames, "core_hours": core,
+            "store_bytes": costs["store_fixed_bytes"] + frames * costs["bytes_per_frame"],
+            "wall_hours": core / (costs["workers"] * costs["threads"])}
+
+
+def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, workers: int | None = None,
+              progress: bool = True, log=print) -> dict:
+    """The whole study (``training.scaling``): the stores, every run, the analysis and the three files in
+    ``out`` (default: the config's ``out``, else ``data/<name>``). ``targets`` (``{metric: value}``) are
+    added to the config's. Returns the result written to ``scaling.json``."""
+    from .data import open_store
+    from .report import provenance
+    from .scaling_report import analyse, price, write_report
+    t0 = time.perf_counter()
+    out = Path(out or scfg.out or f"data/{scfg.name}")
+    workers = workers or scfg.workers
+    train_cfg, held_cfg = scfg.dataset_configs()
+    train_path = ensure_store(train_cfg, out, workers, progress)
+    held_path = ensure_store(held_cfg, out, workers, progress)
+    train_store = open_store(train_path)
+    jobs, record = plan(scfg, clip_table(train_store, "train"))
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    parallel = scfg.parallel or max(1, cores // scfg.threads)
+    records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log)
+    targets = {k: float(v) for k, v in {**scfg.targets, **(targets or {})}.items() if v is not None}
+    result = analyse(scfg, jobs, records, targets)
+    if any("frames" in a for a in result["targets"]):           # an answer to price: calibrate (or read the cache)
+        result["costs"] = rendering_costs(train_cfg, out, workers, train_store, log)
+        price(result["targets"], result["costs"])
+    result.update(config=scfg.to_dict(), stores={"train": train_path, "heldout": held_path}, plan=record,
+                  seconds=time.perf_counter() - t0,
+                  provenance=provenance([], {"train": train_path, "heldout": held_path}, {"out": str(out)}))
+    write_report(out, result, scfg)
+    log(f"scaling: wrote {out / 'scaling.md'}, scaling.png and scaling.json in {result['seconds']:.0f} s")
+    from .scaling_report import targets_markdown
+    for line in [mod["verdict"] for mod in result["models"].values()] + targets_markdown(result["targets"],
+                                                                                           result["costs"]):
+        log("  " + line.lstrip("- ").replace("**", ""))
+    return result
