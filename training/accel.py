@@ -81,6 +81,31 @@ def describe(device: torch.device, precision: str) -> str:
     return f"device {what}, precision {precision}"
 
 
+# Adam's update as one fused kernel over every parameter (``fused=True``) where PyTorch has one for the
+# device (CUDA, and the CPU since torch 2.4). Measured on 2 CPU threads, one optimiser step, median of 7:
+# layer (17.3M parameters) 43 ms for-loop / 51 ms foreach / 23 ms fused; nppd (14.9M) 21 / 26 / 14 ms;
+# temporal-small (0.31M) 1.5 / 1.1 / 0.56 ms. The fused kernel is the fastest on both devices.
+FUSED_FLAGS = ("fused", "foreach")
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam at ``lr``, fused where the parameters' device has the fused kernel, else PyTorch's default."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except RuntimeError:                 # a device without the fused kernel
+        return torch.optim.Adam(params, lr=lr)
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict) -> None:
+    """Load a saved optimiser ``state`` keeping this optimiser's own kernel choice (:data:`FUSED_FLAGS`): a run
+    saved on one device resumes fused or not as its new device allows (the step counts then live where
+    that kernel wants them)."""
+    flags = {k: optimizer.defaults.get(k) for k in FUSED_FLAGS}
+    state = {**state, "param_groups": [{**g, **flags} for g in state["param_groups"]]}
+    optimizer.load_state_dict(state)
+
+
 # glibc's malloc serves blocks above its mmap threshold (128 KiB, raised only after a large block is
 # freed) with fresh pages and hands freed heap tops back at once (trim threshold 128 KiB): an eager
 # forward pass on the CPU, whose activations are 0.1-30 MiB each, then page-faults on every call.

@@ -32,7 +32,9 @@ class TrainConfig:
     loss at lr 1e-4 and WSKPN's SMAPE at lr 1e-3, without clamping or warm-up, and ``spp`` from its
     input declaration: 1 for the per-pixel models), else the layer family's values above; the
     resolved values are what a checkpoint records. ``workers`` is the number of DataLoader worker
-    processes (0: load in the training process); it does not change what is trained. ``device`` and
+    processes (0: load in the training process); it does not change what is trained. ``log_every``:
+    the training loss is logged, and read from the device and checked for NaN/Inf, every this many
+    steps (between reads no step waits for the device). ``device`` and
     ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
     on a GPU in bf16 resumes on a CPU in fp32)."""
 

@@ -199,24 +199,26 @@ class TemporalDenoiser(Denoiser):
     def step(self, frame: dict, state: dict | None):
         """One frame: ``frame`` holds ``layers (B L 3 H W)``, ``albedo``, ``normal``, ``depth``,
         ``motion`` and optionally ``spp`` (B,); ``state`` the previous step's (None: a clip's first
-        frame). Returns ``(radiance (B 3 H W) linear, new state, {"counts": (B 1 H W) int64})``."""
+        frame). Returns ``(radiance (B 3 H W) linear, new state, {"counts": (B 1 H W) int64})``. Nothing is
+        read back from the device: the layers are taken to hold 1, 2, 4 ... samples and the budget to lie
+        within them, as the dataset that reads them checks (:class:`training.datasets.LayerFrames`)."""
         layers = adaptive.clean_layers(frame["layers"])
-        cap = adaptive.check_layer_spp(frame["layer_spp"]) if "layer_spp" in frame else 2 ** layers.shape[1] - 1
+        cap = 2 ** layers.shape[1] - 1
         n = self.budget(frame)
         guides = self.guides(frame)
         if state is None:                                        # first frame: uniform n spp
             counts = adaptive.uniform_counts(layers[:, 0], n)
-            rad = squeeze(adaptive.compose(layers, counts))
+            rad = squeeze(adaptive.compose(layers, counts, checked=False))
             history = rad if self.recurrent else torch.zeros_like(rad)
         else:
             history = warp(state["history"], frame["motion"])[0] if self.recurrent else torch.zeros_like(
                 state["history"])
             if self.adaptive:
                 cont, counts = adaptive.sample_counts(self.sample_map(history, guides), n, cap)
-                rad = squeeze(adaptive.compose(layers, counts, cont))
+                rad = squeeze(adaptive.compose(layers, counts, cont, checked=False))
             else:
                 counts = adaptive.uniform_counts(layers[:, 0], n)
-                rad = squeeze(adaptive.compose(layers, counts))
+                rad = squeeze(adaptive.compose(layers, counts, checked=False))
         out = self.denoise(rad, counts, history, guides)
         return unsqueeze(out), {"history": out}, {"counts": counts}
 
@@ -243,7 +245,7 @@ class TemporalDenoiser(Denoiser):
             return self.step(f0, None)[0].unsqueeze(1)
         n = self.budget(f0)
         noisy = squeeze(adaptive.compose(adaptive.clean_layers(f0["layers"]),
-                                         adaptive.uniform_counts(f0["layers"][:, 0], n)))
+                                         adaptive.uniform_counts(f0["layers"][:, 0], n), checked=False))
         outs = [unsqueeze(noisy)]
         state = {"history": noisy}
         for t in range(1, layers.shape[1]):
