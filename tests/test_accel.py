@@ -328,3 +328,31 @@ def test_adam_is_fused_and_resumes_from_a_state_of_either_kernel():
     plain.step()
     fused.step()
     torch.testing.assert_close(w2, w)
+
+
+def test_train_compile_matches_eager(store, tmp_path):
+    """``train --compile``: the forward pass and loss through torch.compile give the eager run's weights
+    within float rounding (a 1x1-convolution probe, so the compile stays short); a run may resume
+    compiled or not."""
+    from kind_models import PROBES, register_probes, unregister_probes
+    register_probes()
+    try:
+        c = TrainConfig(model=PROBES["pixels"], steps=2, batch=2, crop=16, val_every=0, seed=1, workers=0,
+                        checkpoint_every=100)
+        torch._dynamo.reset()
+        runs = {tag: train(c.replace(compile=tag == "compiled"), store, tmp_path / tag, progress=False)
+                for tag in ("eager", "compiled")}
+    finally:
+        unregister_probes()
+    assert runs["compiled"]["loss"] == pytest.approx(runs["eager"]["loss"], rel=1e-5)
+    wa, wb = (ckpt.load(tmp_path / t / "checkpoint.pt")["state_dict"] for t in ("eager", "compiled"))
+    for key in wa:
+        torch.testing.assert_close(wb[key], wa[key], rtol=1e-5, atol=1e-6)
+    assert ckpt.load(tmp_path / "compiled" / "checkpoint.pt")["train_config"]["compile"] is True
+    register_probes()
+    try:                                       # the compiled run resumes eagerly
+        assert train(c.replace(steps=3), store, tmp_path / "compiled", progress=False)["step"] == 3
+    finally:
+        unregister_probes()
+    with pytest.raises(ConfigError, match='"compile" must be true or false'):
+        TrainConfig(compile="yes")

@@ -397,3 +397,16 @@ def test_soft_bound_caps_the_context_scale():
         m.unet.final.weight.mul_(1e15)
         _, ctx = m.embed_samples(*make_batch().values())
     assert ctx.square().mean(dim=1).sqrt().max() <= 1.0 + 1e-6
+
+
+def test_replicate_pad_compiled_is_a_gather_of_the_same_values_and_gradients():
+    """``replicate_pad`` compiled (a gather at clamped indices, which Inductor's backward handles where its
+    replication_pad2d_backward fails on channels-last gradients) equals ``F.pad(mode="replicate")``."""
+    from training.models.common import replicate_pad
+    x = torch.rand(2, 3, 7, 9, requires_grad=True).contiguous(memory_format=torch.channels_last)
+    for pad in ((2, 2, 2, 2), (0, 3, 0, 1)):
+        want = F.pad(x, pad, mode="replicate")
+        got = torch.compile(lambda t: replicate_pad(t, pad), backend="eager", fullgraph=True)(x)
+        g = torch.rand_like(want)
+        assert torch.equal(got, want) and torch.equal(replicate_pad(x, pad), want)
+        torch.testing.assert_close(torch.autograd.grad(got, x, g)[0], torch.autograd.grad(want, x, g)[0])

@@ -34,7 +34,9 @@ class TrainConfig:
     resolved values are what a checkpoint records. ``workers`` is the number of DataLoader worker
     processes (0: load in the training process); it does not change what is trained. ``log_every``:
     the training loss is logged, and read from the device and checked for NaN/Inf, every this many
-    steps (between reads no step waits for the device). ``device`` and
+    steps (between reads no step waits for the device). ``compile``: the forward pass and the loss
+    through ``torch.compile``; it changes the arithmetic only within float rounding, and a run may
+    resume with or without it. ``device`` and
     ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
     on a GPU in bf16 resumes on a CPU in fp32)."""
 
@@ -60,6 +62,7 @@ class TrainConfig:
     precision: str = "auto"     # auto: bf16 on a GPU that has it, else fp32; bf16, fp16 or fp32
     workers: int = 1            # DataLoader worker processes (0: in-process)
     skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
+    compile: bool = False       # the forward pass and loss through torch.compile (training.loop.forward_loss_fn)
 
     def __post_init__(self):
         self._resolve_defaults()
@@ -76,6 +79,7 @@ class TrainConfig:
         for name in ("steps", "warmup", "val_every", "val_frames", "val_crop", "seed", "workers"):
             need_int(f'"{name}"', getattr(self, name), 0, None, ConfigError)
         need(isinstance(self.model_cfg, dict), '"model_cfg"', "a dict of model settings", self.model_cfg, ConfigError)
+        need(isinstance(self.compile, bool), '"compile"', "true or false", self.compile, ConfigError)
         from .accel import check_device, check_precision
         check_device(self.device)
         check_precision(self.precision)
@@ -104,6 +108,6 @@ class TrainConfig:
         """Settings that must match to resume a run (everything except the step budget and logging)."""
         d = self.to_dict()
         for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device", "precision",
-                  "workers"):
+                  "workers", "compile"):
             d.pop(k)
         return d

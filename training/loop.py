@@ -77,8 +77,8 @@ def device_train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float =
     stops on the same non-finite one. ``precision``: the forward pass's (:func:`training.accel.autocast`
     on the batch's device; fp32: none); ``scaler``: fp16's loss scaling (gradients are unscaled before
     clamping; a step whose gradients overflowed is skipped by the scaler; its check reads the device
-    every step). ``forward_loss``: ``(batch, target) -> loss`` (:func:`forward_loss_fn`; default: the
-    eager forward pass and loss). ``check_finite``: read the loss now and
+    every step). ``forward_loss``: ``(batch, target) -> loss`` (:func:`forward_loss_fn`, compiled for
+    ``--compile``; default: the eager forward pass and loss). ``check_finite``: read the loss now and
     raise NonFiniteError, before the weights move, if it is NaN/Inf (a host sync)."""
     if lr is not None:
         for group in optimizer.param_groups:
@@ -106,15 +106,17 @@ def device_train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float =
     return value
 
 
-def forward_loss_fn(model, loss_fn, device: torch.device, precision: str = "fp32"):
+def forward_loss_fn(model, loss_fn, device: torch.device, precision: str = "fp32", compiled: bool = False):
     """``(batch, target) -> loss``: ``model``'s forward pass on ``batch`` in ``precision`` and ``loss_fn``
-    against ``target``, in fp32."""
+    against ``target``, in fp32. ``compiled``: through ``torch.compile`` (Inductor; the backward pass
+    is compiled with it by AOTAutograd). Its first call compiles (tens of seconds on a CPU); a new
+    batch shape compiles again."""
     def forward_loss(batch: dict, target: torch.Tensor) -> torch.Tensor:
         with accel.autocast(device, precision):
             out = model(batch)
         check_output(out, target)
         return loss_fn(out.float(), target)
-    return forward_loss
+    return torch.compile(forward_loss) if compiled else forward_loss
 
 
 class LossReader:
@@ -344,7 +346,7 @@ class _Run:
         self.ck_path = out / "checkpoint.pt"
         self.step = self._resume() if self.ck_path.exists() else 0
         self.model = distributed.wrap(self.module, dist, device)    # DDP under torchrun, else the module
-        self.forward_loss = forward_loss_fn(self.model, self.loss_fn, device, precision)
+        self.forward_loss = forward_loss_fn(self.model, self.loss_fn, device, precision, compiled=cfg.compile)
         self.log = _Log(out / "metrics.csv", self.step) if dist.is_main else None
 
     def _resume(self) -> int:
@@ -411,7 +413,8 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> 
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
     _say_batch(cfg, train_ds, dist)
     say = print if dist.is_main else (lambda *a, **k: None)
-    say(f"train {cfg.model}: {accel.describe(run.device, run.precision)}", flush=True)
+    say(f"train {cfg.model}: {accel.describe(run.device, run.precision)}" + (", compiled" if cfg.compile else ""),
+        flush=True)
     feed = _Feed(train_ds, cfg.batch // dist.world, cfg.workers) if todo > 0 and dist.is_main else None
     bar = None
     if progress and dist.is_main:

@@ -48,7 +48,7 @@ from ..errors import ConfigError
 from ..inputs import InputSpec
 from ..logspace import squeeze, unsqueeze
 from ._pixel import clean_albedo, warp
-from .common import Denoiser, UNet, xavier_init
+from .common import Denoiser, UNet, replicate_pad, xavier_init
 from .registry import register
 
 KERNEL = 5
@@ -82,7 +82,7 @@ def apply_kernel(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     x (B C H W), logits (B 25 H W) in ``unfold`` order (row-major offsets)."""
     b, c, h, w = x.shape
     k = torch.softmax(logits, dim=1)
-    cols = F.unfold(F.pad(x, (KERNEL // 2,) * 4, mode="replicate"), KERNEL).view(b, c, K2, h, w)
+    cols = F.unfold(replicate_pad(x, (KERNEL // 2,) * 4), KERNEL).view(b, c, K2, h, w)
     return (cols * k.unsqueeze(1)).sum(dim=2)
 
 
@@ -173,7 +173,7 @@ class TemporalDenoiser(Denoiser):
         x = torch.cat((rad, cnt, history, alb, nrm, d, mot), dim=1)
         if ph or pw:
             pad = (0, pw, 0, ph)
-            x, rad, history = (F.pad(t, pad, mode="replicate") for t in (x, rad, history))
+            x, rad, history = (replicate_pad(t, pad) for t in (x, rad, history))
         out0, dec = self.denoiser(x)
         out1, out2 = self.head1(dec[1]), self.head2(dec[2])
         i0 = rad
