@@ -356,3 +356,45 @@ def test_train_compile_matches_eager(store, tmp_path):
         unregister_probes()
     with pytest.raises(ConfigError, match='"compile" must be true or false'):
         TrainConfig(compile="yes")
+
+
+def test_cuda_graphs_only_for_the_realtime_models_on_a_gpu():
+    """Compiled for CUDA, nbg, wskpn and the temporal family replay CUDA graphs (fixed shapes, one
+    launch a frame); the offline models, and every model on the CPU, compile as before."""
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    for name in names():
+        m = build(name, **get(name).tiny)
+        realtime = name in ("nbg", "wskpn") or name.startswith("temporal")
+        assert m.realtime == realtime, name
+        assert accel.compile_options(m, cuda) == {**accel.COMPILE_OPTIONS, **({"triton.cudagraphs": True} if realtime else {})}
+        assert accel.compile_options(m, cpu) == accel.COMPILE_OPTIONS
+    assert accel.compile_options(build("nbg", **get("nbg").tiny)) == accel.COMPILE_OPTIONS   # its weights' device
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", ["nbg", "temporal-small"])
+def test_compiled_realtime_models_replay_cuda_graphs_with_the_eager_outputs(name):
+    """On a GPU the compiled real-time form (CUDA graphs) gives the eager outputs frame after frame, a
+    recurrent state carried from one replay into the next included."""
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    m = accel.prepare(build(name, **get(name).tiny), dev).for_inference()
+    spec = m.input_spec()
+    frames = [{k: v.to(dev) for k, v in spec.input_kind.example_batch(1, spec.default_spp, 32, 32, 1,
+                                                                       torch.Generator().manual_seed(i)).items()}
+              for i in range(3)]
+
+    def run(model):
+        outs, state = [], None
+        with torch.no_grad():
+            for f in frames:
+                if m.stepwise:
+                    out, state, _ = model.step(f, state)
+                else:
+                    out = model(f)
+                outs.append(out)
+        return [o.float().cpu() for o in outs]
+    eager = run(m)
+    compiled = run(accel.compile_model(m))
+    for a, b in zip(eager, compiled):
+        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4)

@@ -147,12 +147,47 @@ def prepare(model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
 COMPILE_OPTIONS = {"freezing": True}
 
 
+def compile_options(model: torch.nn.Module, device: torch.device | None = None) -> dict:
+    """Inductor's options for ``model``'s inference: :data:`COMPILE_OPTIONS`, plus CUDA graphs
+    (``triton.cudagraphs``, what ``mode="reduce-overhead"`` turns on) for a real-time model
+    (``model.realtime``: nbg, wskpn, the temporal family) whose weights are on a CUDA device: each frame
+    is then one graph launch instead of one launch a kernel. A graph is recorded per input shape, so
+    this pays where frames keep their size (evaluation, a stream of frames, ``bench``). ``device``: where
+    the model runs (default: where its weights are)."""
+    opts = dict(COMPILE_OPTIONS)
+    if device is None:
+        weight = next(model.parameters(), None)
+        device = torch.device("cpu") if weight is None else weight.device
+    if device.type == "cuda" and getattr(model, "realtime", False):
+        opts["triton.cudagraphs"] = True
+    return opts
+
+
+def _owned(fn):
+    """``fn`` (compiled with CUDA graphs) returning copies of its tensors: the next replay of a graph
+    writes its outputs into the same memory, which would change a frame's output or a recurrent state
+    still held by the caller. Each call starts a new step of the graphs (inference only)."""
+    from torch.utils._pytree import tree_map_only
+
+    def call(*args, **kwargs):
+        torch.compiler.cudagraph_mark_step_begin()
+        return tree_map_only(torch.Tensor, torch.clone, fn(*args, **kwargs))
+    return call
+
+
 def compile_model(model: torch.nn.Module) -> torch.nn.Module:
     """``model`` (the same object, for inference: under ``torch.no_grad``, its weights fixed) with its
     forward pass, and a recurrent model's ``step``, compiled by ``torch.compile`` (Inductor: C++/OpenMP
-    kernels on the CPU, Triton on CUDA; :data:`COMPILE_OPTIONS`). The first call of each input shape
-    compiles (tens of seconds on a CPU); later calls run the compiled code."""
-    model.compile(options=COMPILE_OPTIONS)
+    kernels on the CPU, Triton on CUDA; :func:`compile_options`: CUDA graphs for the real-time models on
+    a GPU). The first call of each input shape compiles (tens of seconds on a CPU); later calls run the
+    compiled code."""
+    opts = compile_options(model)
+    if not opts.get("triton.cudagraphs"):
+        model.compile(options=opts)
+        if getattr(model, "stepwise", False):
+            model.step = torch.compile(model.step, options=opts)
+        return model
+    model.forward = _owned(torch.compile(model.forward, options=opts))
     if getattr(model, "stepwise", False):
-        model.step = torch.compile(model.step, options=COMPILE_OPTIONS)
+        model.step = _owned(torch.compile(model.step, options=opts))
     return model

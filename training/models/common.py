@@ -366,13 +366,15 @@ class Denoiser(nn.Module):
     stack needs no per-model code: ``inputs`` (an :class:`~training.inputs.InputSpec`; override
     :meth:`input_spec` when it depends on settings), ``train_defaults`` (TrainConfig settings such as
     ``loss`` and ``lr`` that differ from the layer family's) and ``tiny`` (settings for test-sized
-    models, used by the contract tests).
+    models, used by the contract tests); ``realtime`` marks the real-time denoisers, whose compiled form
+    on a GPU replays CUDA graphs (:func:`training.accel.compile_options`).
     """
 
     name = "?"
     inputs = InputSpec("samples", frames=1, default_spp=8)
     train_defaults: dict = {}
     tiny: dict = {}
+    realtime = False        # a real-time denoiser: compiled with CUDA graphs on a GPU (training.accel)
 
     def __init__(self, **config):
         super().__init__()

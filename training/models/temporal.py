@@ -112,6 +112,7 @@ class TemporalDenoiser(Denoiser):
                 sampler_decoder=((4,), (4,), (4,)), denoiser_encoder=((6,), (6,), (6,)),
                 denoiser_bottleneck=(6,), denoiser_decoder=((6,), (6,), (6,)), frames=3)
     stepwise = True                       # evaluate frame by frame, carrying the state (``step``)
+    realtime = True
     size_default = "large"
     adaptive_default = True
     recurrent_default = True
