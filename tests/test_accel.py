@@ -229,3 +229,172 @@ def test_the_tuned_allocator_reuses_freed_pages():
     r = subprocess.run([sys.executable, "-c", "from training.accel import tune_allocator; print(tune_allocator())"],
                        env={**env, "MALLOC_TRIM_THRESHOLD_": "131072"}, capture_output=True, text=True, check=True)
     assert r.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------------------ nothing keeps the device waiting
+HOST_READS = ("item", "tolist", "cpu", "numpy", "__float__", "__int__", "__bool__", "__index__")
+
+
+class _HostReads:
+    """Counts every read of a tensor's values on the host while active (each one waits for the device):
+    the Tensor methods that convert to Python or to the CPU, and torch's allclose and equal."""
+
+    def __init__(self, monkeypatch):
+        self.seen: list[str] = []
+        self.on = False
+        for name in HOST_READS:
+            monkeypatch.setattr(torch.Tensor, name, self._spy(getattr(torch.Tensor, name), name))
+        for name in ("allclose", "equal"):
+            monkeypatch.setattr(torch, name, self._spy(getattr(torch, name), name))
+
+    def _spy(self, real, name):
+        def spy(*args, **kwargs):
+            if self.on:
+                self.seen.append(name)
+            return real(*args, **kwargs)
+        return spy
+
+
+FAMILIES = ["layer", "nbg", "wskpn", "temporal", "nppd"]
+
+
+@pytest.fixture
+def one_thread():
+    """One thread and denormals flushed, as training runs (tiny steps: OpenMP's threads only wait on a
+    busy machine)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch.set_flush_denormal(True)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("name", FAMILIES)
+def test_training_steps_read_the_device_only_when_the_loss_is_read(name, monkeypatch, one_thread):
+    """K optimiser steps as the training loop runs them (``device_train_step``, fused Adam, the losses
+    read by ``LossReader`` every N steps) read values back at most K/N + 1 times: no per-step host sync
+    (the temporal family's sampler and water-filling included)."""
+    from training.loop import LossReader, device_train_step, forward_loss_fn
+    torch.manual_seed(0)
+    model = build(name, **get(name).tiny)
+    spec = model.input_spec()
+    batch = spec.input_kind.example_batch(2, spec.default_spp, 16, 16, spec.frames, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        batch["reference"] = torch.rand_like(model(batch).float())
+    opt = accel.adam(model.parameters(), 1e-4)
+    loss_fn = build_loss(model.train_defaults.get("loss", "smape"))
+    forward_loss = forward_loss_fn(model, loss_fn, torch.device("cpu"))
+    target = spec.input_kind.target(batch)
+    k, n = 12, 4
+    reader, reads = LossReader(n), _HostReads(monkeypatch)
+    reads.on = True
+    for step in range(1, k + 1):
+        reader.add(step, device_train_step(model, opt, loss_fn, batch, target=target, forward_loss=forward_loss))
+        if step % n == 0:
+            value = reader.read()
+    reads.on = False
+    assert len(reads.seen) <= k // n + 1, reads.seen
+    with torch.no_grad():
+        assert value == pytest.approx(float(loss_fn(model(batch).float(), target)), rel=0.5)
+
+
+def test_the_losses_are_read_together_and_a_nan_names_its_step():
+    from training.errors import NonFiniteError
+    from training.loop import LossReader
+    reader = LossReader(5)
+    assert reader.read() != reader.read()                  # NaN before any step
+    for step, v in enumerate([0.5, 0.4, float("nan"), 0.3], start=11):
+        reader.add(step, torch.tensor(v))
+    with pytest.raises(NonFiniteError, match=r"loss is nan \(non-finite\) at step 13; .* every 5 steps "
+                                             r"\(--log-every\), here steps 11\.\.14"):
+        reader.read()
+    reader.add(15, torch.tensor(0.25))
+    assert reader.read() == 0.25 and reader.read() == 0.25
+
+
+def test_adam_is_fused_and_resumes_from_a_state_of_either_kernel():
+    """Adam's update is one fused kernel where the device has it (the CPU and CUDA); a state saved by
+    the other kernel loads into it (a run moved between devices) and steps on."""
+    w = torch.nn.Parameter(torch.ones(3))
+    plain = torch.optim.Adam([w], lr=0.1, foreach=False)
+    w.grad = torch.ones(3)
+    plain.step()
+    w2 = torch.nn.Parameter(w.detach().clone())
+    fused = accel.adam([w2], 0.1)
+    assert fused.defaults["fused"] is True
+    accel.load_optimizer_state(fused, plain.state_dict())
+    assert fused.param_groups[0]["fused"] is True and fused.param_groups[0]["foreach"] is None
+    w.grad, w2.grad = torch.ones(3), torch.ones(3)
+    plain.step()
+    fused.step()
+    torch.testing.assert_close(w2, w)
+
+
+def test_train_compile_matches_eager(store, tmp_path):
+    """``train --compile``: the forward pass and loss through torch.compile give the eager run's weights
+    within float rounding (a 1x1-convolution probe, so the compile stays short); a run may resume
+    compiled or not."""
+    from kind_models import PROBES, register_probes, unregister_probes
+    register_probes()
+    try:
+        c = TrainConfig(model=PROBES["pixels"], steps=2, batch=2, crop=16, val_every=0, seed=1, workers=0,
+                        checkpoint_every=100)
+        torch._dynamo.reset()
+        runs = {tag: train(c.replace(compile=tag == "compiled"), store, tmp_path / tag, progress=False)
+                for tag in ("eager", "compiled")}
+    finally:
+        unregister_probes()
+    assert runs["compiled"]["loss"] == pytest.approx(runs["eager"]["loss"], rel=1e-5)
+    wa, wb = (ckpt.load(tmp_path / t / "checkpoint.pt")["state_dict"] for t in ("eager", "compiled"))
+    for key in wa:
+        torch.testing.assert_close(wb[key], wa[key], rtol=1e-5, atol=1e-6)
+    assert ckpt.load(tmp_path / "compiled" / "checkpoint.pt")["train_config"]["compile"] is True
+    register_probes()
+    try:                                       # the compiled run resumes eagerly
+        assert train(c.replace(steps=3), store, tmp_path / "compiled", progress=False)["step"] == 3
+    finally:
+        unregister_probes()
+    with pytest.raises(ConfigError, match='"compile" must be true or false'):
+        TrainConfig(compile="yes")
+
+
+def test_cuda_graphs_only_for_the_realtime_models_on_a_gpu():
+    """Compiled for CUDA, nbg, wskpn and the temporal family replay CUDA graphs (fixed shapes, one
+    launch a frame); the offline models, and every model on the CPU, compile as before."""
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    for name in names():
+        m = build(name, **get(name).tiny)
+        realtime = name in ("nbg", "wskpn") or name.startswith("temporal")
+        assert m.realtime == realtime, name
+        assert accel.compile_options(m, cuda) == {**accel.COMPILE_OPTIONS, **({"triton.cudagraphs": True} if realtime else {})}
+        assert accel.compile_options(m, cpu) == accel.COMPILE_OPTIONS
+    assert accel.compile_options(build("nbg", **get("nbg").tiny)) == accel.COMPILE_OPTIONS   # its weights' device
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", ["nbg", "temporal-small"])
+def test_compiled_realtime_models_replay_cuda_graphs_with_the_eager_outputs(name):
+    """On a GPU the compiled real-time form (CUDA graphs) gives the eager outputs frame after frame, a
+    recurrent state carried from one replay into the next included."""
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    m = accel.prepare(build(name, **get(name).tiny), dev).for_inference()
+    spec = m.input_spec()
+    frames = [{k: v.to(dev) for k, v in spec.input_kind.example_batch(1, spec.default_spp, 32, 32, 1,
+                                                                       torch.Generator().manual_seed(i)).items()}
+              for i in range(3)]
+
+    def run(model):
+        outs, state = [], None
+        with torch.no_grad():
+            for f in frames:
+                if m.stepwise:
+                    out, state, _ = model.step(f, state)
+                else:
+                    out = model(f)
+                outs.append(out)
+        return [o.float().cpu() for o in outs]
+    eager = run(m)
+    compiled = run(accel.compile_model(m))
+    for a, b in zip(eager, compiled):
+        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4)

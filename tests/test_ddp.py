@@ -78,14 +78,14 @@ def _worker(spec_path: str) -> None:
         train(c, spec["store"], spec["out"] + "/from-one", progress=False)   # one process's 2 steps, resumed
         train(temporal_cfg(), spec["clip_store"], spec["out"] + "/temporal", progress=False)
         import training.loop as loop                             # record the crops each rank trains on
-        seen, step = [], loop.train_step
+        seen, step = [], loop.device_train_step
 
         def spy(model, optimizer, loss_fn, batch, *a, **kw):
             seen.append({"index": batch["index"].tolist(), "origin": batch["origin"].tolist()})
             return step(model, optimizer, loss_fn, batch, *a, **kw)
-        loop.train_step = spy
+        loop.device_train_step = spy
         res = train(nbg_cfg(), spec["store"], spec["out"] + "/nbg", progress=False)
-        loop.train_step = step
+        loop.device_train_step = step
         Path(spec["out"], f"nbg/seen-{dist.rank}.json").write_text(json.dumps(seen))
         assert res["rank"] == dist.rank and res["world"] == 2
         with pytest.raises(ConfigError, match="divide evenly over the 2 ranks"):

@@ -103,6 +103,53 @@ class TestModelContract:
         assert m.param_count() > 0 and m.fmas_per_pixel(8) > m.fmas_per_pixel(1) * 0.99
         assert m.input_spec().default_spp >= 1
 
+    @pytest.mark.parametrize("where", [torch.float64, "meta"])
+    def test_the_inference_form_stays_where_the_model_is(self, name, where):
+        """Moved to float64, or to the ``meta`` device, then ``for_inference()``: every parameter and buffer
+        follows (modules built after construction, such as WSKPN's fused blocks, included), and a forward
+        runs there (on meta: meta tensors of the right shape)."""
+        torch.manual_seed(0)
+        m = build(name, **tiny_cfg(name)).to(where).for_inference()
+        dev = torch.device("meta" if where == "meta" else "cpu")
+        dtype = torch.float64 if where == torch.float64 else torch.float32
+        tensors = dict(m.named_parameters()) | dict(m.named_buffers())
+        strays = {k: (t.device, t.dtype) for k, t in tensors.items() if t.device != dev or t.dtype != dtype}
+        assert tensors and not strays, strays
+        batch = {k: v.to(dev, dtype if v.is_floating_point() else v.dtype) for k, v in kind_batch(m, h=16, w=16).items()}
+        with torch.no_grad():
+            out = m(batch)
+        frames = (m.input_spec().frames,) if out.dim() == 5 else ()
+        assert out.device == dev and out.dtype == dtype and out.shape == (2, *frames, 3, 16, 16)
+        if where != "meta":
+            assert torch.isfinite(out).all()
+
+    def test_the_forward_pass_compiles_to_one_graph(self, name):
+        """Dynamo traces the whole training-mode forward pass (a window of a recurrent model unrolled) as
+        one graph: no break (a value read back, an unsupported call) splits it."""
+        torch.manual_seed(0)
+        m = build(name, **tiny_cfg(name, **({"frames": 2} if "frames" in get(name).tiny else {})))
+        torch._dynamo.reset()
+        explained = torch._dynamo.explain(m)(kind_batch(m, b=1, h=16, w=16))
+        assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons
+
+    @pytest.mark.gpu
+    @pytest.mark.parametrize("precision", ["fp32", "bf16"])
+    def test_the_inference_form_runs_on_cuda(self, name, precision):
+        """Every model's inference form on a CUDA device, in fp32 and under bf16 autocast: its outputs stay
+        on the device, finite, and (fp32) equal the CPU's within float rounding."""
+        from training import accel
+        torch.manual_seed(0)
+        m = build(name, **tiny_cfg(name))
+        batch = kind_batch(m)
+        with torch.no_grad():
+            ref = m.for_inference()(batch)
+            gpu = accel.prepare(m, torch.device("cuda")).for_inference()
+            with accel.autocast(torch.device("cuda"), precision):
+                out = gpu({k: v.cuda() for k, v in batch.items()})
+        assert out.is_cuda and torch.isfinite(out).all()
+        if precision == "fp32":
+            torch.testing.assert_close(out.cpu(), ref, rtol=1e-3, atol=1e-4)
+
     @pytest.mark.parametrize("case", ["fireflies", "huge", "zeros", "zero_albedo", "nan"])
     def test_stability(self, name, case):
         torch.manual_seed(1)
@@ -350,3 +397,16 @@ def test_soft_bound_caps_the_context_scale():
         m.unet.final.weight.mul_(1e15)
         _, ctx = m.embed_samples(*make_batch().values())
     assert ctx.square().mean(dim=1).sqrt().max() <= 1.0 + 1e-6
+
+
+def test_replicate_pad_compiled_is_a_gather_of_the_same_values_and_gradients():
+    """``replicate_pad`` compiled (a gather at clamped indices, which Inductor's backward handles where its
+    replication_pad2d_backward fails on channels-last gradients) equals ``F.pad(mode="replicate")``."""
+    from training.models.common import replicate_pad
+    x = torch.rand(2, 3, 7, 9, requires_grad=True).contiguous(memory_format=torch.channels_last)
+    for pad in ((2, 2, 2, 2), (0, 3, 0, 1)):
+        want = F.pad(x, pad, mode="replicate")
+        got = torch.compile(lambda t: replicate_pad(t, pad), backend="eager", fullgraph=True)(x)
+        g = torch.rand_like(want)
+        assert torch.equal(got, want) and torch.equal(replicate_pad(x, pad), want)
+        torch.testing.assert_close(torch.autograd.grad(got, x, g)[0], torch.autograd.grad(want, x, g)[0])

@@ -251,6 +251,24 @@ def test_our_kinds_train_on_noisebase_data(exported, tmp_path, capsys):
         unregister_probes()
 
 
+def test_nppd_trains_and_is_evaluated_on_a_noisebase_folder(exported, tmp_path):
+    """nppd (recurrent, per-sample, reading normal, depth and albedo: all in Noisebase) trains on the
+    sequences and is evaluated and applied there clip by clip: stepping through single frames keeps the
+    model's feature groups (evaluate and denoise once rebuilt its input as one of all 17 features, which
+    the folder was then refused for)."""
+    from training.models import get
+    run = tmp_path / "run"
+    assert cli("train", "--model", "nppd", "--store", exported, "--out", run, "--steps", "2", "--batch", "2",
+               "--crop", "8", "--spp", "2", "--workers", "0", "--device", "cpu", "--no-progress", "--val-split",
+               "train", "--val-every", "2", "--val-frames", "1", "--model-cfg", json.dumps(get("nppd").tiny)) == 0
+    assert cli("evaluate", "--checkpoint", run / "checkpoint.pt", "--store", exported, "--split", "train",
+               "--no-flip", "--out", tmp_path / "e.json") == 0
+    res = json.loads((tmp_path / "e.json").read_text())
+    assert res["method"] == "nppd" and res["clips"] >= 1 and np.isfinite(res["mean"]["psnr"])
+    assert cli("denoise", "--checkpoint", run / "checkpoint.pt", "--store", exported, "--frame", FRAMES - 1,
+               "--out", tmp_path / "d.exr") == 0 and (tmp_path / "d.exr").exists()
+
+
 def test_unread_features_never_reach_the_network():
     import torch
     from training.models import build

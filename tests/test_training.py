@@ -397,7 +397,9 @@ def test_a_nan_loss_is_a_failed_run_not_a_bad_setting(store, tmp_path, capsys, m
     assert main(["train", "--model", "layer", "--model-cfg", __import__("json").dumps(TINY), "--store", store,
                  "--out", str(tmp_path / "r"), "--steps", "2", "--crop", "16", "--batch", "2", "--spp", "2",
                  "--no-progress"]) == 1
-    assert "NonFiniteError: loss is nan" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "NonFiniteError: loss is nan (non-finite) at step 1; the loss is read from the device every 10 steps " \
+           "(--log-every), here steps 1..2" in err
 
 
 def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):

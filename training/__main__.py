@@ -32,7 +32,7 @@ def _train(a) -> int:
                       batch=a.batch, crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
                       val_frames=a.val_frames, val_split=a.val_split, checkpoint_every=a.checkpoint_every,
                       device=a.device, precision=a.precision, workers=a.workers,
-                      skip_bad_frames=a.skip_bad_frames)
+                      skip_bad_frames=a.skip_bad_frames, log_every=a.log_every, compile=a.compile)
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress)
     if res.get("rank", 0) != 0:          # under torchrun: rank 0 speaks for the run
@@ -133,6 +133,12 @@ def main(argv=None) -> int:
     t.add_argument("--workers", type=int, default=1,
                    help="DataLoader worker processes (default 1; 0 loads in the training process)")
     t.add_argument("--checkpoint-every", type=int, default=100, help="write checkpoint.pt every N steps")
+    t.add_argument("--log-every", type=int, default=10,
+                   help="write the training loss to metrics.csv, and read it from the device and check it for "
+                        "NaN/Inf, every N steps (default 10; between reads no step waits for the device)")
+    t.add_argument("--compile", action="store_true",
+                   help="run the forward pass and loss through torch.compile (the first step compiles: tens of "
+                        "seconds on a CPU, a minute or more on a GPU)")
     t.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
                                                      "PyTorch sees a GPU, else the CPU)")
     t.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],

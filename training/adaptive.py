@@ -37,43 +37,58 @@ from stores.errors import SampleCountError
 WATERFILL_ITERATIONS = 16
 
 
-def check_layer_spp(layer_spp: torch.Tensor) -> int:
-    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``. Checked eagerly; a
-    compiled step (``--compile``, inference) leaves the check out, since reading the values is a graph
-    break on every call: it trusts the layout it is given (a store's layers are 1, 2, 4 ... spp by
-    construction, and training, which checks, always runs eagerly)."""
-    if torch.compiler.is_compiling():
-        return 2 ** layer_spp.shape[-1] - 1
-    spp = torch.as_tensor(layer_spp).reshape(-1, layer_spp.shape[-1])[0].tolist()
-    if [int(v) for v in spp] != [2 ** n for n in range(len(spp))] or any(float(v) != int(v) for v in spp):
-        raise SampleCountError(f"adaptive sampling needs layers of 1, 2, 4 ... spp, got {spp}")
+def check_layer_spp(layer_spp) -> int:
+    """Layers must hold 1, 2, 4 ... samples; returns the cap ``sum = 2^L - 1``. ``layer_spp``: the
+    counts (a sequence, or a tensor whose last axis holds them). Checked where layers are read (the
+    ``sampled-layers`` dataset, :class:`training.datasets.LayerFrames`), once, on the host: the model's
+    step trusts the layout it is given and takes the cap from the number of layers, so it reads
+    nothing back from the device."""
+    if isinstance(layer_spp, torch.Tensor):
+        layer_spp = layer_spp.reshape(-1, layer_spp.shape[-1])[0].tolist()
+    spp = [float(v) for v in layer_spp]
+    if spp != [2.0 ** n for n in range(len(spp))]:
+        raise SampleCountError(f"adaptive sampling needs layers of 1, 2, 4 ... spp, got {list(layer_spp)}")
     return 2 ** len(spp) - 1
+
+
+def check_budget(n, cap: int) -> None:
+    """SampleCountError unless every average budget in ``n`` (a number or a sequence) is in (0, cap]."""
+    values = [float(v) for v in (n if isinstance(n, (list, tuple)) else [n])]
+    if not all(0 < v <= cap for v in values):
+        raise SampleCountError(f"average budget must be in (0, {cap}] samples per pixel, got {values}")
+
+
+def waterfill_scale(ideal: torch.Tensor, n: torch.Tensor, cap: int) -> torch.Tensor:
+    """The water-filling scale ``k >= 1`` (B 1 1 1) with ``sum min(cap, k ideal) = M n`` per image, by
+    :data:`WATERFILL_ITERATIONS` fixed iterations on the device (no value is read back: each iteration
+    caps the pixels the last scale pushed over ``cap`` and rescales the rest; once no new pixel is
+    capped, ``k`` repeats itself exactly). ``ideal (B 1 H W)`` = ``M n softmax(s)``."""
+    m = ideal.shape[-2] * ideal.shape[-1]
+    k = torch.ones_like(n)
+    for _ in range(WATERFILL_ITERATIONS):
+        capped = k * ideal >= cap
+        free = (ideal * ~capped).sum(dim=(1, 2, 3), keepdim=True)
+        want = m * n - cap * capped.sum(dim=(1, 2, 3), keepdim=True)
+        k = torch.where(free > 0, want / free.clamp(min=1e-30), k)
+    return k
 
 
 def sample_counts(logits: torch.Tensor, n, cap: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 2 with the cap: ``logits (B 1 H W)`` (the sampler's unnormalised map), ``n`` the average
     budget per pixel (float or (B,) tensor, 0 < n <= cap) -> ``(continuous (B 1 H W), counts (B 1 H W)
     int64)``. ``continuous`` carries the gradient (softmax over each image); ``counts`` is its
-    rounding, in 0..cap. The softmax runs over the unrolled image, as the paper recommends."""
+    rounding, in 0..cap. The softmax runs over the unrolled image, as the paper recommends. A budget
+    given as a number is checked here; a tensor is not read (it is checked where it is made: the
+    dataset's ``spp``, :func:`check_budget`), so the function never waits for the device."""
     b, _, h, w = logits.shape
-    m = h * w
+    if not isinstance(n, torch.Tensor):
+        check_budget(n, cap)
     n = torch.as_tensor(n, dtype=logits.dtype, device=logits.device).reshape(-1, 1, 1, 1).expand(b, 1, 1, 1)
-    compiling = torch.compiler.is_compiling()      # no data-dependent branches in a compiled step
-    if not compiling and ((n <= 0).any() or (n > cap).any()):
-        raise SampleCountError(f"average budget must be in (0, {cap}] samples per pixel, got {n.flatten().tolist()}")
     logits = torch.nan_to_num(logits, nan=0.0, posinf=80.0, neginf=-80.0)
-    share = torch.softmax(logits.reshape(b, m), dim=1).reshape(b, 1, h, w)
-    ideal = share * (m * n)
+    share = torch.softmax(logits.reshape(b, h * w), dim=1).reshape(b, 1, h, w)
+    ideal = share * (h * w * n)
     with torch.no_grad():                        # water-filling scale k >= 1 per image (no gradient)
-        k = torch.ones_like(n)
-        for _ in range(WATERFILL_ITERATIONS):
-            capped = (k * ideal >= cap)
-            free = (ideal * ~capped).sum(dim=(1, 2, 3), keepdim=True)
-            want = m * n - cap * capped.sum(dim=(1, 2, 3), keepdim=True)
-            k_new = torch.where(free > 0, want / free.clamp(min=1e-30), k)
-            if not compiling and torch.allclose(k_new, k, rtol=1e-7, atol=0):
-                break                             # compiled: all iterations (k is a fixed point by then)
-            k = k_new
+        k = waterfill_scale(ideal, n, cap)
     cont = torch.minimum(k * ideal, torch.full_like(ideal, float(cap)))
     counts = torch.round(cont.detach()).clamp(0, cap).to(torch.int64)
     return cont, counts
@@ -119,13 +134,16 @@ def clean_layers(layers: torch.Tensor, clamp: float = 65535.0) -> torch.Tensor:
     return torch.nan_to_num(layers, nan=0.0, posinf=clamp, neginf=0.0).clamp(0.0, clamp)
 
 
-def compose(layers: torch.Tensor, counts: torch.Tensor, cont: torch.Tensor | None = None) -> torch.Tensor:
+def compose(layers: torch.Tensor, counts: torch.Tensor, cont: torch.Tensor | None = None,
+            checked: bool = True) -> torch.Tensor:
     """Radiance ``(B 3 H W)`` of the per-pixel ``counts (B 1 H W)`` (int, 0..2^L-1) from ``layers
     (B L 3 H W)`` (cleaned with :func:`clean_layers`); with ``cont`` (the continuous counts of
-    :func:`sample_counts`) the result carries the approximate renderer gradient to ``cont``."""
+    :func:`sample_counts`) the result carries the approximate renderer gradient to ``cont``.
+    ``checked``: refuse counts outside 0..2^L-1 (reads them back from the device; False for counts in
+    range by construction, those of :func:`sample_counts` and :func:`uniform_counts`)."""
     counts = counts.to(torch.int64)
     cap = 2 ** layers.shape[1] - 1
-    if not torch.compiler.is_compiling() and (counts.min() < 0 or counts.max() > cap):
+    if checked and not torch.compiler.is_compiling() and (counts.min() < 0 or counts.max() > cap):
         raise SampleCountError(f"per-pixel sample counts must be in 0..{cap}, got "
                                f"{int(counts.min())}..{int(counts.max())}")
     if cont is None:

@@ -34,7 +34,11 @@ class TrainConfig:
     resolved values are what a checkpoint records. ``train_clips`` restricts training to those clips
     (scenes) of the train split, kept whole (``training.scaling``'s nested subsets); it is part of the
     run's identity, so a run resumes only on the same frames. ``workers`` is the number of DataLoader worker
-    processes (0: load in the training process); it does not change what is trained. ``device`` and
+    processes (0: load in the training process); it does not change what is trained. ``log_every``:
+    the training loss is logged, and read from the device and checked for NaN/Inf, every this many
+    steps (between reads no step waits for the device). ``compile``: the forward pass and the loss
+    through ``torch.compile``; it changes the arithmetic only within float rounding, and a run may
+    resume with or without it. ``device`` and
     ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
     on a GPU in bf16 resumes on a CPU in fp32)."""
 
@@ -61,6 +65,7 @@ class TrainConfig:
     workers: int = 1            # DataLoader worker processes (0: in-process)
     skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
     train_clips: list | None = None  # train only on these clip ids of the train split (None: all of it)
+    compile: bool = False       # the forward pass and loss through torch.compile (training.loop.forward_loss_fn)
 
     def __post_init__(self):
         self._resolve_defaults()
@@ -82,6 +87,7 @@ class TrainConfig:
             need(isinstance(clips, (list, tuple)) and len(clips) > 0 and all(is_int(c, numpy=True) for c in clips),
                  '"train_clips"', "null or a non-empty list of clip ids", clips, ConfigError)
             object.__setattr__(self, "train_clips", sorted({int(c) for c in clips}))
+        need(isinstance(self.compile, bool), '"compile"', "true or false", self.compile, ConfigError)
         from .accel import check_device, check_precision
         check_device(self.device)
         check_precision(self.precision)
@@ -110,6 +116,6 @@ class TrainConfig:
         """Settings that must match to resume a run (everything except the step budget and logging)."""
         d = self.to_dict()
         for k in ("steps", "val_every", "val_frames", "log_every", "checkpoint_every", "device", "precision",
-                  "workers"):
+                  "workers", "compile"):
             d.pop(k)
         return d

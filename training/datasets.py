@@ -248,6 +248,8 @@ class LayerFrames(FrameWindows):
         top = int(sum(self.store.layout.layer_spp))
         if not 0 < float(spp) <= top:
             raise SampleCountError(f"asked for an average of {spp} samples per pixel; the layers hold 1..{top}")
+        from .adaptive import check_layer_spp
+        check_layer_spp(self.store.layout.layer_spp)         # once, here: the sampler's step reads none back
         self.spp = spp
 
     def _frame(self, i, region):

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -156,7 +157,6 @@ def items_from_store(spec, store: str, frame: int, spp: int, stepwise: bool) -> 
     recurrent model), built as in evaluation."""
     from .data import model_dataset, open_store
     from .evaluate import baseline_spec
-    from .inputs import InputSpec
     st = open_store(store)
     n = st.layout.num_frames
     if not isinstance(frame, int) or not 0 <= frame < n:
@@ -167,7 +167,7 @@ def items_from_store(spec, store: str, frame: int, spp: int, stepwise: bool) -> 
     if spec is None:
         spec = baseline_spec(spp)
     if stepwise or spec.frames == 1:
-        spec = InputSpec(spec.kind, frames=1, default_spp=spec.default_spp)
+        spec = replace(spec, frames=1)                  # single frames, the model's features kept
     ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False)
     attr = "frames" if hasattr(ds, "frames") else "windows"
     ends = [int(w[-1]) if isinstance(w, tuple) else int(w) for w in getattr(ds, attr)]

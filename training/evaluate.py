@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -40,7 +40,6 @@ from . import checkpoint as ckpt
 from . import metrics, stats
 from .data import model_dataset, open_store
 from .errors import ConfigError
-from .inputs import InputSpec
 from .models.common import flush_denormals
 from .oidn import oidn_denoise
 
@@ -348,7 +347,7 @@ def evaluate(method, store, split: str = "test", spp: int | None = None, max_fra
     precision = accel.precision_for(precision, dev)
     st = open_store(store)
     m = load_method(method, st, spp, str(dev), compile, baseline_input)
-    spec = InputSpec(m.spec.kind, frames=1, default_spp=m.spec.default_spp) if m.stepwise else m.spec
+    spec = replace(m.spec, frames=1) if m.stepwise else m.spec     # single frames, the model's features kept
     ds = model_dataset(spec, st, split, m.spp, None, augment=False, seed=0, full_windows=False,
                        skip_bad_frames=skip_bad_frames, progress=progress)
     n = len(ds) if not max_frames else min(int(max_frames), len(ds))

@@ -22,6 +22,7 @@ seed alike and no training step draws from the global RNGs (crops and augmentati
 from __future__ import annotations
 
 import csv
+import math
 import os
 import time
 import warnings
@@ -53,40 +54,103 @@ def warmup_lr(lr: float, warmup: int, step: int) -> float:
 def train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
                lr: float | None = None, target=None, dist: distributed.Dist = distributed.SINGLE,
                precision: str = "fp32", scaler: torch.amp.GradScaler | None = None) -> float:
-    """One optimiser step on ``batch``; returns the loss. Raises NonFiniteError on NaN/Inf loss.
+    """One optimiser step on ``batch``; returns the loss, read from the device, and raises
+    NonFiniteError on a NaN/Inf loss before the weights move. The arguments are
+    :func:`device_train_step`'s. Reading the loss waits for the step to finish (a host sync): the
+    training loop uses :func:`device_train_step` and reads its losses every ``log_every`` steps."""
+    value = device_train_step(model, optimizer, loss_fn, batch, clip_norm, clip_value, lr, target, dist, precision,
+                              scaler, check_finite=True)
+    return float(value)
+
+
+def device_train_step(model, optimizer, loss_fn, batch: dict, clip_norm: float = 0.0, clip_value: float = 0.0,
+                      lr: float | None = None, target=None, dist: distributed.Dist = distributed.SINGLE,
+                      precision: str = "fp32", scaler: torch.amp.GradScaler | None = None, forward_loss=None,
+                      check_finite: bool = False) -> torch.Tensor:
+    """One optimiser step on ``batch``; returns the loss as a detached 0-d tensor on the device, read by
+    nobody here, so the host runs ahead of the device (:class:`LossReader` reads it later).
     Gradients are clamped first by total norm, then by value (0: off), like NVlabs/layerdenoise.
     ``lr``: this step's learning rate (None: leave the optimiser's). ``target``: the reference the
     output is compared with (default ``batch["reference"]``; the input kind's ``target``).
     ``dist``: under torchrun ``model`` is DDP-wrapped and ``batch`` this rank's share; the returned
-    loss is the global batch's (the ranks' means averaged), and every rank raises on a non-finite one,
-    so none is left waiting in the gradient all-reduce. ``precision``: the forward pass's
-    (:func:`training.accel.autocast` on the batch's device; fp32: none); ``scaler``: fp16's loss scaling (gradients are
-    unscaled before clamping; a step whose gradients overflowed is skipped by the scaler)."""
+    loss is the global batch's (the ranks' means averaged), so every rank reads the same value and
+    stops on the same non-finite one. ``precision``: the forward pass's (:func:`training.accel.autocast`
+    on the batch's device; fp32: none); ``scaler``: fp16's loss scaling (gradients are unscaled before
+    clamping; a step whose gradients overflowed is skipped by the scaler; its check reads the device
+    every step). ``forward_loss``: ``(batch, target) -> loss`` (:func:`forward_loss_fn`, compiled for
+    ``--compile``; default: the eager forward pass and loss). ``check_finite``: read the loss now and
+    raise NonFiniteError, before the weights move, if it is NaN/Inf (a host sync)."""
     if lr is not None:
         for group in optimizer.param_groups:
             group["lr"] = lr
     model.train()
     optimizer.zero_grad(set_to_none=True)
-    device = next(v.device for v in batch.values() if isinstance(v, torch.Tensor))
-    with accel.autocast(device, precision):
-        out = model(batch)
     target = batch["reference"] if target is None else target
-    check_output(out, target)
-    loss = loss_fn(out.float(), target)
+    if forward_loss is None:
+        device = next(v.device for v in batch.values() if isinstance(v, torch.Tensor))
+        forward_loss = forward_loss_fn(model, loss_fn, device, precision)
+    loss = forward_loss(batch, target)
     value = dist.mean(loss.detach())
-    if not torch.isfinite(value):
+    if check_finite and not torch.isfinite(value):
         raise NonFiniteError(f"loss is {value.item()} (non-finite)")
     if scaler is None or not scaler.is_enabled():
         loss.backward()
         _clamp(model, clip_norm, clip_value)
         optimizer.step()
-        return float(value)
+        return value
     scaler.scale(loss).backward()
     scaler.unscale_(optimizer)
     _clamp(model, clip_norm, clip_value)
     scaler.step(optimizer)
     scaler.update()
-    return float(value)
+    return value
+
+
+def forward_loss_fn(model, loss_fn, device: torch.device, precision: str = "fp32", compiled: bool = False):
+    """``(batch, target) -> loss``: ``model``'s forward pass on ``batch`` in ``precision`` and ``loss_fn``
+    against ``target``, in fp32. ``compiled``: through ``torch.compile`` (Inductor; the backward pass
+    is compiled with it by AOTAutograd). Its first call compiles (tens of seconds on a CPU); a new
+    batch shape compiles again."""
+    def forward_loss(batch: dict, target: torch.Tensor) -> torch.Tensor:
+        with accel.autocast(device, precision):
+            out = model(batch)
+        check_output(out, target)
+        return loss_fn(out.float(), target)
+    return torch.compile(forward_loss) if compiled else forward_loss
+
+
+class LossReader:
+    """The training loss, kept on the device step by step and read to the host (one read for all the
+    steps since the last) only when :meth:`read` is called: by the loop every ``every`` steps
+    (``log_every``) and before it validates or writes a checkpoint. A NaN/Inf loss among them raises
+    NonFiniteError naming its step and the steps read together; the steps after it in that range
+    have run (their weights are not written: a checkpoint is written only after a read)."""
+
+    def __init__(self, every: int):
+        self.every = every
+        self.pending: list[torch.Tensor] = []
+        self.first = 0
+        self.value = float("nan")
+
+    def add(self, step: int, loss: torch.Tensor) -> None:
+        """The loss of optimiser step ``step`` (1-based, as logged), a 0-d tensor on the device."""
+        if not self.pending:
+            self.first = step
+        self.pending.append(loss)
+
+    def read(self) -> float:
+        """The last step's loss (NaN before any step), after checking every pending one."""
+        if not self.pending:
+            return self.value
+        values = torch.stack(self.pending).tolist()             # one read for every pending step
+        first, self.pending = self.first, []
+        for i, v in enumerate(values):
+            if not math.isfinite(v):
+                raise NonFiniteError(f"loss is {v} (non-finite) at step {first + i}; the loss is read from the "
+                                     f"device every {self.every} steps (--log-every), here steps "
+                                     f"{first}..{first + len(values) - 1}")
+        self.value = values[-1]
+        return self.value
 
 
 def check_output(out: torch.Tensor, target: torch.Tensor) -> None:
@@ -279,11 +343,12 @@ class _Run:
         torch.manual_seed(cfg.seed)
         self.module = accel.prepare(build(cfg.model, **cfg.model_cfg), device)
         self.kind = self.module.input_spec().input_kind
-        self.optimizer = torch.optim.Adam(self.module.parameters(), lr=cfg.lr)
+        self.optimizer = accel.adam(self.module.parameters(), cfg.lr)
         self.scaler = accel.grad_scaler(device, precision)
         self.ck_path = out / "checkpoint.pt"
         self.step = self._resume() if self.ck_path.exists() else 0
         self.model = distributed.wrap(self.module, dist, device)    # DDP under torchrun, else the module
+        self.forward_loss = forward_loss_fn(self.model, self.loss_fn, device, precision, compiled=cfg.compile)
         self.log = _Log(out / "metrics.csv", self.step) if dist.is_main else None
 
     def _resume(self) -> int:
@@ -297,7 +362,7 @@ class _Run:
         ckpt.check_store(ck, self.store.schema_version, path)
         check_same_store(ck, self.store_info, path)
         self.module.load_state_dict(ck["state_dict"])
-        self.optimizer.load_state_dict(ck["optimizer"])
+        accel.load_optimizer_state(self.optimizer, ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])
         if self.scaler.is_enabled() and ck.get("scaler"):
             self.scaler.load_state_dict(ck["scaler"])
@@ -309,11 +374,13 @@ class _Run:
                       store_info=self.store_info,
                       extra={"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else None)
 
-    def train_step(self, batch: dict) -> float:
+    def train_step(self, batch: dict) -> torch.Tensor:
+        """One optimiser step; its loss stays on the device (:class:`LossReader`)."""
         cfg = self.cfg
-        return train_step(self.model, self.optimizer, self.loss_fn, batch, cfg.grad_clip_norm, cfg.grad_clip_value,
-                          lr=warmup_lr(cfg.lr, cfg.warmup, self.step), target=self.kind.target(batch),
-                          dist=self.dist, precision=self.precision, scaler=self.scaler)
+        return device_train_step(self.model, self.optimizer, self.loss_fn, batch, cfg.grad_clip_norm,
+                                 cfg.grad_clip_value, lr=warmup_lr(cfg.lr, cfg.warmup, self.step),
+                                 target=self.kind.target(batch), dist=self.dist, precision=self.precision,
+                                 scaler=self.scaler, forward_loss=self.forward_loss)
 
     def validate(self, val_ds) -> dict:
         return validate(self.module, val_ds, self.loss_fn, self.device, self.cfg.val_frames, self.kind, self.dist,
@@ -342,13 +409,15 @@ def _datasets(cfg: TrainConfig, spec, store):
 
 def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> tuple[float, dict]:
     """``todo`` steps from ``run.step``: log, validate and checkpoint on their schedules; returns the last
-    training loss and validation figures."""
+    training loss and validation figures. The losses stay on the device between reads (:class:`LossReader`:
+    every ``log_every`` steps, and before a validation or a checkpoint), so no step waits for the last."""
     cfg, dist = run.cfg, run.dist
-    loss, val = float("nan"), {}
+    val, losses = {}, LossReader(cfg.log_every)
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
     _say_batch(cfg, train_ds, dist)
     say = print if dist.is_main else (lambda *a, **k: None)
-    say(f"train {cfg.model}: {accel.describe(run.device, run.precision)}", flush=True)
+    say(f"train {cfg.model}: {accel.describe(run.device, run.precision)}" + (", compiled" if cfg.compile else ""),
+        flush=True)
     feed = _Feed(train_ds, cfg.batch // dist.world, cfg.workers) if todo > 0 and dist.is_main else None
     bar = None
     if progress and dist.is_main:
@@ -360,29 +429,47 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> 
                                   dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
             epoch = run.step // per_epoch
             t_data = time.perf_counter()
-            loss = run.train_step(to_device(batch, run.device))
+            losses.add(run.step + 1, run.train_step(to_device(batch, run.device)))
             if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
                 (bar.write if bar else say)(feed.line())
             t_step = time.perf_counter()
             run.step += 1
             if bar:
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4f}")
-            last = run.step == cfg.steps
-            if run.log and (run.step % cfg.log_every == 0 or last):
-                run.log.write(step=run.step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
-            if val_ds is not None and ((cfg.val_every and run.step % cfg.val_every == 0) or last):
-                val = run.validate(val_ds)
-                if run.log:
-                    run.log.write(step=run.step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
-            if run.step % cfg.checkpoint_every == 0 or last:
-                run.save()
+            done = _after_step(run, losses, val_ds, epoch, bar, t0)
+            val = val if done is None else done
         if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
+            losses.read()
             run.save()
     finally:
         if bar:
             bar.close()
-    return loss, val
+    return losses.read(), val
+
+
+def _after_step(run: _Run, losses: LossReader, val_ds, epoch: int, bar, t0: float) -> dict | None:
+    """What is due after step ``run.step``: reading (and checking) the losses, the log row, a validation
+    (returned) and a checkpoint."""
+    cfg = run.cfg
+    last = run.step == cfg.steps
+    logged = run.step % cfg.log_every == 0 or last
+    validating = val_ds is not None and ((cfg.val_every and run.step % cfg.val_every == 0) or last)
+    saving = run.step % cfg.checkpoint_every == 0 or last
+    if not (logged or validating or saving):
+        return None
+    loss = losses.read()                       # a NaN stops the run before it is validated or written
+    if bar:
+        bar.set_postfix(loss=f"{loss:.4f}")
+    if run.log and logged:
+        run.log.write(step=run.step, epoch=epoch, kind="train", loss=loss, seconds=time.perf_counter() - t0)
+    val = None
+    if validating:
+        val = run.validate(val_ds)
+        if run.log:
+            run.log.write(step=run.step, epoch=epoch, kind="val", seconds=time.perf_counter() - t0, **val)
+    if saving:
+        run.save()
+    return val
 
 
 def _say_batch(cfg: TrainConfig, train_ds, dist) -> None:

@@ -96,6 +96,7 @@ class PixelDenoiser(Denoiser):
     Subclasses implement ``filter(irradiance (B3HW), net_in (B10HW)) -> irradiance (B3HW)``."""
 
     inputs = InputSpec("pixels", frames=1, default_spp=1)
+    realtime = True
 
     def __init__(self, temporal_frames: int = 1, temporal_alpha: float = 0.2, **config):
         if not isinstance(temporal_frames, int) or temporal_frames < 1:

@@ -168,6 +168,21 @@ def soft_bound(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return y * torch.rsqrt(s.reciprocal().square() + y.square().mean(dim=dim, keepdim=True))
 
 
+def replicate_pad(x: torch.Tensor, pad) -> torch.Tensor:
+    """``F.pad(x, pad, mode="replicate")`` (``pad``: left, right, top, bottom). Compiled, it is a gather at
+    clamped indices, the same values: Inductor's compiled backward of ``replication_pad2d`` fails its own
+    stride check on the CPU when a gradient is channels-last (torch 2.13: ``assert_size_stride ...
+    replication_pad2d_backward``, "expected stride 1==256"), which stopped ``train --compile`` of the
+    temporal family; the gather's backward is a scatter-add with no such check."""
+    if not torch.compiler.is_compiling():
+        return F.pad(x, pad, mode="replicate")
+    left, right, top, bottom = pad
+    h, w = x.shape[-2:]
+    rows = torch.arange(-top, h + bottom, device=x.device).clamp(0, h - 1)
+    cols = torch.arange(-left, w + right, device=x.device).clamp(0, w - 1)
+    return x.index_select(-2, rows).index_select(-1, cols)
+
+
 class UNet(nn.Module):
     """U-net of figure 3: 3x3 convolutions, leaky ReLU 0.01, 2x2 max-pooling, bilinear upsampling,
     skip connections concatenated with the upsampled features, a final 3x3 convolution to ``cout``.
@@ -229,7 +244,7 @@ class UNet(nn.Module):
         m = 2 ** self.depth
         ph, pw = (-h) % m, (-w) % m
         if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+            x = replicate_pad(x, (0, pw, 0, ph))
         x = x.contiguous(memory_format=torch.channels_last)   # oneDNN's native layout: 1.3x on CPU
         skips = [x]
         for b in self.enc:
@@ -351,13 +366,15 @@ class Denoiser(nn.Module):
     stack needs no per-model code: ``inputs`` (an :class:`~training.inputs.InputSpec`; override
     :meth:`input_spec` when it depends on settings), ``train_defaults`` (TrainConfig settings such as
     ``loss`` and ``lr`` that differ from the layer family's) and ``tiny`` (settings for test-sized
-    models, used by the contract tests).
+    models, used by the contract tests); ``realtime`` marks the real-time denoisers, whose compiled form
+    on a GPU replays CUDA graphs (:func:`training.accel.compile_options`).
     """
 
     name = "?"
     inputs = InputSpec("samples", frames=1, default_spp=8)
     train_defaults: dict = {}
     tiny: dict = {}
+    realtime = False        # a real-time denoiser: compiled with CUDA graphs on a GPU (training.accel)
 
     def __init__(self, **config):
         super().__init__()

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from ..errors import ConfigError
 from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
-                     exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat, xavier_init)
+                     exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, replicate_pad, splat, xavier_init)
 from .layer import MAX_LAYERS, LayerDenoiser
 from .registry import register
 
@@ -93,7 +93,7 @@ class LayerOptimizedDenoiser(Denoiser):
             d = F.avg_pool2d(data, 2 ** i) if i else data
             hi, wi = d.shape[-2:]
             g = guides[i]
-            g = F.pad(g, (0, wi - g.shape[-1], 0, hi - g.shape[-2]), mode="replicate")
+            g = replicate_pad(g, (0, wi - g.shape[-1], 0, hi - g.shape[-2]))
             d = d.view(b, nl, 5 + self.embed, hi, wi)
             out = self.kernel_gens[i](d[:, :, 5:], g)                    # B L k2+1 hi wi
             lambdas.append(out[:, 0, -1:])                               # first layer's extra channel

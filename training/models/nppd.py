@@ -49,7 +49,7 @@ from stores.contract import FEATURE_GROUPS
 from ..errors import ConfigError
 from ..inputs import InputSpec, mask_features
 from ._pixel import warp
-from .common import Denoiser, UNet, clean_radiance, conv_fmas, splat, xavier_init
+from .common import Denoiser, UNet, clean_radiance, conv_fmas, replicate_pad, splat, xavier_init
 from .registry import register
 
 KERNEL = 5
@@ -163,9 +163,9 @@ class NPPD(Denoiser):
         ph, pw = (-h) % m, (-w) % m
         motion = frame["motion"]
         if ph or pw:       # the pyramid halves the frame K - 1 times: pad to a multiple of 2^(K-1)
-            pad = lambda t: F.pad(t.flatten(0, 1), (0, pw, 0, ph), mode="replicate").unflatten(0, t.shape[:2])  # noqa: E731
+            pad = lambda t: replicate_pad(t.flatten(0, 1), (0, pw, 0, ph)).unflatten(0, t.shape[:2])  # noqa: E731
             radiance, features = pad(radiance), pad(features)
-            motion = F.pad(motion, (0, pw, 0, ph), mode="replicate")
+            motion = replicate_pad(motion, (0, pw, 0, ph))
         colour = radiance.mean(dim=1)
         feat = self.encode(radiance, self.masked(features))
         if state is None:
@@ -174,7 +174,7 @@ class NPPD(Denoiser):
         else:
             prev = state["history"]
             if ph or pw:
-                prev = F.pad(prev, (0, pw, 0, ph), mode="replicate")
+                prev = replicate_pad(prev, (0, pw, 0, ph))
             prev = warp(prev, motion)[0]
         prev_colour, prev_out, prev_feat = prev[:, :3], prev[:, 3:6], prev[:, 6:]
         x = torch.cat((normalise(torch.cat((prev_colour, colour), dim=1)), prev_feat, feat), dim=1)

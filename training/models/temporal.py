@@ -48,7 +48,7 @@ from ..errors import ConfigError
 from ..inputs import InputSpec
 from ..logspace import squeeze, unsqueeze
 from ._pixel import clean_albedo, warp
-from .common import Denoiser, UNet, xavier_init
+from .common import Denoiser, UNet, replicate_pad, xavier_init
 from .registry import register
 
 KERNEL = 5
@@ -82,7 +82,7 @@ def apply_kernel(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     x (B C H W), logits (B 25 H W) in ``unfold`` order (row-major offsets)."""
     b, c, h, w = x.shape
     k = torch.softmax(logits, dim=1)
-    cols = F.unfold(F.pad(x, (KERNEL // 2,) * 4, mode="replicate"), KERNEL).view(b, c, K2, h, w)
+    cols = F.unfold(replicate_pad(x, (KERNEL // 2,) * 4), KERNEL).view(b, c, K2, h, w)
     return (cols * k.unsqueeze(1)).sum(dim=2)
 
 
@@ -112,6 +112,7 @@ class TemporalDenoiser(Denoiser):
                 sampler_decoder=((4,), (4,), (4,)), denoiser_encoder=((6,), (6,), (6,)),
                 denoiser_bottleneck=(6,), denoiser_decoder=((6,), (6,), (6,)), frames=3)
     stepwise = True                       # evaluate frame by frame, carrying the state (``step``)
+    realtime = True
     size_default = "large"
     adaptive_default = True
     recurrent_default = True
@@ -173,7 +174,7 @@ class TemporalDenoiser(Denoiser):
         x = torch.cat((rad, cnt, history, alb, nrm, d, mot), dim=1)
         if ph or pw:
             pad = (0, pw, 0, ph)
-            x, rad, history = (F.pad(t, pad, mode="replicate") for t in (x, rad, history))
+            x, rad, history = (replicate_pad(t, pad) for t in (x, rad, history))
         out0, dec = self.denoiser(x)
         out1, out2 = self.head1(dec[1]), self.head2(dec[2])
         i0 = rad
@@ -199,24 +200,26 @@ class TemporalDenoiser(Denoiser):
     def step(self, frame: dict, state: dict | None):
         """One frame: ``frame`` holds ``layers (B L 3 H W)``, ``albedo``, ``normal``, ``depth``,
         ``motion`` and optionally ``spp`` (B,); ``state`` the previous step's (None: a clip's first
-        frame). Returns ``(radiance (B 3 H W) linear, new state, {"counts": (B 1 H W) int64})``."""
+        frame). Returns ``(radiance (B 3 H W) linear, new state, {"counts": (B 1 H W) int64})``. Nothing is
+        read back from the device: the layers are taken to hold 1, 2, 4 ... samples and the budget to lie
+        within them, as the dataset that reads them checks (:class:`training.datasets.LayerFrames`)."""
         layers = adaptive.clean_layers(frame["layers"])
-        cap = adaptive.check_layer_spp(frame["layer_spp"]) if "layer_spp" in frame else 2 ** layers.shape[1] - 1
+        cap = 2 ** layers.shape[1] - 1
         n = self.budget(frame)
         guides = self.guides(frame)
         if state is None:                                        # first frame: uniform n spp
             counts = adaptive.uniform_counts(layers[:, 0], n)
-            rad = squeeze(adaptive.compose(layers, counts))
+            rad = squeeze(adaptive.compose(layers, counts, checked=False))
             history = rad if self.recurrent else torch.zeros_like(rad)
         else:
             history = warp(state["history"], frame["motion"])[0] if self.recurrent else torch.zeros_like(
                 state["history"])
             if self.adaptive:
                 cont, counts = adaptive.sample_counts(self.sample_map(history, guides), n, cap)
-                rad = squeeze(adaptive.compose(layers, counts, cont))
+                rad = squeeze(adaptive.compose(layers, counts, cont, checked=False))
             else:
                 counts = adaptive.uniform_counts(layers[:, 0], n)
-                rad = squeeze(adaptive.compose(layers, counts))
+                rad = squeeze(adaptive.compose(layers, counts, checked=False))
         out = self.denoise(rad, counts, history, guides)
         return unsqueeze(out), {"history": out}, {"counts": counts}
 
@@ -243,7 +246,7 @@ class TemporalDenoiser(Denoiser):
             return self.step(f0, None)[0].unsqueeze(1)
         n = self.budget(f0)
         noisy = squeeze(adaptive.compose(adaptive.clean_layers(f0["layers"]),
-                                         adaptive.uniform_counts(f0["layers"][:, 0], n)))
+                                         adaptive.uniform_counts(f0["layers"][:, 0], n), checked=False))
         outs = [unsqueeze(noisy)]
         state = {"history": noisy}
         for t in range(1, layers.shape[1]):

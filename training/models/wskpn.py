@@ -56,14 +56,17 @@ class RepVGGBlock(nn.Module):
 
     def fuse(self) -> nn.Sequential:
         """The single 5x5 convolution (+ ReLU) equal to this block: the 1x1 and 3x3 kernels padded to
-        5x5 and the identity as a centre tap, all summed (Ding et al. 2021)."""
+        5x5 and the identity as a centre tap, all summed (Ding et al. 2021). It is made on the device
+        and in the dtype of this block's weights (a model moved to CUDA, float64 or ``meta`` fuses
+        there)."""
         w = self.conv5.weight.detach().clone()
         w += F.pad(self.conv3.weight.detach(), (1, 1, 1, 1))
         w += F.pad(self.conv1.weight.detach(), (2, 2, 2, 2))
         if self.identity:
-            w[torch.arange(self.cout), torch.arange(self.cin), 2, 2] += 1.0
+            i = torch.arange(self.cout, device=w.device)
+            w[i, i, 2, 2] += 1.0
         b = (self.conv1.bias + self.conv3.bias + self.conv5.bias).detach().clone()
-        conv = nn.Conv2d(self.cin, self.cout, 5, padding=2)
+        conv = nn.Conv2d(self.cin, self.cout, 5, padding=2, device=w.device, dtype=w.dtype)
         with torch.no_grad():
             conv.weight.copy_(w)
             conv.bias.copy_(b)
