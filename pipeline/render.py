@@ -15,9 +15,10 @@ roulette, box pixel filter, built by ``scene_gen.to_mitsuba``):
   radiance as ``integrator.sample``, times the ray weight), which also hands back the primary hit
   for the features. A pixel's mean is therefore the same estimator as ``mi.render``'s. Each
   wavefront is one drjit kernel that writes its samples, after the NaN/Inf rule, straight into one
-  buffer, plus one small kernel for the guides, and one read-back. Features (``stores.contract.FEATURE_NAMES``): world shading normal, distance
-  along the ray, diffuse albedo (``eval_diffuse_reflectance``, clipped to [0, 1]), specular colour
-  and roughness from the hit object's ``MaterialSpec`` (a table keyed by shape), motion, CoC,
+  buffer, plus one small kernel for the guides, and one read-back. Features
+  (``stores.contract.FEATURE_NAMES``): world shading normal, distance along the ray, diffuse
+  albedo (``eval_diffuse_reflectance``, clipped to [0, 1]), specular colour and roughness from the
+  hit object's ``MaterialSpec`` (a table keyed by shape), motion, CoC,
   lens position on the unit disk (Mitsuba camera axes: +x left, +y up), time. All 0 on a miss,
   except motion (the environment's motion under the camera change) and CoC (its limit at infinite
   depth, ``A W / (2 F tan(fov/2))``).
