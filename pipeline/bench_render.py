@@ -27,6 +27,9 @@ the dataset, in the same run), since the machine may be shared:
   first indoor and outdoor scene of ``configs/default.yaml`` at 256x256 (one thread a worker, as many
   side by side as this machine has workers; the references' early stop predicted), their frame times
   weighted by the mix's frames of each kind, for one worker and for this machine's workers;
+- **launches**: drjit kernel launches and device-to-host reads of the input loop against ``mi.render``
+  of the same samples (kernel history, deterministic on LLVM; :func:`launch_counts`), one 64x64 frame
+  at 8 spp of a scene with moving objects, static (shutter closed) and moving (time slices);
 - peak resident memory of a child process that renders one whole 256x256x8 frame (inputs, layers,
   a small reference) with ``render_frame`` (target < 4 GiB).
 
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -98,6 +102,108 @@ def _env() -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     return env
+
+
+LAUNCH_KINDS = ("JIT", "BlockReduce", "Reduce", "CallReduce")     # kernels that compute (memsets, copies apart)
+
+
+def launches(dr, fn) -> dict:
+    """drjit's kernel history (LLVM: deterministic) over ``fn()``: ``kernels`` (JIT kernels and block
+    reductions, the launches that compute), ``jit`` (JIT kernels alone), ``other`` (memsets, copies,
+    uploads and the like) and ``by_type``."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        fn()
+        hist = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    by = {}
+    for k in hist:
+        t = str(k["type"]).rsplit(".", 1)[-1]
+        by[t] = by.get(t, 0) + 1
+    kernels = sum(by.get(t, 0) for t in LAUNCH_KINDS)
+    return {"kernels": kernels, "jit": by.get("JIT", 0), "other": sum(by.values()) - kernels, "by_type": by}
+
+
+def kernel_counts(*, seed: int = 0, kind: str = "indoor", res: int = 64, spp: int = 8,
+                  scene_gen: dict | None = None) -> dict:
+    """:func:`launch_counts` of one generated scene with moving objects (``p_motion`` 1) at ``res``."""
+    from pipeline import render as R
+    from scene_gen.config import SceneGenConfig
+    from scene_gen.sampling import sample_scene
+    gen = SceneGenConfig.from_dict({**(scene_gen or {}), "p_motion": 1.0})
+    spec = sample_scene(seed, kind, num_frames=1, res=res, config=gen)
+    return launch_counts(spec, R.RenderConfig(res=(res, res), spp=spp, ref_spp=0, layer_levels=0))
+
+
+def launch_counts(spec, cfg) -> dict:
+    """Launches and device-to-host reads of the input loop (``pipeline.render.inputs_part``) against
+    ``mi.render`` of the same samples, frame 0 of ``spec``: ``static`` (the scene with its shutter closed)
+    and, where objects move, ``moving`` (``mi.render`` at the same slice times as
+    ``pipeline.render.render_sliced``; ``set_time``: what moving the objects costs a slice, and each
+    side's kernels without it). Reads are counted at the input loop's one read function
+    (``pipeline.render._read``) and at ``mi.render``'s image (one a call). One scene alive at a time."""
+    import dataclasses
+    from pipeline import render as R
+    out = {}
+    for name, sp in (("static", dataclasses.replace(spec, shutter=0.0)), ("moving", spec)):
+        if name == "moving" and not spec.has_motion:
+            continue
+        fs = R.FrameScene(sp, 0, cfg)
+        out[name] = _frame_counts(R, fs)
+        del fs
+        _collect()
+    return out
+
+
+def _frame_counts(R, fs) -> dict:
+    dr, spp = fs.dr, fs.cfg.spp
+    reads, read = [0], R._read
+
+    def counted(buf):
+        reads[0] += 1
+        return read(buf)
+
+    R.inputs_part(fs)                           # compile (or load) the kernels first; counts are the same
+    R._read = counted
+    try:
+        ours = launches(dr, lambda: R.inputs_part(fs))
+    finally:
+        R._read = read
+    ours.update(reads=reads[0], wavefronts=len(list(R._input_wavefronts(fs))))
+    theirs = launches(dr, lambda: R.render_sliced(fs, spp, R.STREAM_ORACLE, 0))
+    g = math.gcd(fs.cfg.time_slices, spp) if fs.has_motion else 1
+    theirs["reads"] = g
+    out = {"input_loop": ours, "mi_render": theirs}
+    if fs.has_motion:                           # each moves the objects once a slice; inputs_part also back to rest
+        fs.set_time(0.0)
+        st = out["set_time"] = launches(dr, lambda: fs.set_time(0.5))
+        ours["own_kernels"] = ours["kernels"] - (g + 1) * st["kernels"]
+        theirs["own_kernels"] = theirs["kernels"] - g * st["kernels"]
+        out["moving_objects"] = sum(o.moving for o in fs.spec.objects)
+    return out
+
+
+def _launches_section(*, seed: int, kind: str, res: int, scene_gen: dict) -> dict:
+    counts = kernel_counts(seed=seed, kind=kind, res=res, spp=8, scene_gen=scene_gen)
+    print(f"  launches of one {res}x{res} frame at 8 spp (drjit kernel history; {kind} seed {seed} with moving "
+          "objects):", flush=True)
+    _print_counts(counts)
+    return counts
+
+
+def _print_counts(c: dict) -> None:
+    for name, d in c.items():
+        a, b = d["input_loop"], d["mi_render"]
+        print(f"  {name:7s} input loop {a['kernels']} kernels ({a['jit']} JIT) + {a['other']} other launches, "
+              f"{a['reads']} read-back(s), {a['wavefronts']} wavefront(s); mi.render of the same samples "
+              f"{b['kernels']} kernels ({b['jit']} JIT) + {b['other']} other, {b['reads']} read-back(s)", flush=True)
+        if "set_time" in d:
+            st = d["set_time"]
+            print(f"          set_time (moving {d['moving_objects']} object(s)) costs {st['kernels']} kernels "
+                  f"({st['jit']} JIT) + {st['other']} other a slice; without it: input loop {a['own_kernels']} "
+                  f"kernels, mi.render {b['own_kernels']}", flush=True)
 
 
 def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: str | None = None) -> dict:
@@ -184,10 +290,11 @@ def frames_per_hour(*, res: int, workers: int, scene_gen: dict | None = None) ->
 def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, ref_passes: int = 4,
         ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256,
         e2e_res: int = 64, e2e_ref_spp: int = 1024, e2e_workers: int | None = None, fph_res: int = 256,
-        scene_gen: dict | None = None) -> dict:
+        counts_res: int = 64, scene_gen: dict | None = None) -> dict:
     """Print and return the renderer's figures (dict of floats). ``memory_res``: the edge of the frame
     whose peak memory is measured in a child process (256 for the target; the tests use a tiny one);
     ``e2e_*``: the end-to-end dataset run; ``fph_res``: the frames-per-hour resolution (0: skip);
+    ``counts_res``: the frame of :func:`kernel_counts` (8 spp; 0: skip);
     ``scene_gen``: overrides of the default config's scene generator (the tiny run's few objects)."""
     from pipeline import render as R
     from pipeline.config import load_config
@@ -281,6 +388,8 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
           f"{out['cornell_msamples_per_s']:.2f}: ratio {out['generated_vs_cornell']:.2f} "
           f"(content, not a target; before merging {out['generated_before_merge_vs_cornell']:.2f})",
           flush=True)
+    if counts_res:
+        out["launches"] = _launches_section(seed=seed, kind=kind, res=counts_res, scene_gen=scene_gen)
     if e2e_res:
         e2e = end_to_end(res=e2e_res, ref_spp=e2e_ref_spp, workers=workers, scene_gen=scene_gen)
         # the Cornell box at the dataset's size, with as many threads as the dataset's workers

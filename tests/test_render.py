@@ -613,6 +613,114 @@ def test_points_inside_the_near_plane_have_no_projection():
 
 
 # -------------------------------------------------------------------------------------------------
+# the input loop on the device: its own path tracer, launches, read-backs, the NaN rule and the guides
+def mixed_scene():
+    """ball_scene plus glass, a mirror, a rough metal and a small area light: delta, glossy and emitting
+    surfaces, so every branch of the path tracer runs."""
+    extra = (ObjectSpec("glass", MeshSpec("sphere"), MaterialSpec("dielectric"),
+                        transform=Transform(translate=(-1.3, -0.5, 0.6), scale=(0.45, 0.45, 0.45))),
+             ObjectSpec("mirror", MeshSpec("box"), MaterialSpec("conductor"),
+                        transform=Transform(translate=(1.4, -0.6, -0.4), scale=(0.4, 0.4, 0.4))),
+             ObjectSpec("metal", MeshSpec("box"), MaterialSpec("roughconductor", roughness=0.2),
+                        transform=Transform(translate=(0.4, -0.8, 1.3), scale=(0.2, 0.2, 0.2))),
+             ObjectSpec("lamp", MeshSpec("sphere"), MaterialSpec("diffuse", base_color=(0.0, 0.0, 0.0)),
+                        transform=Transform(translate=(0.6, 0.9, 0.9), scale=(0.15, 0.15, 0.15)),
+                        emitter_radiance=(40.0, 30.0, 20.0)))
+    return ball_scene(extra=extra)
+
+
+def test_path_tracer_is_mitsubas_path_integrator(mi):
+    """pipeline.primary_path gives the per-sample radiance of the scene's own path integrator from the
+    same sampler state (bit for bit on LLVM), and its first-hit record is scene.ray_intersect's hit."""
+    import drjit as dr
+
+    from pipeline import primary_path
+    from pipeline import render as R
+    fs = R.FrameScene(mixed_scene(), 0, cfg(spp=4, ref_spp=0, layer_levels=0))
+    H, s_per = RES[1], 4
+
+    def rays():
+        return R._camera_rays(fs, R._Reads(fs, R._wave_params(fs, 0, 0.0), H * RES[0] * s_per), 4242, H, s_per)
+
+    sampler, ray, _w, _f, _a = rays()
+    si = fs.scene.ray_intersect(ray, mi.RayFlags.All, True)
+    alb = si.bsdf(ray).eval_diffuse_reflectance(si, si.is_valid())
+    want, want_valid, _ = fs.integrator.sample(fs.scene, sampler, ray, None, True)
+    dr.eval(want, want_valid, si, alb)
+    sampler, ray, _w, _f, _a = rays()
+    got, got_valid, prim = primary_path.trace(mi, fs.scene, sampler, ray, *fs.integrator_depths)
+    dr.eval(got, got_valid, prim)
+    a, b = np.asarray(want), np.asarray(got)
+    assert b.max() > 1.0 and np.isfinite(b).all()                      # the lamp is seen, directly or not
+    if mi.variant().startswith("llvm"):
+        assert a.tobytes() == b.tobytes() and np.array_equal(np.asarray(want_valid), np.asarray(got_valid))
+    else:                                                             # other backends: the same up to rounding
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6)
+    hit = np.asarray(si.is_valid())
+    assert np.array_equal(np.asarray(prim["hit"]), hit) and 0.2 < hit.mean() < 1.0
+    assert np.array_equal(np.asarray(prim["shape"]), np.asarray(dr.reinterpret_array(mi.UInt32, si.shape)))
+    for k, v in (("p", si.p), ("n", si.sh_frame.n), ("t", si.t), ("albedo", alb)):
+        assert np.array_equal(np.asarray(prim[k])[..., hit], np.asarray(v)[..., hit]), k
+
+
+def test_input_loop_launches_and_reads(mi):
+    """drjit's kernel history (LLVM): a still's inputs take one kernel a wavefront plus one for the
+    guides, at most two more than mi.render of the same samples, and one read-back a wavefront; a
+    moving frame adds per time slice only what moving the objects costs (set_time)."""
+    from pipeline.bench_render import launch_counts
+    c = launch_counts(ball_scene(motion=True), cfg(spp=8, ref_spp=0, layer_levels=0, time_slices=2))
+    ours, theirs = c["static"]["input_loop"], c["static"]["mi_render"]
+    assert ours["kernels"] <= theirs["kernels"] + 2, c["static"]
+    assert ours["jit"] == 2 and ours["reads"] == ours["wavefronts"] == 1, ours
+    ours = c["moving"]["input_loop"]
+    assert ours["reads"] == ours["wavefronts"] == 2 and ours["own_kernels"] == 2 + 1, c["moving"]
+    # a still split into row chunks: a kernel and a read a chunk, a guide kernel a chunk
+    chunked = launch_counts(ball_scene(), cfg(spp=8, ref_spp=0, layer_levels=0, max_wavefront=1024))
+    ours = chunked["static"]["input_loop"]
+    assert ours["wavefronts"] == 4 and ours["reads"] == 4 and ours["jit"] == 2 * 4, ours
+
+
+def test_device_nan_rule_is_the_host_rule(mi):
+    """The input kernel's NaN/Inf rule gives what sanitize_samples gives, bit for bit, sign of zero included."""
+    from types import SimpleNamespace
+
+    import drjit as dr
+
+    from pipeline.render import _sanitize_columns, sanitize_samples
+    rng = np.random.default_rng(3)
+    L = (rng.standard_normal((64, 3)) * 10).astype(np.float32)
+    F = rng.standard_normal((64, 17)).astype(np.float32)
+    L[1, 0], L[2, 1], L[3, 2], L[4] = np.nan, np.inf, -np.inf, (np.inf, np.nan, 2e9)
+    L[5, 0], L[6, 1], F[7, 3], F[8, 0], F[9, 16], F[10, 5] = 3e9, -0.0, np.nan, np.inf, -np.inf, -0.0
+    want_L, want_F, count = sanitize_samples(L.copy(), F.copy(), 1e8)
+    fs = SimpleNamespace(dr=dr, cfg=SimpleNamespace(max_value=1e8))
+    Lc, Fc = _sanitize_columns(fs, [mi.Float(L[:, c]) for c in range(3)], [mi.Float(F[:, c]) for c in range(17)])
+    got_L = np.stack([np.asarray(v) for v in Lc], axis=1)
+    got_F = np.stack([np.asarray(v) for v in Fc], axis=1)
+    assert count == 7 and got_L.tobytes() == want_L.tobytes() and got_F.tobytes() == want_F.tobytes()
+    assert want_L[5, 0] == np.float32(3e9) and want_L[2, 1] == np.float32(1e8) and np.all(want_L[4] == 0)
+
+
+def test_guides_are_sample_means_across_slices_and_chunks(mi):
+    """The guides computed on the device are the per-pixel means of the stored samples (to an ulp or two)
+    across time slices and row chunks, and the samples are those of the host-side path (sample_hook)."""
+    from pipeline import render as R
+    c = cfg(res=(48, 32), spp=8, ref_spp=0, layer_levels=0, time_slices=4, max_wavefront=1024)
+    fs = R.FrameScene(ball_scene(motion=True, defocus=True), 0, c)
+    dev = R.input_samples(fs)
+    host = R.input_samples(fs, sample_hook=lambda L, F: None)
+    assert len(list(R._input_wavefronts(fs))) == 4 * 4 and dev["nonfinite"] == host["nonfinite"] == 0
+    for k in ("radiance", "features"):
+        assert dev[k].tobytes() == host[k].tobytes(), k
+    f = dev["features"]
+    for g in R.GUIDE_GROUPS:
+        want = f[..., G[g]].astype(np.float64).mean(axis=2)
+        np.testing.assert_allclose(dev[f"guides_{g}"], want, rtol=3e-7, atol=1e-7, err_msg=g)
+        np.testing.assert_allclose(dev[f"guides_{g}"], host[f"guides_{g}"], rtol=3e-7, atol=1e-7, err_msg=g)
+    assert np.abs(dev["guides_motion"]).max() > 0.1
+
+
+# -------------------------------------------------------------------------------------------------
 # launches within drjit's 2**32 samples
 def test_launch_plan_splits_only_what_exceeds_2_to_the_32_samples():
     from pipeline.render import MAX_LAUNCH_SAMPLES, launch_plan, launch_seed
