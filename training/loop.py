@@ -318,7 +318,8 @@ def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: in
 
     The model's input declaration (``model.input_spec()``) chooses the dataset and the target.
     ``stop_after``: return after this many steps of THIS call (to test and demonstrate resuming).
-    ``seconds``: return once this call has trained that long (``train --seconds``; the step under way
+    ``seconds``: return once this call has trained that long, counted from its first step's start
+    (``train --seconds``; the step under way
     finishes, the checkpoint is written; the same command resumes). Both leave ``cfg.steps`` and the
     run's identity alone.
     Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint", "feed"}`` (checkpoint None if no
@@ -435,7 +436,8 @@ def _datasets(cfg: TrainConfig, spec, store):
 
 def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
           seconds: float | None = None) -> tuple[float, dict, "_Feed | None"]:
-    """``todo`` steps from ``run.step`` (fewer once ``seconds`` have passed since ``t0``): log, validate
+    """``todo`` steps from ``run.step`` (fewer once ``seconds`` have passed since the loader was started,
+    just before the first step, so the loader's own timing and the set-up do not count): log, validate
     and checkpoint on their schedules; returns the last training loss, validation figures and the
     loader's record. The losses stay on the device between reads (:class:`LossReader`: every
     ``log_every`` steps, and before a validation or a checkpoint), so no step waits for the last."""
@@ -452,7 +454,7 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
-        t_step = time.perf_counter()
+        t_step = t_run = time.perf_counter()
         for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
                                   dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
             epoch = run.step // per_epoch
@@ -467,7 +469,7 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
             done = _after_step(run, losses, val_ds, epoch, bar, t0)
             val = val if done is None else done
             if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
-                    and _stop_on_time(dist, time.perf_counter() - t0 >= seconds):
+                    and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
                 break
         if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
             losses.read()
