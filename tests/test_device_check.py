@@ -83,9 +83,10 @@ def test_the_slim_mitsuba_wheel_keeps_what_the_scenes_load_and_fits(slim):
     listed = {ln.split(",")[0] for ln in zipfile.ZipFile(wheel).read(record).decode().splitlines() if ln}
     assert listed == set(names)
     assert wheel.stat().st_size < 0.65 * src.stat().st_size
-    # with drjit's wheel (5 MB) and the checkout, what travels stays within 64 MiB
+    # with drjit's and trimesh's wheels (5.5 MB), the pipeline's (16 MB: dask, distributed, zarr, numcodecs
+    # 9 MB, ...) and the checkout, what travels stays within 64 MiB
     tree = sum(v for k, v in dc.carried_files().items() if not k.startswith("build/"))
-    assert wheel.stat().st_size + 6 * 2 ** 20 + tree < dc.CARRY_LIMIT
+    assert wheel.stat().st_size + 6 * 2 ** 20 + 16 * 2 ** 20 + tree < dc.CARRY_LIMIT
 
 
 def test_the_slim_wheel_renders_every_scene_of_the_check(slim, tmp_path):
