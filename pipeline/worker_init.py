@@ -4,9 +4,10 @@ plugin's setup, in the worker's main thread), so workers need no flag; ``dask wo
 pipeline.worker_init`` does the same and still works (LocalClusters use both).
 
 Importing it, in the worker process's main thread:
-- imports pymeshlab there: pymeshlab (Qt plugins) imported first from a non-main thread corrupts the
-  heap (glibc's ``malloc_consolidate(): unaligned fastbin chunk detected``), and Dask runs tasks in
-  executor threads;
+- imports pymeshlab there, where it is installed: pymeshlab (Qt plugins) imported first from a
+  non-main thread corrupts the heap (glibc's ``malloc_consolidate(): unaligned fastbin chunk
+  detected``), and Dask runs tasks in executor threads (without it, ``scene_gen.pymeshlab: false``
+  scenes need none);
 - points drjit at a libLLVM >= 16 and keeps BLAS/OpenMP pools at one thread per worker thread;
 - in the worker processes of a ``LocalCluster`` that ``pipeline.cluster`` starts (``$DENOISE_LOCAL_WORKER``
   set through the nanny's environment), blocks SIGINT (:func:`ignore_interrupts`): a terminal's
@@ -83,7 +84,10 @@ prepare_environment()
 if os.environ.get(LOCAL_WORKER_ENV) == "1":
     ignore_interrupts()
     quiet_task_failures()
-import pymeshlab  # noqa: E402,F401  (first import in this, the main, thread; see scene_gen.meshes._pymeshlab)
+try:
+    import pymeshlab  # noqa: E402,F401  (first import in this, the main, thread; see scene_gen.meshes._pymeshlab)
+except ImportError:   # a machine without it (scene_gen.pymeshlab: false); a mesh that needs it says so
+    pass
 
 
 def dask_setup(worker) -> None:  # noqa: D401 - Dask's preload hook

@@ -58,6 +58,12 @@ class SharedSettings:
     merges static ones into K meshes (1.1x the samples per second, each scene timed alone; make bench); 0: every object draws
     its own. The layout is the same for every K (the palette has its own random stream).
 
+    ``pymeshlab`` false: scenes made without pymeshlab (a machine that cannot have it, such as a GPU
+    machine that only receives carried wheels): the objects whose meshes pymeshlab makes (the ``blob``
+    and ``boolean`` kinds, :data:`scene_gen.meshes.PYMESHLAB_KINDS`) are left out after the layout
+    (every other object, light and camera draw is the same as with it) and no mesh is decimated (no
+    triangle budgets: every procedural mesh at its full resolution).
+
     These are the settings every scene family shares; :class:`SceneGenConfig` adds the families' own.
     """
     _families: ClassVar[dict] = {}        # the families' settings (name -> Setting) of SceneGenConfig
@@ -76,6 +82,7 @@ class SharedSettings:
     max_depth: int = 5                    # path bounces
     shutter: float = 0.5                  # exposure as a fraction of the frame interval
     material_palette: int = 0             # > 0: content objects draw from this many materials per scene
+    pymeshlab: bool = True                # false: no blob or boolean meshes, no decimation (see above)
 
     def __post_init__(self):
         for n, s in self._families.items():
@@ -96,6 +103,7 @@ class SharedSettings:
              "a number in (0, 1e6]", self.tris_per_px, ConfigError)
         _int_in("max_depth", self.max_depth, 1, 1000)
         _int_in("material_palette", self.material_palette, 0, 10000)
+        need(isinstance(self.pymeshlab, bool), "scene_gen.pymeshlab", "true or false", self.pymeshlab, ConfigError)
         if self.model_folder is not None:
             need(isinstance(self.model_folder, (str, Path)) and str(self.model_folder) != "", "scene_gen.model_folder",
                  "a folder path or null", self.model_folder, ConfigError)
@@ -105,13 +113,16 @@ class SharedSettings:
             object.__setattr__(self, "model_folder", str(p))
 
     def to_dict(self) -> dict:
-        """Plain data; ``material_palette`` only when set, so stores made before it existed still resume."""
+        """Plain data; ``material_palette`` and ``pymeshlab`` only when not their defaults, so stores made
+        before they existed still resume."""
         d = asdict(self)
         for k, v in d.items():
             if isinstance(v, tuple):
                 d[k] = list(v)
         if d["material_palette"] == 0:
             del d["material_palette"]
+        if d["pymeshlab"]:
+            del d["pymeshlab"]
         return d
 
     @classmethod

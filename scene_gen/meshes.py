@@ -57,12 +57,26 @@ from scene_gen.profiles import random_outline, random_revolve_profile
 from scene_gen.spec import MESH_KINDS, MeshSpec
 
 
+PYMESHLAB_KINDS = ("blob", "boolean")     # the kinds pymeshlab makes (smoothing, remeshing); decimation is its too
+
+
+def needs_pymeshlab(spec: MeshSpec) -> bool:
+    """Whether building ``spec`` needs pymeshlab: a kind of :data:`PYMESHLAB_KINDS` in its tree, or a
+    triangle budget (decimation)."""
+    return spec.kind in PYMESHLAB_KINDS or bool(spec.triangle_budget) or any(needs_pymeshlab(c) for c in spec.children)
+
+
 def _pymeshlab():
     """pymeshlab, refusing a first import from a non-main thread: its Qt plugins then corrupt the heap
     (glibc's ``malloc_consolidate(): unaligned fastbin chunk detected``). Dask workers import it in
-    their main thread through the ``pipeline.worker_init`` preload."""
+    their main thread through the ``pipeline.worker_init`` preload. A machine without it gets a
+    MeshError that names the setting that leaves its meshes out."""
+    import importlib.util
     import sys
     import threading
+    if "pymeshlab" not in sys.modules and importlib.util.find_spec("pymeshlab") is None:
+        raise MeshError("pymeshlab is not installed here, and blob and boolean meshes and decimation need it: "
+                        "install it, or set scene_gen.pymeshlab: false to leave those meshes out")
     if "pymeshlab" not in sys.modules and threading.current_thread() is not threading.main_thread():
         raise MeshError("pymeshlab must first be imported in the main thread (it corrupts the heap otherwise): "
                         "`import pymeshlab` there first, or start Dask workers with "

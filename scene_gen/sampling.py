@@ -117,10 +117,10 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
     rpx = cams.max_projected_radius(frames, centers, radii, vel, (res, res))
     out = []
     for i, o in enumerate(objs):
-        if not keep[i]:
+        if not keep[i] or (not cfg.pymeshlab and meshes.needs_pymeshlab(o.mesh)):
             continue
         mesh = o.mesh
-        if o.budget:
+        if o.budget and cfg.pymeshlab:
             b = triangle_budget(float(min(rpx[i], 1e6)), tris_per_px=cfg.tris_per_px, min=cfg.min_triangles,
                                 max=cfg.max_triangles)
             mesh = MeshSpec(mesh.kind, mesh.params, mesh.seed, b, mesh.children)

@@ -369,3 +369,22 @@ def test_material_palette_zero_is_not_written():
     assert d["material_palette"] == 16 and SceneGenConfig.from_dict(d) == SceneGenConfig(material_palette=16)
     with pytest.raises(ConfigError, match="material_palette"):
         SceneGenConfig(material_palette=-1)
+
+
+@pytest.mark.parametrize("kind", ["indoor", "outdoor"])
+def test_without_pymeshlab_the_scene_leaves_out_its_meshes_and_nothing_else(kind):
+    """``pymeshlab: false`` (a machine without it): the blob and boolean objects are left out, no mesh
+    has a triangle budget, and every other object, light and camera is the one of the full scene."""
+    full = sample_scene(11, kind, res=64)
+    bare = sample_scene(11, kind, res=64, config=SceneGenConfig(pymeshlab=False))
+    assert not any(meshes.needs_pymeshlab(o.mesh) for o in bare.objects)
+    assert any(meshes.needs_pymeshlab(o.mesh) for o in full.objects)
+    kept = [o for o in full.objects if not ({o.mesh.kind} | {c.kind for c in o.mesh.children}) & {"blob", "boolean"}]
+    assert [o.name for o in bare.objects] == [o.name for o in kept]
+    assert [(o.material, o.transform, o.velocity, o.mesh.kind, o.mesh.params) for o in bare.objects] == \
+        [(o.material, o.transform, o.velocity, o.mesh.kind, o.mesh.params) for o in kept]
+    assert bare.cameras == full.cameras and bare.lights == full.lights
+    assert "pymeshlab" not in SceneGenConfig().to_dict()
+    assert SceneGenConfig.from_dict(SceneGenConfig(pymeshlab=False).to_dict()) == SceneGenConfig(pymeshlab=False)
+    with pytest.raises(ConfigError, match="scene_gen.pymeshlab"):
+        SceneGenConfig(pymeshlab="no")

@@ -93,6 +93,21 @@ def test_train_writes_checkpoint_and_log(store, tmp_path):
     assert (torch.tensor([1e-20]) * 1e-20).item() == 0.0     # training flushes denormals (2x faster steps)
 
 
+def test_seconds_stops_the_run_on_time_with_a_checkpoint_and_the_loaders_record(store, tmp_path):
+    """``train --seconds``: the run stops once that long has passed (far short of its steps), writes its
+    checkpoint, and returns the loader's wait as a share of the steps' time; the same run resumes."""
+    c = cfg(steps=100000, val_every=0, checkpoint_every=100000, log_every=5)
+    res = train(c, store, tmp_path / "run", progress=False, seconds=1.0)
+    assert 2 <= res["step"] < 100000 and res["seconds"] < 60
+    assert ckpt.load(tmp_path / "run" / "checkpoint.pt")["step"] == res["step"]
+    feed = res["feed"]
+    assert feed["steps"] == res["step"] - 1 and 0 <= feed["wait_share"] <= 1 and feed["steps_per_s"] > 0
+    again = train(c, store, tmp_path / "run", progress=False, seconds=0.5)
+    assert again["step"] > res["step"]
+    with pytest.raises(ConfigError, match="--seconds"):
+        train(c, store, tmp_path / "other", progress=False, seconds=0)
+
+
 def test_seed_reproduces_and_resume_is_exact(store, tmp_path):
     train(cfg(steps=4), store, tmp_path / "a", progress=False)
     train(cfg(steps=4), store, tmp_path / "b", progress=False)

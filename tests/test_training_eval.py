@@ -129,6 +129,36 @@ def test_bench_runs_small():
     assert all(v["ms_per_mp"] > 0 and v["ms_per_720p"] > 0 for v in res.values())
 
 
+def test_bench_times_the_training_step_that_train_runs(monkeypatch):
+    """``bench --train`` (and the GPU check, which calls it) times ``device_train_step`` with fused Adam,
+    never the step that reads its loss every time."""
+    from training import accel, bench, loop
+    seen = {"steps": 0, "adam": 0}
+    step, adam = loop.device_train_step, accel.adam
+
+    def counted_step(*a, **k):
+        seen["steps"] += 1
+        return step(*a, **k)
+
+    def counted_adam(*a, **k):
+        seen["adam"] += 1
+        return adam(*a, **k)
+    monkeypatch.setattr(loop, "device_train_step", counted_step)
+    monkeypatch.setattr(accel, "adam", counted_adam)
+    monkeypatch.setattr(loop, "train_step", lambda *a, **k: pytest.fail("train_step reads the loss every step"))
+    res = bench.train_run(models=["nbg"], seconds=0.05, crop=16, batch=2, precisions=("fp32", "bf16"),
+                          print_table=False)
+    row = res["nbg"]
+    assert row["fp32"]["steps_per_s"] > 0 and row["bf16"]["steps_per_s"] > 0 and row["bf16_speedup"] > 0
+    assert row["fp32"]["batch"] == 2 and row["fp32"]["crop"] == 16 and seen["adam"] == 2
+    assert seen["steps"] == 3 + row["fp32"]["steps"] + 3 + row["bf16"]["steps"]
+    import torch
+
+    from training.models import build
+    r = bench.time_model(build("nbg"), 1, (24, 40), 1, torch.device("cpu"), "fp32")
+    assert r["size"] == [24, 40] and abs(r["ms_per_frame"] - r["ms_per_mp"] * 24 * 40 / 1e6) < 1e-6
+
+
 def test_speed_vs_error_marks_what_it_cannot_place(tmp_path, monkeypatch):
     """A log relMSE axis over 4 decades from the best method: one far above is drawn on the top edge and
     named with its value, one that a log axis cannot hold is named, the input (no time) is a line."""

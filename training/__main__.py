@@ -34,7 +34,7 @@ def _train(a) -> int:
                       device=a.device, precision=a.precision, workers=a.workers,
                       skip_bad_frames=a.skip_bad_frames, log_every=a.log_every, compile=a.compile)
     out = a.out or f"data/runs/{a.model}"
-    res = train(cfg, a.store, out, progress=not a.no_progress)
+    res = train(cfg, a.store, out, progress=not a.no_progress, seconds=a.seconds)
     if res.get("rank", 0) != 0:          # under torchrun: rank 0 speaks for the run
         return 0
     if res["checkpoint"] is None:
@@ -62,9 +62,16 @@ def _report(a) -> int:
 
 
 def _bench(a) -> int:
-    from .bench import run
-    res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn,
-              device=a.device, precision=a.precision, compile=a.compile)
+    if a.train:
+        from .accel import pick_device, precision_for
+        from .bench import train_run
+        res = train_run(models=a.models or None, seconds=a.seconds, device=a.device,
+                        precisions=(precision_for(a.precision, pick_device(a.device)),), crop=a.crop, batch=a.batch,
+                        compile=a.compile)
+    else:
+        from .bench import run
+        res = run(size=a.size, spp=a.spp, repeats=a.repeats, models=a.models or None, oidn=not a.no_oidn,
+                  device=a.device, precision=a.precision, compile=a.compile)
     if a.json:
         from .jsonio import write
         write(a.json, res)
@@ -108,6 +115,9 @@ def main(argv=None) -> int:
     t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`")
     t.add_argument("--out", help="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
     t.add_argument("--steps", type=int, default=1000, help="optimiser steps (default 1000)")
+    t.add_argument("--seconds", type=float, default=None,
+                   help="stop after this many seconds of training (the checkpoint is written; the same command "
+                        "resumes toward --steps)")
     t.add_argument("--crop", type=int, default=None,
                    help="square training crop in pixels (default 128, the paper's, or the whole frame of a "
                         "store with smaller frames; a crop larger than the frames is refused)")
@@ -224,7 +234,13 @@ def main(argv=None) -> int:
                         "fp32)")
     b.add_argument("--compile", action="store_true",
                    help="also time every model through torch.compile, with its speed-up and its largest "
-                        "difference from the eager output")
+                        "difference from the eager output (with --train: the compiled training step)")
+    b.add_argument("--train", action="store_true",
+                   help="training steps a second instead (the step `train` runs, fused Adam), each family at its "
+                        "paper's crop and batch (default models: layer, temporal, nbg, wskpn)")
+    b.add_argument("--seconds", type=float, default=3.0, help="with --train: seconds of timed steps a model (default 3)")
+    b.add_argument("--crop", type=int, default=None, help="with --train: crop edge for every model (default: the paper's)")
+    b.add_argument("--batch", type=int, default=None, help="with --train: at most this batch (default: the paper's)")
     b.set_defaults(fn=_bench)
 
     d = sub.add_parser("denoise", help="apply a trained checkpoint to your own render (EXR images, a store "

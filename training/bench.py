@@ -13,6 +13,13 @@ synchronisation. ``compile``: each model is also timed through ``torch.compile``
 ``compile_speedup`` (the median ratio of the paired passes), ``compile_speedup_iqr``, ``compile_pairs``
 and ``compile_max_rel_diff`` (largest difference of the outputs over the eager output's
 largest value).
+
+``time_model`` and ``time_oidn`` also take a frame of ``(height, width)`` (``ms_per_frame``: the
+time of that frame, e.g. 1280x720). Training steps a second (``python -m training bench --train``,
+:func:`train_run`): :func:`time_training` times the step that ``python -m training train`` runs
+(``training.loop.device_train_step`` with ``training.accel.adam``, the loss read from the device every
+``log_every`` steps) on a random batch at each family's paper crop and batch (:data:`PAPER_TRAINING`).
+``scripts/device_check.py`` calls these same functions on a GPU.
 """
 from __future__ import annotations
 
@@ -22,6 +29,18 @@ import numpy as np
 import torch
 
 MP_720P = 1280 * 720 / 1e6
+# the papers' training crops and batches, and the spp (frames: a sequence's length for temporal):
+# layer 128 px x 4 at 8 spp (Munkberg sec. 4); nbg 128 x 20 (Meng sec. 5); wskpn 128 x 64 (Fan sec. 5);
+# temporal 128 x 4 sequences of 5 frames at 4 spp (Hasselgren sec. 2.4)
+PAPER_TRAINING = {"layer": (128, 4, 8), "temporal": (128, 4, 4), "nbg": (128, 20, 1), "wskpn": (128, 64, 1)}
+
+
+def frame_shape(size) -> tuple[int, int]:
+    """``size`` (an edge, or ``(height, width)``) as ``(height, width)``."""
+    if isinstance(size, (tuple, list)):
+        h, w = size
+        return int(h), int(w)
+    return int(size), int(size)
 
 
 def _best(fn, repeats: int) -> tuple[float, float]:
@@ -90,37 +109,129 @@ def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats:
             "compile_max_rel_diff": diff, "compile_pairs": len(ratio)}
 
 
-def time_model(m, spp: int, size: int, repeats: int, dev, precision: str, compile: bool = False) -> dict:
+def time_model(m, spp: int, size, repeats: int, dev, precision: str, compile: bool = False) -> dict:
     """Inference time of model ``m`` (in any state: random or trained weights) on a random batch of its
-    input kind at ``spp`` and ``size`` x ``size`` (:func:`_row`, with ``size`` and, with ``compile``,
-    :func:`_compiled`'s figures). A recurrent model is timed on one frame's step with a history."""
+    input kind at ``spp`` and ``size`` (an edge: ``size`` x ``size``; or ``(height, width)``)
+    (:func:`_row`, with ``size``, ``ms_per_frame`` and, with ``compile``, :func:`_compiled`'s figures
+    and ``compiled_ms_per_frame``). A recurrent model is timed on one frame's step with a history."""
+    h, w = frame_shape(size)
     spec = m.input_spec()
     stepwise = getattr(m, "stepwise", False)     # recurrent: one frame's step with a history
     frames = 1 if stepwise else spec.frames
-    batch = spec.input_kind.example_batch(1, spp, size, size, frames, torch.Generator().manual_seed(0))
+    batch = spec.input_kind.example_batch(1, spp, h, w, frames, torch.Generator().manual_seed(0))
     batch = {k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in batch.items()}
     fast = m.to(dev).for_inference()
     state = None
     if stepwise:
         with torch.no_grad():
             state = fast.step(batch, None)[1]
-    mp = size * size / 1e6
+    mp = h * w / 1e6
     s, c = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
     row = _row(s, c, mp, spp=spp, fmas_per_pixel=float(fast.fmas_per_pixel(spp)), params=m.param_count(),
-               device=str(dev), precision=precision, size=size)
+               device=str(dev), precision=precision, size=size if isinstance(size, int) else [h, w],
+               ms_per_frame=s * 1e3)
     if compile:
         row.update(_compiled(fast, batch, stepwise, state, dev, precision, max(4 * repeats, 12), mp))
+        row["compiled_ms_per_frame"] = row["compiled_ms_per_mp"] * mp
     return row
 
 
-def time_oidn(size: int, repeats: int, dev) -> dict:
-    """OIDN's time on a random ``size`` x ``size`` image with albedo and normal (on CUDA: OIDN's CUDA
-    device, on tensors already on the GPU), as :func:`_row`."""
+def time_training(m, crop: int, batch: int, spp: int, dev, precision: str, seconds: float = 3.0,
+                  min_steps: int = 5, max_steps: int = 200, log_every: int = 10, compile: bool = False) -> dict:
+    """Training steps a second of model ``m`` (freshly built) on a random batch of its input kind
+    (``batch`` crops of ``crop`` x ``crop`` at ``spp``; a sequence model's windows of its frames), the
+    step ``python -m training train`` runs: ``training.loop.device_train_step`` with fused Adam
+    (``training.accel.adam``), channels-last weights, ``precision`` autocast, the forward pass and loss
+    compiled with ``compile``, the loss left on the device and read every ``log_every`` steps
+    (``LossReader``). Three steps warm up (the first compiles; ``first_step_s``); then steps run for
+    ``seconds`` (at least ``min_steps``, at most ``max_steps``), timed to the device's last step."""
+    from .accel import adam, autocast, grad_scaler, prepare
+    from .loop import LossReader, device_train_step, forward_loss_fn
+    from .losses import build_loss
+    model = prepare(m, dev)
+    spec = model.input_spec()
+    b = spec.input_kind.example_batch(batch, spp, crop, crop, spec.frames, torch.Generator().manual_seed(0))
+    b = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in b.items()}
+    with torch.no_grad(), autocast(dev, precision):
+        b["reference"] = torch.rand_like(model(b).float())
+    target = spec.input_kind.target(b)
+    opt = adam(model.parameters(), 1e-4)
+    loss_fn = build_loss(model.train_defaults.get("loss", "smape"))
+    scaler = grad_scaler(dev, precision)
+    forward_loss = forward_loss_fn(model, loss_fn, dev, precision, compiled=compile)
+    losses = LossReader(log_every)
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    def step(i: int):
+        losses.add(i, device_train_step(model, opt, loss_fn, b, target=target, precision=precision, scaler=scaler,
+                                        forward_loss=forward_loss))
+        if i % log_every == 0:
+            losses.read()
+    t = time.perf_counter()
+    step(1)
+    sync()
+    first = time.perf_counter() - t
+    for i in (2, 3):
+        step(i)
+    losses.read()
+    sync()
+    t, k = time.perf_counter(), 0
+    while k < min_steps or (time.perf_counter() - t < seconds and k < max_steps):
+        k += 1
+        step(k)
+    loss = losses.read()
+    sync()
+    elapsed = time.perf_counter() - t
+    return {"steps_per_s": k / elapsed, "steps": k, "loss": loss, "first_step_s": first, "crop": crop,
+            "batch": batch, "spp": spp, "precision": precision, "device": str(dev), "compiled": compile,
+            "params": m.param_count()}
+
+
+def train_run(models=None, seconds: float = 3.0, device: str = "cpu", precisions=("fp32",), crop: int | None = None,
+              batch: int | None = None, compile: bool = False, print_table: bool = True) -> dict:
+    """Steps a second of each model (default: the four families of :data:`PAPER_TRAINING`) at its paper's
+    crop and batch (``crop`` / ``batch``: the same for all, the batch at most the paper's) in each of
+    ``precisions`` (:func:`time_training`); ``{name: {precision: row}}`` with ``bf16_speedup`` where both
+    ran."""
+    from .accel import pick_device, tune_allocator
+    from .models import build
+    from .models.common import flush_denormals
+    flush_denormals()
+    tune_allocator()
+    dev = pick_device(device)
+    res = {}
+    for name in models or PAPER_TRAINING:
+        c, bsz, spp = PAPER_TRAINING.get(name, (128, 4, None))
+        c, bsz = crop or c, min(batch, bsz) if batch else bsz
+        row = {}
+        for precision in precisions:
+            torch.manual_seed(0)
+            m = build(name)
+            row[precision] = time_training(m, c, bsz, spp or m.input_spec().default_spp, dev, precision, seconds,
+                                           compile=compile)
+            del m
+        if "fp32" in row and "bf16" in row:
+            row["bf16_speedup"] = row["bf16"]["steps_per_s"] / row["fp32"]["steps_per_s"]
+        res[name] = row
+        if print_table:
+            print(f"train {name:<16} crop {c} x batch {bsz}: " + ", ".join(
+                f"{p} {r['steps_per_s']:.2f} steps/s" for p, r in row.items() if isinstance(r, dict))
+                + (" (compiled)" if compile else ""), flush=True)
+    return res
+
+
+def time_oidn(size, repeats: int, dev) -> dict:
+    """OIDN's time on a random ``size`` x ``size`` (or ``(height, width)``) image with albedo and normal
+    (on CUDA: OIDN's CUDA device, on tensors already on the GPU), as :func:`_row`."""
     from .oidn import oidn_denoise, oidn_denoise_tensor
+    h, w = frame_shape(size)
     rng = np.random.default_rng(0)
-    color = rng.random((size, size, 3), dtype=np.float32) * 4
-    alb = rng.random((size, size, 3), dtype=np.float32)
-    nrm = rng.uniform(-1, 1, (size, size, 3)).astype(np.float32)
+    color = rng.random((h, w, 3), dtype=np.float32) * 4
+    alb = rng.random((h, w, 3), dtype=np.float32)
+    nrm = rng.uniform(-1, 1, (h, w, 3)).astype(np.float32)
     if dev.type == "cuda":
         ct, at, nt = (torch.from_numpy(x).to(dev) for x in (color, alb, nrm))
 
@@ -131,7 +242,8 @@ def time_oidn(size: int, repeats: int, dev) -> dict:
         def run_oidn():
             oidn_denoise(color, alb, nrm)
     s, c = _best(run_oidn, repeats)
-    return _row(s, c, size * size / 1e6, spp=None, fmas_per_pixel=None, params=None, device=str(dev), size=size)
+    return _row(s, c, h * w / 1e6, spp=None, fmas_per_pixel=None, params=None, device=str(dev),
+                size=size if isinstance(size, int) else [h, w], ms_per_frame=s * 1e3)
 
 
 def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, oidn: bool = True,

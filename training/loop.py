@@ -210,15 +210,33 @@ class _Feed:
         self.batch, self.workers = batch, workers
         self.make = crops_per_second(dataset) * max(workers, 1)
         self.n, self.wait, self.busy = -1, 0.0, 0.0
+        self.total_n, self.total_wait, self.total_busy = 0, 0.0, 0.0
 
     def add(self, wait: float, busy: float) -> bool:
         """Count one step (``wait``: seconds waiting for its batch; ``busy``: seconds of the step);
-        True once, when the line is due."""
+        True once, when the line is due. Every step after the first also counts in :meth:`summary`."""
         self.n += 1
         if self.n == 0:                     # the first batch waits for the workers to start
             return False
+        self.total_n, self.total_wait, self.total_busy = self.total_n + 1, self.total_wait + wait, self.total_busy + busy
+        if self.n > self.STEPS:
+            return False
         self.wait, self.busy = self.wait + wait, self.busy + busy
         return self.n == self.STEPS
+
+    def summary(self) -> dict:
+        """Over every step after the first (which waits for the loader's start and, compiled, compiles):
+        ``wait_share`` (the time waiting for batches over the steps' wall time), ``steps_per_s`` (wall
+        time with the waits), the loader's and the steps' crops a second, the steps counted. The host
+        runs ahead of the device between loss reads, so on a GPU a step's time is the device's only
+        averaged over the reads (every ``log_every`` steps)."""
+        wall = self.total_wait + self.total_busy
+        return {"steps": self.total_n, "wait_s": self.total_wait, "step_s": self.total_busy,
+                "wait_share": self.total_wait / wall if wall > 0 else None,
+                "steps_per_s": self.total_n / wall if wall > 0 else None,
+                "loader_crops_per_s": self.make,
+                "consumed_crops_per_s": self.total_n * self.batch / self.total_busy if self.total_busy > 0 else None,
+                "workers": self.workers}
 
     def line(self) -> str:
         use = self.n * self.batch / max(self.busy, 1e-9)
@@ -293,22 +311,30 @@ def _prepare_out(out, rank: int = 0) -> Path:
     return out
 
 
-def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: int | None = None) -> dict:
+def train(cfg: TrainConfig, store, out, *, progress: bool = True, stop_after: int | None = None,
+          seconds: float | None = None) -> dict:
     """Train ``cfg.model`` on the store's train split; validate on ``cfg.val_split`` (a store without
     that split trains without validation, with a warning).
 
     The model's input declaration (``model.input_spec()``) chooses the dataset and the target.
     ``stop_after``: return after this many steps of THIS call (to test and demonstrate resuming).
-    Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint"}`` (checkpoint None if no step ran
-    and none existed); under torchrun (module docstring) every rank returns it, with ``rank`` and
-    ``world`` added.
+    ``seconds``: return once this call has trained that long, counted from its first step's start
+    (``train --seconds``; the step under way
+    finishes, the checkpoint is written; the same command resumes). Both leave ``cfg.steps`` and the
+    run's identity alone.
+    Returns ``{"step", "loss", "val": {...}, "seconds", "checkpoint", "feed"}`` (checkpoint None if no
+    step ran and none existed; ``feed``: :meth:`_Feed.summary`, the loader's wait as a share of the
+    steps' time and the steps a second, None on other ranks or without steps); under torchrun (module
+    docstring) every rank returns it, with ``rank`` and ``world`` added.
     """
     with distributed.session(accel.device_name(cfg.device)) as (dist, device_name):
-        return _train(cfg, store, out, dist, device_name, progress, stop_after)
+        return _train(cfg, store, out, dist, device_name, progress, stop_after, seconds)
 
 
 def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: str, progress: bool,
-           stop_after: int | None) -> dict:
+           stop_after: int | None, seconds: float | None = None) -> dict:
+    if seconds is not None and not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds > 0):
+        raise ConfigError(f"--seconds must be a number of seconds > 0, got {seconds!r}")
     out = _prepare_out(out, dist.rank)
     device = accel.pick_device(device_name)
     precision = accel.precision_for(cfg.precision, device)
@@ -325,10 +351,11 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
     run.store_info["left_out"] = {str(i): list(p) for i, p in sorted(left_out.items())}
     todo = max(cfg.steps - run.step, 0) if stop_after is None else max(min(cfg.steps - run.step, stop_after), 0)
     t0 = time.perf_counter()
-    loss, val = _loop(run, train_ds, val_ds, todo, progress, t0)
+    loss, val, feed = _loop(run, train_ds, val_ds, todo, progress, t0, seconds)
     dist.barrier()                              # rank 0's checkpoint is written before any rank returns
     res = {"step": run.step, "loss": loss, "val": val, "seconds": time.perf_counter() - t0,
-           "checkpoint": str(run.ck_path) if run.ck_path.exists() else None}
+           "checkpoint": str(run.ck_path) if run.ck_path.exists() else None,
+           "feed": feed.summary() if feed is not None and feed.total_n else None}
     return {**res, "rank": dist.rank, "world": dist.world} if dist.enabled else res
 
 
@@ -407,10 +434,13 @@ def _datasets(cfg: TrainConfig, spec, store):
     return train_ds, val_ds
 
 
-def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> tuple[float, dict]:
-    """``todo`` steps from ``run.step``: log, validate and checkpoint on their schedules; returns the last
-    training loss and validation figures. The losses stay on the device between reads (:class:`LossReader`:
-    every ``log_every`` steps, and before a validation or a checkpoint), so no step waits for the last."""
+def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
+          seconds: float | None = None) -> tuple[float, dict, "_Feed | None"]:
+    """``todo`` steps from ``run.step`` (fewer once ``seconds`` have passed since the loader was started,
+    just before the first step, so the loader's own timing and the set-up do not count): log, validate
+    and checkpoint on their schedules; returns the last training loss, validation figures and the
+    loader's record. The losses stay on the device between reads (:class:`LossReader`: every
+    ``log_every`` steps, and before a validation or a checkpoint), so no step waits for the last."""
     cfg, dist = run.cfg, run.dist
     val, losses = {}, LossReader(cfg.log_every)
     per_epoch = batches_per_epoch(len(train_ds), cfg.batch)
@@ -424,7 +454,7 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> 
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     try:
-        t_step = time.perf_counter()
+        t_step = t_run = time.perf_counter()
         for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
                                   dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
             epoch = run.step // per_epoch
@@ -438,13 +468,26 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float) -> 
                 bar.update(1)
             done = _after_step(run, losses, val_ds, epoch, bar, t0)
             val = val if done is None else done
+            if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
+                    and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
+                break
         if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
             losses.read()
             run.save()
     finally:
         if bar:
             bar.close()
-    return losses.read(), val
+    return losses.read(), val, feed
+
+
+def _stop_on_time(dist: distributed.Dist, due: bool) -> bool:
+    """Whether every rank stops now: rank 0's clock decides for all (ranks must run the same steps; under
+    torchrun this is asked only every ``log_every`` steps, when the losses are read anyway)."""
+    if not dist.enabled:
+        return due
+    flag = [due] if dist.is_main else [None]
+    torch.distributed.broadcast_object_list(flag, src=0)
+    return bool(flag[0])
 
 
 def _after_step(run: _Run, losses: LossReader, val_ds, epoch: int, bar, t0: float) -> dict | None:
