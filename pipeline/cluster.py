@@ -42,7 +42,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
-from scene_gen.checks import is_int, is_number, need
+from core.checks import is_int, is_number, need
 
 
 class ClusterError(PipelineError, ConnectionError):
@@ -321,7 +321,8 @@ def job_settings(cfg: ClusterConfig) -> dict:
     from dask.utils import parse_bytes
 
     from pipeline import worker_init
-    from scene_gen.variant import VariantError, find_libllvm
+    from core.errors import VariantError
+    from core.variant import find_libllvm
     where = "dataset.cluster.jobqueue"
     kw = dict(cfg.jobqueue)
     tpw = cfg.threads_per_worker

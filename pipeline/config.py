@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SCENE_KINDS
 from stores.schema import StoreLayout
 

@@ -90,7 +90,7 @@ import numpy as np
 
 from pipeline import camera as cam_geom
 from pipeline.errors import ConfigError, RenderError
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SceneSpec
 from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META, NUM_FEATURES
 
@@ -212,7 +212,7 @@ class FrameScene:
 
     def __init__(self, spec: SceneSpec, frame: int, cfg: RenderConfig,
                  on_scene_loaded: Callable | None = None, *, merge: bool = True):
-        from pipeline.variant import mitsuba
+        from core.variant import mitsuba
         from scene_gen import to_mitsuba
 
         self.mi = mi = mitsuba(threads=cfg.threads or None)

@@ -26,7 +26,7 @@ from scene_gen.errors import SpecError
 from scene_gen.probes import make_probe
 from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
 from scene_gen.textures import make_texture
-from scene_gen.variant import mitsuba
+from core.variant import mitsuba
 
 TEXTURE_SIZE = 256
 PROBE_HEIGHT = 256

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from scene_gen.checks import need, need_int
+from core.checks import need, need_int
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def _render_threads():
     """In a worker: the thread count the render tasks give drjit, and drjit's pool after applying it."""
     from pipeline import tasks
-    from pipeline.variant import mitsuba
+    from core.variant import mitsuba
     cfg = tasks._render_cfg({"res": [4, 4]})
     mitsuba(threads=cfg.threads)
     import drjit as dr

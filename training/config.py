@@ -1,10 +1,10 @@
 """Training settings: a frozen, self-validating dataclass that round-trips through a dict (checked with
-``scene_gen.checks``, the mechanism every config of the project shares)."""
+``core.checks``, the mechanism every config of the project shares)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 
 from .errors import ConfigError
 

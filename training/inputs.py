@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from core.checks import need, need_int
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
 from .datasets import LayerFrames, PixelFrames, SampleFrames, pixel_item_from_samples
@@ -54,8 +55,8 @@ ALL_FEATURES = tuple(FEATURE_GROUPS)
 
 def check_feature_groups(groups, what: str = '"features"') -> tuple[str, ...]:
     """``groups`` as a tuple in ``FEATURE_GROUPS`` order, or ConfigError naming the unknown ones."""
-    if isinstance(groups, str) or not all(isinstance(g, str) for g in groups):
-        raise ConfigError(f"{what} must be a list of feature groups {list(ALL_FEATURES)}, got {groups!r}")
+    need(not isinstance(groups, str) and all(isinstance(g, str) for g in groups), what,
+         f"a list of feature groups {list(ALL_FEATURES)}", groups, ConfigError)
     unknown = [g for g in groups if g not in FEATURE_GROUPS]
     if unknown:
         raise ConfigError(f"{what}: unknown feature groups {unknown}; the groups are {list(ALL_FEATURES)}")
@@ -75,10 +76,8 @@ class InputSpec:
     features: tuple[str, ...] = ALL_FEATURES
 
     def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ConfigError(f'input kind must be one of {sorted(KINDS)}, got {self.kind!r}')
-        if not isinstance(self.frames, int) or self.frames < 1:
-            raise ConfigError(f'"frames" must be an integer >= 1, got {self.frames!r}')
+        need(self.kind in KINDS, "input kind", f"one of {sorted(KINDS)}", self.kind, ConfigError)
+        need_int('"frames"', self.frames, 1, None, ConfigError)
         object.__setattr__(self, "features", check_feature_groups(self.features))
 
     @property
@@ -133,12 +132,7 @@ class InputKind:
 
     def check_store(self, store) -> None:
         """Raise :class:`DataError` naming every array this kind needs that the store lacks."""
-        missing = []
-        for path in self.arrays:
-            try:
-                store.root[path]
-            except KeyError:
-                missing.append(path)
+        missing = [path for path in self.arrays if not store.has_array(path)]
         if missing:
             raise DataError(f"input kind {self.name!r} needs the arrays {missing}, which the store "
                             f"{store.path!s} does not have")

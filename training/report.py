@@ -26,7 +26,7 @@ from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, f
 from .fma import figure10, figure10_markdown
 from .hardcases import hard_case_report
 from .jsonio import write as write_strict
-from .tonemap import tonemap
+from core.images import tonemap
 
 # Inference is timed on one BENCH_SIZE x BENCH_SIZE frame, the size of `python -m training bench`: on a
 # store's own small frames (32x32 for the default dataset) fixed costs per call dominate (nbg read 9,090
