@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from stores import schema
+from stores import fitness, schema
 from stores.contract import FRAME_ARRAYS, FRAME_META
 from stores.codecs import crc32c
 from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
@@ -660,14 +660,28 @@ class Store:
 
     def frame_problems(self, i: int) -> list[str]:
         """See :func:`frame_problems`."""
-        return frame_problems(self, i)
+        return fitness.frame_problems(self, i)
+
+    def check_frames(self, frames, *, progress: bool = False) -> dict[int, list[str]]:
+        """The unfit frames of ``frames``, frame -> problems (:func:`stores.fitness.check_frames`)."""
+        return fitness.check_frames(self, frames, progress=progress)
+
+    missing_features: tuple[str, ...] = ()          # every feature group is stored
+
+    def has_array(self, path: str) -> bool:
+        """Whether the store has the array ``path`` (``inputs/radiance``, ``layers/radiance``, ...)."""
+        try:
+            self.root[path]
+            return True
+        except KeyError:
+            return False
 
 
 def frame_problems(store, i: int) -> list[str]:
-    """Why frame ``i`` should not be trained, evaluated or exported (``[]`` if nothing):
-    :func:`stores.fitness.frame_problems`, the one check ``validate`` applies too."""
-    from stores.fitness import frame_problems as _problems
-    return _problems(store, i)
+    """Why frame ``i`` of ``store`` (a :class:`Store` or a path) should not be trained, evaluated or
+    exported (``[]`` if nothing): :func:`stores.fitness.frame_problems`, the one check ``validate``
+    applies too."""
+    return fitness.frame_problems(store if isinstance(store, Store) else open_store(store), i)
 
 
 def _missing_error(lost: dict[int, list[tuple[str, str]]]) -> MissingShardError:

@@ -72,7 +72,7 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
                "--json", tmp_path / "b.json") == 0
     assert json.loads((tmp_path / "b.json").read_text())[name]["ms_per_mp"] > 0
 
-    from stores.imageio import read_exr
+    from core.images import read_exr
     from stores.reader import open_store
     last = open_store(clip_store).frames_in_split("test")[-1]        # a recurrent model runs its clip first
     assert cli("denoise", "--checkpoint", run / "checkpoint.pt", "--store", clip_store, "--frame", last,
