@@ -47,6 +47,18 @@ def split_of_clip(clip_id: int, fractions: dict | None = None) -> str:
     return names[-1]
 
 
+def clip_id_in_split(seed: int, split: str, fractions: dict | None = None, *, stride: int = 2 ** 31,
+                     tries: int = 64) -> int | None:
+    """The first clip id of ``seed + j * stride`` (j = 0, 1, ... < ``tries``) that :func:`split_of_clip`
+    puts in ``split``, None when none does: how a dataset gives a scene the split it wants (distinct
+    seeds give distinct ids while ``seed < stride``)."""
+    for j in range(int(tries)):
+        c = int(seed) + j * int(stride)
+        if split_of_clip(c, fractions) == split:
+            return c
+    return None
+
+
 class _ShardReader:
     """Direct reader of one sharded image array on a local store (see module docstring).
 
