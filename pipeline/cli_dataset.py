@@ -90,7 +90,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         raise ForeignStoreError(f"{store} is a non-empty folder that is not a store made by this pipeline "
                                 f"(it holds {shown}); nothing was touched: choose another --out, or pass "
                                 "--overwrite to delete its contents and build the dataset there")
-    if not schema._exists(store):
+    if not schema.store_exists(store):
         return cfg
     try:
         root, layout = schema.open_group(store, mode="r")
@@ -246,8 +246,8 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
     None when it cannot tell without creating or changing the store (no store yet, or one to grow)."""
     from stores import schema
     from stores.errors import StoreError
-    from stores.writer import _complete_flags
-    if not schema._exists(store):
+    from stores.writer import complete_flags
+    if not schema.store_exists(store):
         return None
     try:
         root, layout = schema.open_group(store, mode="r")
@@ -255,7 +255,7 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
         return None
     if layout.num_frames != cfg.num_frames or schema.absent_arrays(root):
         return None
-    done = _complete_flags(root)
+    done = complete_flags(root)
     lost = schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
     return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
@@ -263,13 +263,13 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
 def _summary(cfg: DatasetConfig, store: str, t0: float, *, results, failed, skipped, dashboard, cluster,
              validation) -> dict:
     """The run's summary dict, printed as the closing lines."""
-    from stores.writer import _complete_flags
+    from stores.writer import complete_flags
     from stores import schema
     elapsed = time.perf_counter() - t0
     render_s = sum(r["render_seconds"] for r in results)
     left = frames_to_render(cfg, store)
     complete = cfg.num_frames - len(left) if left is not None else \
-        int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
+        int(complete_flags(schema.open_group(store, check=False)[0]).sum())
     summary = {
         "store": store, "frames": cfg.num_frames, "complete": complete, "rendered": len(results),
         "skipped": skipped, "failed": failed, "elapsed_s": round(elapsed, 3),
@@ -304,8 +304,8 @@ def space_needed(cfg: DatasetConfig, store: str, frames: int) -> int | None:
         for root, _, files in os.walk(store):
             total += sum(os.path.getsize(os.path.join(root, f)) for f in files)
         from stores import schema
-        from stores.writer import _complete_flags
-        done = int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
+        from stores.writer import complete_flags
+        done = int(complete_flags(schema.open_group(store, check=False)[0]).sum())
     except Exception:  # noqa: BLE001 - a store cut short by the full disk: fall back to the estimate
         done = 0
     per_frame = total / done if done else 0.18 * frame_bytes(cfg)

@@ -475,7 +475,7 @@ def part_inference(state: dict, left) -> dict:
 def _time_model(model, dev, h: int, w: int, precision: str, ready: bool = False, repeats: int = 5) -> float:
     import torch
 
-    from training.bench import _forward
+    from training.bench import forward_once
     m = model if ready else model.to(dev).for_inference()
     spec = m.input_spec()
     stepwise = getattr(m, "stepwise", False)
@@ -488,11 +488,11 @@ def _time_model(model, dev, h: int, w: int, precision: str, ready: bool = False,
         with torch.no_grad(), autocast(dev, precision):
             state = m.step(b, None)[1]
     for _ in range(2):
-        _forward(m, b, stepwise, state, dev, precision)
+        forward_once(m, b, stepwise, state, dev, precision)
     best = float("inf")
     for _ in range(repeats):
         t = time.perf_counter()
-        _forward(m, b, stepwise, state, dev, precision)
+        forward_once(m, b, stepwise, state, dev, precision)
         best = min(best, time.perf_counter() - t)
     return best * 1e3
 

@@ -323,7 +323,7 @@ class Store:
             have = self._listed.get(spec.path)
             if have is not None and key in have:
                 return
-            have = self._listed[spec.path] = schema._chunk_keys(self.root, spec)   # new since? list again
+            have = self._listed[spec.path] = schema.chunk_keys(self.root, spec)   # new since? list again
             if have is not None and key in have:
                 return
         lost = schema.missing_chunks(self.root, frames, self.version, paths=paths)
@@ -427,7 +427,7 @@ class Store:
         """Complete frames whose clip's SceneSpec JSON chunk (at the clip's first frame) is missing,
         frame -> (first frame, file) (schema v3)."""
         spec = self._specs["frames/scene_json"]
-        names = schema._chunk_names_1d(self.root, spec)
+        names = schema.chunk_names_1d(self.root, spec)
         out, seen = {}, {}
         for i in done:
             f0 = self._clip_start(table, i)
@@ -482,6 +482,11 @@ class Store:
             out = [self.scene_json(i) for i in range(self.num_frames)]
             return np.array(out, dtype=object).astype(str)
         return t[key].copy()
+
+    def complete_flags(self) -> np.ndarray:
+        """``status/complete`` of every frame (bool): a flag whose chunk is damaged reads False
+        (:meth:`metadata_damage` lists it); nothing is raised."""
+        return self._meta()[0]["complete"].copy()
 
     def complete_frames(self) -> list[int]:
         return [int(i) for i in np.nonzero(self._meta_table()["complete"])[0]]

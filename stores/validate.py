@@ -211,7 +211,7 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     if version < 2:
         specs = [s for s in schema.arrays(version) if s.image]
         skipped = {}
-        done = store._meta()[0]["complete"]
+        done = store.complete_flags()
         for i in indices:
             if done[i]:
                 for spec in specs:
