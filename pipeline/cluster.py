@@ -38,6 +38,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
+from distributed import LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
@@ -214,37 +215,43 @@ def render_gpus(cfg: ClusterConfig) -> list[str]:
     return have[:g] if isinstance(g, int) else [str(x) for x in g]
 
 
-def _gpu_cluster_class():
-    from distributed import LocalCluster
+class GPULocalCluster(LocalCluster):
+    """One worker process per GPU, and never two on one: the worker of GPU ``d`` has
+    ``CUDA_VISIBLE_DEVICES=d`` (so drjit and torch see it as device 0) and the worker resource
+    ``GPU: 1``; a replacement worker takes the GPU no other worker holds, and the cluster never grows
+    past its GPUs (:meth:`scale` caps the count; a worker spec without a free GPU is refused).
 
-    class GPULocalCluster(LocalCluster):
-        """One worker process per GPU: the worker of GPU ``d`` has ``CUDA_VISIBLE_DEVICES=d`` (so drjit
-        and torch see it as device 0) and the worker resource ``GPU: 1``; a replaced worker takes a
-        GPU no other worker holds. dask-cuda's LocalCUDACluster does the same but needs NVML (pynvml)
-        and a GPU to start; this needs neither, so the CPU tests start it with pretended devices."""
+    Not dask-cuda's ``LocalCUDACluster``, which does the same per-GPU setup: it needs NVML (pynvml) and
+    a working driver to start, and numba; none of them is on the GPU check machine, and the CPU tests
+    start this one with pretended devices. What LocalCUDACluster adds beyond it (RMM pools, UCX) the
+    renderer does not use."""
 
-        def __init__(self, gpus: list[str], **kw):
-            self.gpus = list(gpus)
-            super().__init__(n_workers=0, **kw)
-            self.scale(len(self.gpus))
+    def __init__(self, gpus: list[str], **kw):
+        self.gpus = list(gpus)
+        super().__init__(n_workers=0, **kw)
+        self.scale(len(self.gpus))
 
-        def new_worker_spec(self):
-            ((name, spec),) = super().new_worker_spec().items()
-            held = {w["options"].get("env", {}).get("CUDA_VISIBLE_DEVICES") for w in self.worker_spec.values()}
-            gpu = next((g for g in self.gpus if g not in held), self.gpus[0])
-            opts = dict(spec["options"])
-            opts["env"] = {**opts.get("env", {}), "CUDA_VISIBLE_DEVICES": gpu}
-            opts["resources"] = {**(opts.get("resources") or {}), "GPU": 1}
-            return {name: {**spec, "options": opts}}
+    def scale(self, n: int = 0, memory=None, cores=None):
+        """Scale to ``n`` workers, at most one a GPU."""
+        return super().scale(min(int(n), len(self.gpus)), memory=memory, cores=cores)
 
-    return GPULocalCluster
+    def new_worker_spec(self):
+        ((name, spec),) = super().new_worker_spec().items()
+        held = {w["options"].get("env", {}).get("CUDA_VISIBLE_DEVICES") for w in self.worker_spec.values()}
+        free = [g for g in self.gpus if g not in held]
+        if not free:
+            raise ClusterError(f"every GPU of this LocalCluster ({', '.join(self.gpus)}) has a worker already; "
+                               "one worker a GPU")
+        opts = dict(spec["options"])
+        opts["env"] = {**opts.get("env", {}), "CUDA_VISIBLE_DEVICES": free[0]}
+        opts["resources"] = {**(opts.get("resources") or {}), "GPU": 1}
+        return {name: {**spec, "options": opts}}
 
 
 def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
     """A LocalCluster of ``workers`` (or ``cfg.workers``, or one per core) single-purpose processes on
     127.0.0.1, its dashboard at :func:`dashboard_bind` of ``cfg.dashboard_address``; where
-    :func:`render_gpus` finds GPUs, one worker per GPU instead (``GPULocalCluster``)."""
-    from distributed import LocalCluster
+    :func:`render_gpus` finds GPUs, one worker per GPU instead (:class:`GPULocalCluster`)."""
     from pipeline import worker_init
     check_dashboard(cfg.dashboard_address)
     worker_init.prepare_environment()
@@ -260,7 +267,7 @@ def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
         if workers or cfg.workers:
             say(f"cluster: one worker per GPU ({n}: {', '.join(gpus)}); --workers / cluster.workers apply to CPU "
                 "workers (cluster.gpus: null for those)", flush=True)
-        cluster = _gpu_cluster_class()(gpus, **kw)
+        cluster = GPULocalCluster(gpus, **kw)
         cluster.wait_for_workers(n, timeout=120)
         return cluster
     except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
