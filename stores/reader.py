@@ -155,8 +155,6 @@ class _ShardReader:
              pool=None, *, strict: bool = False) -> np.ndarray:
         """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis (and only the first
         ``samples`` samples, for arrays with a sample axis), storage dtype."""
-        from numcodecs import blosc
-        inner = list(self.inner[1:])
         out_shape = list(self.shape[1:])
         iy, ix = self.iy - 1, self.ix - 1
         out_shape[iy], out_shape[ix] = y1 - y0, x1 - x0
@@ -165,7 +163,7 @@ class _ShardReader:
             out_shape[self.isample - 1] = samples
             keep[self.isample - 1] = slice(0, samples)
         out = np.empty(out_shape, self.dtype)
-        ty, tx = inner[iy], inner[ix]
+        ty, tx = self.inner[1:][iy], self.inner[1:][ix]
         path = self.shard_path(frame)
         try:
             fd = os.open(path, os.O_RDONLY)
@@ -184,29 +182,10 @@ class _ShardReader:
                 xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
                 dst = [slice(None)] * len(out_shape)
                 dst[iy], dst[ix] = slice(ys - y0, ye - y0), slice(xs - x0, xe - x0)
-                off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
-                if off == _EMPTY:
+                chunk = self._inner_chunk(fd, frame, path, idx, cy, cx)
+                if chunk is None:
                     out[tuple(dst)] = self.fill
                     return
-                buf = os.pread(fd, nbytes, off)
-                if len(buf) != nbytes:
-                    raise self._corrupt(frame, path, f"short read of inner chunk ({cy}, {cx})")
-                if self.crc:
-                    if nbytes < 4 or crc32c(memoryview(buf)[:-4]) != int.from_bytes(buf[-4:], "little"):
-                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) fails its crc32c checksum")
-                    buf = memoryview(buf)[:-4]
-                if self.blosc:
-                    try:
-                        buf = blosc.decompress(buf)     # releases the GIL outside the main thread
-                    except (RuntimeError, ValueError, TypeError, OverflowError) as e:
-                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) does not decode: {e}") from e
-                if len(buf) != self.chunk_nbytes:
-                    raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
-                                                     f"not {self.chunk_nbytes}")
-                if self.order is None:
-                    chunk = np.frombuffer(buf, self.dtype).reshape(inner)
-                else:
-                    chunk = np.frombuffer(buf, self.dtype).reshape(self.stored).transpose(self.back)
                 src = list(keep)
                 src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
                 out[tuple(dst)] = chunk[tuple(src)]
@@ -221,6 +200,32 @@ class _ShardReader:
         finally:
             os.close(fd)
         return out
+
+    def _inner_chunk(self, fd: int, frame: int, path: str, idx: np.ndarray, cy: int, cx: int) -> np.ndarray | None:
+        """Inner chunk ``(cy, cx)`` of the open shard ``fd`` in the array's inner-chunk layout, None when
+        it was never written (the fill value); every byte checked (crc32c, Blosc's size)."""
+        from numcodecs import blosc
+        off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
+        if off == _EMPTY:
+            return None
+        buf = os.pread(fd, nbytes, off)
+        if len(buf) != nbytes:
+            raise self._corrupt(frame, path, f"short read of inner chunk ({cy}, {cx})")
+        if self.crc:
+            if nbytes < 4 or crc32c(memoryview(buf)[:-4]) != int.from_bytes(buf[-4:], "little"):
+                raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) fails its crc32c checksum")
+            buf = memoryview(buf)[:-4]
+        if self.blosc:
+            try:
+                buf = blosc.decompress(buf)     # releases the GIL outside the main thread
+            except (RuntimeError, ValueError, TypeError, OverflowError) as e:
+                raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) does not decode: {e}") from e
+        if len(buf) != self.chunk_nbytes:
+            raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
+                                             f"not {self.chunk_nbytes}")
+        if self.order is None:
+            return np.frombuffer(buf, self.dtype).reshape(self.inner[1:])
+        return np.frombuffer(buf, self.dtype).reshape(self.stored).transpose(self.back)
 
 
 class Store:
