@@ -473,48 +473,21 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     if watch_workers and by_future:
         threading.Thread(target=_watch_workers, args=(client, list(by_future), lost, stop),
                          name="watch-workers", daemon=True).start()
-    bar = None
-    if progress and by_future:
-        from tqdm import tqdm
-        bar = tqdm(total=len(by_future), unit="frame", desc="frames", file=sys.stderr, dynamic_ncols=True)
+    bar = _frames_bar(len(by_future)) if progress and by_future else None
 
     def full(e):
         return (on_disk_full or (lambda n: e))(len(by_future) - len(results))
-
-    def flush(how) -> None:
-        """A commit; the store's disk full is the run's StoreFullError."""
-        try:
-            how()
-        except OSError as e:
-            if not is_disk_full(e):
-                raise
-            raise full(e) from None
     finished = False
     try:
         for fut in as_completed(list(by_future), loop=client.loop):
-            idx = by_future[fut]
-            if fut.status == "finished":
-                r = fut.result()
-                commit.add(r)
-                results.append({k: v for k, v in r.items() if k != "record"})   # the committer holds it
-            elif fut.status == "cancelled":
-                continue                    # the run is stopping (workers lost): the frame stays incomplete
-            else:
-                exc = fut.exception()
-                if is_disk_full(exc):
-                    raise full(exc)
-                if unreachable_cause(exc) is not None:
-                    raise exc               # the object store is gone: every other write would fail alike
-                text = f"{type(exc).__name__}: {exc}"
-                failed[idx] = text
-                commit.fail(idx, text)
-            flush(commit.maybe_flush)
-            if bar is not None:
-                bar.update(1)
-                if failed:
-                    bar.set_postfix(failed=len(failed))
+            if _take(fut, by_future[fut], commit, results, failed, full):
+                _flush(commit.maybe_flush, full)
+                if bar is not None:
+                    bar.update(1)
+                    if failed:
+                        bar.set_postfix(failed=len(failed))
             fut.release()
-        flush(commit.flush)
+        _flush(commit.flush, full)
         finished = True
     finally:
         stop.set()
@@ -532,5 +505,42 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
             f"this run); {len(results)} frame(s) were written now and stay complete: run the same command again "
             "to resume")
     return results, failed
+
+
+def _take(fut, idx: int, commit: Committer, results: list, failed: dict, full) -> bool:
+    """One finished write: its result to the committer, or its failure recorded; a full disk or an
+    unreachable object store stops the run (every other write would fail alike). False for a write
+    cancelled because the run is stopping (its frame stays incomplete)."""
+    if fut.status == "finished":
+        r = fut.result()
+        commit.add(r)
+        results.append({k: v for k, v in r.items() if k != "record"})   # the committer holds it
+        return True
+    if fut.status == "cancelled":
+        return False
+    exc = fut.exception()
+    if is_disk_full(exc):
+        raise full(exc)
+    if unreachable_cause(exc) is not None:
+        raise exc
+    text = f"{type(exc).__name__}: {exc}"
+    failed[idx] = text
+    commit.fail(idx, text)
+    return True
+
+
+def _flush(how, full) -> None:
+    """A commit; the store's disk full is the run's StoreFullError (``full(error)``)."""
+    try:
+        how()
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        raise full(e) from None
+
+
+def _frames_bar(n: int):
+    from tqdm import tqdm
+    return tqdm(total=n, unit="frame", desc="frames", file=sys.stderr, dynamic_ncols=True)
 
 
