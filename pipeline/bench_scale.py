@@ -15,8 +15,9 @@ client's). Per frame (milliseconds unless said), at each size:
   at 10,000 frames);
 - ``export10``: ``export`` of ten frames (exr), per exported frame;
 - ``open_zarr``: ``xarray.open_zarr`` of every group;
-- ``dataset_<kind>``: building the training dataset of each input kind on the train split (the fitness
-  check reads every frame it uses) and its first batch, per frame of the split;
+- ``dataset_<kind>``: the store's side of building the training dataset of each input kind on the train
+  split (its frames or clips, the fitness check of every frame it uses) and of its first batch, per
+  frame of the split;
 - ``files`` and ``bytes``: the store's files and bytes per frame.
 
 The table prints each stage at each size and the ratio of the largest size's per-frame cost to the
@@ -117,18 +118,25 @@ def _quiet(fn, *a, **kw):
         return fn(*a, **kw)
 
 
-def _dataset_stage(store: str, kind: str) -> float:
-    """Seconds to build ``kind``'s training dataset on the train split and draw its first batch."""
-    import warnings
+# what a training dataset of each input kind reads of a store (``training.inputs``: the kinds' arrays)
+KIND_ARRAYS = {"samples": ("inputs/radiance", "inputs/features"), "pixels": ("inputs/radiance", "inputs/features"),
+               "clips": ("inputs/radiance", "inputs/features"), "sampled-layers": ("layers/radiance",)}
 
-    from training.data import batch_loader, model_dataset
-    from training.inputs import InputSpec
-    spec = InputSpec(kind, frames=2 if kind == "clips" else 1, default_spp=1)
+
+def _dataset_stage(store: str, kind: str) -> float:
+    """Seconds for the store's side of building ``kind``'s training dataset on the train split (the same
+    calls ``training.datasets`` makes: the split's frames or clips, the fitness screen of every frame it
+    uses, ``stores.fitness``) and reading its first batch (4 crops of 8x8). The pipeline does not import
+    training; ``python -m training bench`` times the models."""
+    from stores.reader import open_store
     t = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ds = model_dataset(spec, store, "train", 1, 8, augment=True, seed=0)
-        next(iter(batch_loader(ds, 4, 0, 0, 1, workers=0)))
+    st = open_store(store)
+    frames = ([i for c in st.clips("train").values() for i in c] if kind == "clips"
+              else st.frames_in_split("train"))
+    st.check_frames(sorted(set(frames) | set(st.incomplete_frames())))
+    for i in frames[:4]:
+        for path in KIND_ARRAYS[kind]:
+            st.read_array(path, i, (0, 0, 8, 8))
     return time.perf_counter() - t
 
 
