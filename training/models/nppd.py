@@ -93,7 +93,6 @@ class NPPD(Denoiser):
     train_defaults = dict(loss="smape-temporal", lr=1e-4, grad_clip_norm=0.0, grad_clip_value=0.0, warmup=0)
     tiny = dict(levels=3, embed=4, unet_encoder=((4,), (4,), (4,)), unet_bottleneck=(4,),
                 unet_decoder=((4,), (4,), (4,)), frames=2)
-    stepwise = True
 
     def __init__(self, size: str = "paper", levels: int = 5, embed: int = 32, frames: int = 4, **widths):
         need(size in SIZES, '"size"', f"one of {sorted(SIZES)}", size, ConfigError)
