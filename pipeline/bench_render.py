@@ -181,7 +181,7 @@ def _frame_counts(R, fs) -> dict:
         st = out["set_time"] = launches(dr, lambda: fs.set_time(0.5))
         ours["own_kernels"] = ours["kernels"] - (g + 1) * st["kernels"]
         theirs["own_kernels"] = theirs["kernels"] - g * st["kernels"]
-        out["moving_objects"] = sum(o.moving for o in fs.spec.objects)
+        out["moving_objects"] = len(fs.loaded.moving)
     return out
 
 

@@ -116,7 +116,7 @@ def rgbe_decode(rgbe: np.ndarray, exposure) -> np.ndarray:
 
 
 def camera(camera_to_world: np.ndarray, world_to_clip: np.ndarray) -> dict[str, np.ndarray]:
-    """Noisebase's camera arrays of a frame from ours (``pipeline.camera``: Mitsuba's look-at frame, +x
+    """Noisebase's camera arrays of a frame from ours (``scene_gen.projection``: Mitsuba's look-at frame, +x
     left, +y up, +z forward; OpenGL-like clip space with the same screen mapping as Noisebase's):
     ``camera_position``, ``camera_target`` (one unit along the view axis), ``camera_up``, ``proj_mat``
     (our ``world_to_clip`` times the inverse of Noisebase's view matrix, which is exact, so Noisebase's

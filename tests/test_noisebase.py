@@ -137,7 +137,7 @@ def test_noisebase_loader_reads_the_export(store, exported, noisebase_env, tmp_p
 def test_positions_are_the_samples_own(store):
     """The re-traced geometry is exactly the stored samples': depth bit for bit before rounding, and the
     stored motion is the projection of position + motion with the previous camera."""
-    from pipeline import camera as C
+    from scene_gen import projection as C
     from pipeline.render import FrameScene, render_inputs, sample_geometry
     spec = clip_spec(11, defocus=False)
     fs = FrameScene(spec, 2, render_cfg())
