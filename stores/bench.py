@@ -235,7 +235,7 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
             for name in ("inputs/radiance", "inputs/features"):
                 a = s.read_array(name, i, (y, x, crop, crop), samples=spp)
                 torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32)
-        t = lay.tile_y
+        tile = lay.tile_y
         npy = os.path.join(tmp, "crop.npy")
         np.save(npy, np.zeros((spp, 20, crop, crop), np.float32))
 
@@ -248,8 +248,8 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
                 "threads2": lambda i, y, x: read(st2, i, y, x),
                 "tensors": tensors,
                 "ceiling": lambda i, y, x: np.load(npy)}
-        if lay.tile_x == t:
-            ways["aligned"] = lambda i, y, x: read(s, i, (y // t) * t, (x // t) * t)
+        if lay.tile_x == tile:
+            ways["aligned"] = lambda i, y, x: read(s, i, (y // tile) * tile, (x // tile) * tile)
         times = {k: [] for k in ways}
         for k, fn in ways.items():                 # warm the page cache and the readers
             fn(*picks[0])
