@@ -457,14 +457,7 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     botocore's retries (:mod:`stores.objectstore`). Whatever stops the run, the frames finished before are
     committed first (best effort), so the resume does not render them again."""
     import threading
-    ts = time.perf_counter()
-    futures = graph.submit(client)
-    if timings is not None:
-        timings["submit_s"] = time.perf_counter() - ts
-    by_future = {futures[k]: idx for idx, k in graph.writes.items()}
-    # Hold only the writes: the scheduler then frees each render result once its write is done
-    # (memory stays bounded by the frames in flight, not the dataset).
-    del futures
+    by_future = _submit_writes(client, graph, timings)
     commit = committer or Committer(writer)
     results: list[dict] = []
     failed: dict[int, str] = {}
@@ -490,21 +483,39 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
         _flush(commit.flush, full)
         finished = True
     finally:
-        stop.set()
-        if bar is not None:
-            bar.close()
-        client.cancel(list(by_future))
-        if not finished:
-            try:
-                commit.flush()              # keep what finished before the stop
-            except Exception:  # noqa: BLE001 - the stop's own error is the one to report
-                pass
+        _wind_down(client, list(by_future), commit, bar, stop, finished)
     if lost:
         raise WorkersLostError(
             f"every worker of the LocalCluster is gone (none for {lost[0]:.0f} s: killed or stopped from outside "
             f"this run); {len(results)} frame(s) were written now and stay complete: run the same command again "
             "to resume")
     return results, failed
+
+
+def _submit_writes(client, graph, timings: dict | None) -> dict:
+    """Submit ``graph`` (its seconds into ``timings["submit_s"]``): the futures of its writes, to their
+    frame indices. Only the writes are held: the scheduler then frees each render result once its
+    write is done (memory stays bounded by the frames in flight, not the dataset)."""
+    ts = time.perf_counter()
+    futures = graph.submit(client)
+    if timings is not None:
+        timings["submit_s"] = time.perf_counter() - ts
+    return {futures[k]: idx for idx, k in graph.writes.items()}
+
+
+def _wind_down(client, futures: list, commit: Committer, bar, stop, finished: bool) -> None:
+    """However :func:`_execute`'s loop ended: stop the worker watch, close the progress bar, cancel the
+    writes' ``futures`` and, unless every write was taken and committed, commit what finished before
+    the stop (best effort: the stop's own error is the one to report)."""
+    stop.set()
+    if bar is not None:
+        bar.close()
+    client.cancel(futures)
+    if not finished:
+        try:
+            commit.flush()              # keep what finished before the stop
+        except Exception:  # noqa: BLE001 - the stop's own error is the one to report
+            pass
 
 
 def _take(fut, idx: int, commit: Committer, results: list, failed: dict, full) -> bool:
