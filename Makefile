@@ -26,8 +26,9 @@ test: setup      ## the whole test suite (TEST_JOBS processes)
 estimate: setup  ## predict samples, core-hours, store bytes and wall time of CONFIG on WORKERS workers
 	$(PY) -m pipeline estimate --config $(CONFIG) $(if $(WORKERS),--workers $(WORKERS))
 
-bench: setup     ## benchmarks that print figures
+bench: setup     ## benchmarks that print figures: rendering, store, scheduler, then every model through torch.compile
 	$(PY) -m pipeline bench
+	$(PY) -m training bench --compile
 
 train: setup     ## train MODEL (default layer) on STORE (default data/default.zarr) for STEPS (default 1000)
 	$(PY) -m training train --model $(or $(MODEL),layer) --store $(or $(STORE),data/default.zarr) --out $(or $(RUN),data/runs/$(or $(MODEL),layer)) $(if $(STEPS),--steps $(STEPS))

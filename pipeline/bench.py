@@ -1,4 +1,6 @@
-"""``python -m pipeline bench`` (``make bench``): every benchmark, figures printed, one run.
+"""``python -m pipeline bench``: the benchmarks of rendering, the store, the scheduler and scale, figures
+printed, one run. ``make bench`` runs it, then the models' (``python -m training bench --compile``:
+training reads the stores, the pipeline never imports it).
 
 Each area contributes ``run() -> dict`` in its own module; this collects them and prints a summary.
 Speed and memory targets live here, not in timed tests.
@@ -14,10 +16,9 @@ SUITES = {
     "render": "pipeline.bench_render",     # samples/s of the per-sample loop and reference vs mi.render, peak memory
     "store": "stores.bench",               # crops/s and MB/s vs raw np.load, stored/raw bytes
     "dask": "pipeline.bench_dask",         # frames/min 1 vs 2 workers, scheduler overhead per task
-    "models": "training.bench",            # inference ms per megapixel for each model and OIDN
     "scale": "pipeline.bench_scale",       # per-frame cost of every stage at 100, 1,000 and 10,000 frames
 }
-DEFAULT_SUITES = ("render", "store", "dask", "models")   # `make bench`; scale runs alone (--only scale)
+DEFAULT_SUITES = ("render", "store", "dask")   # `make bench` (then training's); scale runs alone (--only scale)
 
 
 # `--tiny`: every suite at a size that runs in seconds (tests/test_pipeline_bench.py runs each one this way,
@@ -27,14 +28,8 @@ TINY = {
                "e2e_ref_spp": 16, "fph_res": 8, "counts_res": 16, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
     "store": {"crops": 4, "crop": 16, "frames": 2, "size": 32},
     "dask": {"frames": 2, "res": 8, "ref_spp": 16, "objects": 3, "noop_tasks": 20},
-    "models": {"size": 32, "repeats": 1, "print_table": True},
     "scale": {"frames": (6, 12), "graphs": False},
 }
-
-
-# the full run's settings where a suite's defaults are not `make bench`'s: the models are also timed
-# through torch.compile (its speed-up per model, the first call of each compiling)
-FULL = {"models": {"compile": True}}
 
 
 def add_arguments(p) -> None:
@@ -57,7 +52,7 @@ def run(args) -> int:
         print(f"\n=== bench: {name} ({module}) ===", flush=True)
         t0 = time.perf_counter()
         try:
-            kwargs = TINY.get(name, {}) if args.tiny else FULL.get(name, {})
+            kwargs = TINY.get(name, {}) if args.tiny else {}
             if name == "scale" and getattr(args, "frames", None):
                 kwargs = {**kwargs, "frames": tuple(args.frames)}
             results[name] = importlib.import_module(module).run(**kwargs)

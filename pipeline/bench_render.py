@@ -181,7 +181,7 @@ def _frame_counts(R, fs) -> dict:
         st = out["set_time"] = launches(dr, lambda: fs.set_time(0.5))
         ours["own_kernels"] = ours["kernels"] - (g + 1) * st["kernels"]
         theirs["own_kernels"] = theirs["kernels"] - g * st["kernels"]
-        out["moving_objects"] = sum(o.moving for o in fs.spec.objects)
+        out["moving_objects"] = len(fs.loaded.moving)
     return out
 
 
@@ -287,98 +287,104 @@ def frames_per_hour(*, res: int, workers: int, scene_gen: dict | None = None) ->
             "frames_per_hour": 3600.0 / mean_s * workers, "workers": workers}
 
 
-def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, ref_passes: int = 4,
-        ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256,
-        e2e_res: int = 64, e2e_ref_spp: int = 1024, e2e_workers: int | None = None, fph_res: int = 256,
-        counts_res: int = 64, scene_gen: dict | None = None) -> dict:
-    """Print and return the renderer's figures (dict of floats). ``memory_res``: the edge of the frame
-    whose peak memory is measured in a child process (256 for the target; the tests use a tiny one);
-    ``e2e_*``: the end-to-end dataset run; ``fph_res``: the frames-per-hour resolution (0: skip);
-    ``counts_res``: the frame of :func:`kernel_counts` (8 spp; 0: skip);
-    ``scene_gen``: overrides of the default config's scene generator (the tiny run's few objects)."""
+def _mi_render(mi, scene, spp: int) -> None:
+    """Plain ``mi.render`` of ``scene`` at ``spp``, its image read back (the timed call of every comparison)."""
+    np.asarray(mi.render(scene, spp=spp, seed=12345))
+
+
+def _bench_scenes(*, seed: int, kind: str, res: int, spp: int, ref_passes: int, ref_spp: int, scene_gen: dict):
+    """The scene :func:`run` times (shutter closed), the render config (the reference with its
+    production pass size) and the same scene as it was loaded before shapes were merged (no material
+    palette, shutter closed)."""
     from pipeline import render as R
-    from pipeline.config import load_config
     from scene_gen.config import SceneGenConfig
     from scene_gen.sampling import sample_scene
-
-    workers = e2e_workers or max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 2)
-    overrides = dict(scene_gen or {})
-    scene_gen = {**load_config(DEFAULT_CONFIG).scene_gen, **overrides}
     spec = sample_scene(seed, kind, num_frames=1, res=res, config=SceneGenConfig.from_dict(scene_gen))
     # the benchmark measures one static pass: motion slicing is a scene property, not loop speed
     spec = dataclasses.replace(spec, shutter=0.0) if spec.has_motion else spec
     # the reference with its production pass size (4096 spp in 32 passes = 128 spp a pass), fewer passes
-    ref_spp = ref_passes * ref_pass_spp
     cfg = R.RenderConfig(res=(res, res), spp=spp, ref_spp=ref_spp, ref_passes=ref_passes,
                          ref_min_passes=min(16, ref_passes), layer_levels=0)
     before_gen = SceneGenConfig.from_dict({k: v for k, v in scene_gen.items() if k != "material_palette"})
     before_spec = dataclasses.replace(sample_scene(seed, kind, num_frames=1, res=res, config=before_gen), shutter=0.0)
-    n_in = res * res * spp
-    n_ref = res * res * ref_spp
-    cb_spp = 4 * spp
-    n_cb = res * res * cb_spp
+    return spec, cfg, before_spec
 
-    def mi_render(scene, k):
-        np.asarray(mi.render(scene, spp=k, seed=12345))
 
-    # One scene alive at a time: drjit traces a virtual call for every instance alive in the process,
-    # so a scene beside another renders slower (the Cornell box beside one generated scene: 2.4 against
-    # 3.6 Msamples/s alone). Each comparison below loads its scenes in turn, frees them, and alternates.
+def _loop_times(spec, cfg, *, spp: int, ref_spp: int, ref_pass_spp: int, repeats: int):
+    """The input loop and the reference against ``mi.render`` on ``spec``, best of alternating runs after
+    a warm-up: ``(mi, dr, times)``, times the seconds of each (``t_in``, ``t_mi``, ``t_ref``,
+    ``t_mi_ref``) and of the warm-up (``warm``), drjit's ``threads`` and the scene's ``shapes``."""
+    from pipeline import render as R
     t0 = time.perf_counter()
     fs = R.FrameScene(spec, 0, cfg)
     mi, dr = fs.mi, fs.dr
     threads = int(dr.thread_count())
     shapes = len(fs.scene.shapes())
     R.render_inputs(fs)            # warm-up: compile the kernels once
-    mi_render(fs.scene, spp)
-    mi_render(fs.scene, ref_pass_spp)
+    _mi_render(mi, fs.scene, spp)
+    _mi_render(mi, fs.scene, ref_pass_spp)
     warm = time.perf_counter() - t0
-    t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: mi_render(fs.scene, spp), 3 * repeats)  # short calls
-    t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: mi_render(fs.scene, ref_spp),
+    t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: _mi_render(mi, fs.scene, spp),
+                            3 * repeats)  # short calls
+    t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: _mi_render(mi, fs.scene, ref_spp),
                                  max(1, repeats - 1))
     del fs
     _collect()
+    return mi, dr, {"threads": threads, "shapes": shapes, "warm": warm, "t_in": t_in, "t_mi": t_mi,
+                    "t_ref": t_ref, "t_mi_ref": t_mi_ref}
 
-    def isolated(load) -> tuple[float, int]:
-        """Best time of ``cb_spp`` samples a pixel on the scene ``load()`` returns, alone in the process
-        (and its shape count)."""
-        scene = load()
-        mi_render(scene, cb_spp)                  # kernels: compiled, or from drjit's cache
-        t = float("inf")
-        for _ in range(2):
-            t1 = time.perf_counter()
-            mi_render(scene, cb_spp)
-            t = min(t, time.perf_counter() - t1)
-        n = len(scene.shapes())
-        del scene
-        _collect()
-        return t, n
 
+def _isolated(mi, load, spp: int) -> tuple[float, int]:
+    """Best time of ``spp`` samples a pixel on the scene ``load()`` returns, alone in the process
+    (and its shape count)."""
+    scene = load()
+    _mi_render(mi, scene, spp)                # kernels: compiled, or from drjit's cache
+    t = float("inf")
+    for _ in range(2):
+        t1 = time.perf_counter()
+        _mi_render(mi, scene, spp)
+        t = min(t, time.perf_counter() - t1)
+    n = len(scene.shapes())
+    del scene
+    _collect()
+    return t, n
+
+
+def _scene_times(mi, spec, cfg, before_spec, *, res: int, spp: int, repeats: int) -> dict:
+    """Best seconds of ``spp`` samples a pixel on the generated scene (``t_gen``), the Cornell box
+    (``t_cb``) and the generated scene before merging (``t_before``), each alone in the process, in
+    turn; and the shapes before merging (``before_shapes``)."""
+    from pipeline import render as R
     t_gen = t_cb = t_before = float("inf")
     before_shapes = 0
     for _ in range(max(1, repeats)):
-        t_gen = min(t_gen, isolated(lambda: R.FrameScene(spec, 0, cfg).scene)[0])
-        t_cb = min(t_cb, isolated(lambda: _cornell(mi, res, spec.max_depth))[0])
-        t, before_shapes = isolated(lambda: R.FrameScene(before_spec, 0, cfg, merge=False).scene)
+        t_gen = min(t_gen, _isolated(mi, lambda: R.FrameScene(spec, 0, cfg).scene, spp)[0])
+        t_cb = min(t_cb, _isolated(mi, lambda: _cornell(mi, res, spec.max_depth), spp)[0])
+        t, before_shapes = _isolated(mi, lambda: R.FrameScene(before_spec, 0, cfg, merge=False).scene, spp)
         t_before = min(t_before, t)
+    return {"t_gen": t_gen, "t_cb": t_cb, "t_before": t_before, "before_shapes": before_shapes}
+
+
+def _loop_figures(t: dict, *, scene: str, n_in: int, n_ref: int, n_cb: int) -> dict:
+    """:func:`run`'s first figures, printed: the times ``t`` of :func:`_loop_times` and :func:`_scene_times`
+    as rates and ratios; ``n_*``: the samples of each timed call."""
     out = {
-        "scene": f"{kind} seed {seed}, {len(spec.objects)} objects, {shapes} shapes "
-                 f"({before_shapes} before merging), {res}x{res}",
-        "threads": threads,
-        "warmup_seconds": warm,
-        "inputs_msamples_per_s": n_in / t_in / 1e6,
-        "mi_render_msamples_per_s": n_in / t_mi / 1e6,
-        "inputs_ratio": t_mi / t_in,
-        "reference_msamples_per_s": n_ref / t_ref / 1e6,
-        "mi_render_reference_msamples_per_s": n_ref / t_mi_ref / 1e6,
-        "reference_ratio": t_mi_ref / t_ref,
-        "cornell_msamples_per_s": n_cb / t_cb / 1e6,
-        "generated_msamples_per_s": n_cb / t_gen / 1e6,
-        "generated_vs_cornell": t_cb / t_gen,
-        "generated_before_merge_msamples_per_s": n_cb / t_before / 1e6,
-        "generated_before_merge_vs_cornell": t_cb / t_before,
+        "scene": scene,
+        "threads": t["threads"],
+        "warmup_seconds": t["warm"],
+        "inputs_msamples_per_s": n_in / t["t_in"] / 1e6,
+        "mi_render_msamples_per_s": n_in / t["t_mi"] / 1e6,
+        "inputs_ratio": t["t_mi"] / t["t_in"],
+        "reference_msamples_per_s": n_ref / t["t_ref"] / 1e6,
+        "mi_render_reference_msamples_per_s": n_ref / t["t_mi_ref"] / 1e6,
+        "reference_ratio": t["t_mi_ref"] / t["t_ref"],
+        "cornell_msamples_per_s": n_cb / t["t_cb"] / 1e6,
+        "generated_msamples_per_s": n_cb / t["t_gen"] / 1e6,
+        "generated_vs_cornell": t["t_cb"] / t["t_gen"],
+        "generated_before_merge_msamples_per_s": n_cb / t["t_before"] / 1e6,
+        "generated_before_merge_vs_cornell": t["t_cb"] / t["t_before"],
     }
-    print(f"renderer on {out['scene']} ({threads} threads, warm-up {warm:.1f} s):", flush=True)
+    print(f"renderer on {out['scene']} ({t['threads']} threads, warm-up {t['warm']:.1f} s):", flush=True)
     print(f"  input loop  {out['inputs_msamples_per_s']:.2f} Msamples/s vs mi.render "
           f"{out['mi_render_msamples_per_s']:.2f}: ratio {out['inputs_ratio']:.2f} (target >= {TARGET_INPUT_RATIO})")
     print(f"  reference   {out['reference_msamples_per_s']:.2f} Msamples/s vs mi.render "
@@ -388,54 +394,110 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
           f"{out['cornell_msamples_per_s']:.2f}: ratio {out['generated_vs_cornell']:.2f} "
           f"(content, not a target; before merging {out['generated_before_merge_vs_cornell']:.2f})",
           flush=True)
+    return out
+
+
+def _cornell_rates(mi, dr, *, res: int, max_depth: int, workers: int, threads: int) -> tuple[float, float]:
+    """Msamples/s and Msamples a CPU-second of ``mi.render`` on the Cornell box at ``res`` (1024 spp
+    after a 64-spp warm-up) on ``workers`` drjit threads (``threads`` restored after), alone in this
+    process."""
+    cb = _cornell(mi, res, max_depth)          # alone in this process (see run)
+    dr.set_thread_count(workers)
+    _mi_render(mi, cb, 64)
+    t, c = time.perf_counter(), time.process_time()
+    _mi_render(mi, cb, 1024)
+    n = res * res * 1024
+    cb_rate, cb_cpu_rate = n / (time.perf_counter() - t) / 1e6, n / (time.process_time() - c) / 1e6
+    dr.set_thread_count(threads)
+    del cb
+    _collect()
+    return cb_rate, cb_cpu_rate
+
+
+def _dataset_section(mi, dr, *, res: int, ref_spp: int, workers: int, threads: int, scene_gen: dict,
+                     max_depth: int) -> dict:
+    """The end-to-end dataset run (:func:`end_to_end`) against plain ``mi.render`` of its frames and against
+    the Cornell box at its size, with as many threads as its workers: figures, printed."""
+    e2e = end_to_end(res=res, ref_spp=ref_spp, workers=workers, scene_gen=scene_gen)
+    cb_rate, cb_cpu_rate = _cornell_rates(mi, dr, res=res, max_depth=max_depth, workers=workers, threads=threads)
+    out = {"dataset_msamples_per_s": e2e["msamples_per_s"], "dataset_wall_s": e2e["wall_s"],
+           "dataset_cpu_s": e2e["cpu_s"], "dataset_samples": e2e["samples"],
+           "dataset_cornell_msamples_per_s": cb_rate, "dataset_vs_cornell": e2e["msamples_per_s"] / cb_rate,
+           "dataset_vs_cornell_per_cpu_s": e2e["msamples_per_cpu_s"] / cb_cpu_rate}
+    out.update({"dataset_plain_msamples_per_s": e2e["plain_msamples_per_s"],
+                "dataset_vs_mi_render": e2e["msamples_per_s"] / e2e["plain_msamples_per_s"],
+                "dataset_vs_mi_render_per_cpu_s": e2e["msamples_per_cpu_s"] / e2e["plain_msamples_per_cpu_s"]})
+    print(f"  dataset     {e2e['msamples_per_s']:.2f} Msamples/s end to end ({e2e['samples'] / 1e6:.1f} M samples, "
+          f"4 stills {res}x{res}, {ref_spp}-spp references, {workers} workers, {e2e['wall_s']:.0f} s) "
+          f"vs plain mi.render of the same frames and samples {e2e['plain_msamples_per_s']:.2f} "
+          f"({e2e['plain_wall_s']:.0f} s): ratio {out['dataset_vs_mi_render']:.2f}, per CPU-second "
+          f"{out['dataset_vs_mi_render_per_cpu_s']:.2f} (the throughput measure); vs the Cornell box "
+          f"{cb_rate:.2f}: {out['dataset_vs_cornell']:.2f} (content, not the pipeline)", flush=True)
+    return out
+
+
+def _frames_per_hour_section(*, res: int, workers: int, scene_gen: dict) -> dict:
+    """:func:`frames_per_hour` at ``res``: figures, printed."""
+    fph = frames_per_hour(res=res, workers=workers, scene_gen=scene_gen)
+    out = {"frames_per_hour": fph["frames_per_hour"], "frames_per_hour_per_worker": fph["frames_per_hour_per_worker"],
+           "frame_s_by_kind": fph["frame_s"]}
+    print(f"  {res}x{res} frames/hour (default scene mix, 4096-spp references): "
+          f"{fph['frames_per_hour']:.1f} on {workers} workers ({fph['frames_per_hour_per_worker']:.1f} a worker; "
+          + ", ".join(f"{k} {v:.0f} s a frame" for k, v in fph["frame_s"].items()) + ")", flush=True)
+    return out
+
+
+def _memory_section(*, seed: int, kind: str, res: int) -> dict:
+    """Seconds and peak resident memory of a child process that renders one whole ``res``x``res``x8
+    frame (``_CHILD``): figures, printed."""
+    r = subprocess.run([sys.executable, "-c", _CHILD, str(seed), kind, str(res), "8"],
+                       capture_output=True, text=True, env=_env(), cwd=ROOT)
+    tag = f"frame_{res}x{res}x8"
+    if r.returncode != 0:
+        raise RuntimeError(f"the {res}x{res} memory child failed: "
+                           + "\n".join((r.stderr or "").strip().splitlines()[-5:]))
+    child = json.loads(r.stdout.strip().splitlines()[-1])
+    out = {f"{tag}_seconds": child["seconds"], f"{tag}_peak_gib": child["peak_rss_gib"]}
+    print(f"  {res}x{res}x8 frame: peak memory {out[tag + '_peak_gib']:.2f} GiB "
+          f"(target < {TARGET_PEAK_GIB} at 256x256), {out[tag + '_seconds']:.1f} s")
+    return out
+
+
+def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, ref_passes: int = 4,
+        ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256,
+        e2e_res: int = 64, e2e_ref_spp: int = 1024, e2e_workers: int | None = None, fph_res: int = 256,
+        counts_res: int = 64, scene_gen: dict | None = None) -> dict:
+    """Print and return the renderer's figures (dict of floats). ``memory_res``: the edge of the frame
+    whose peak memory is measured in a child process (256 for the target; the tests use a tiny one);
+    ``e2e_*``: the end-to-end dataset run; ``fph_res``: the frames-per-hour resolution (0: skip);
+    ``counts_res``: the frame of :func:`kernel_counts` (8 spp; 0: skip);
+    ``scene_gen``: overrides of the default config's scene generator (the tiny run's few objects)."""
+    from pipeline.config import load_config
+
+    workers = e2e_workers or max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 2)
+    overrides = dict(scene_gen or {})
+    scene_gen = {**load_config(DEFAULT_CONFIG).scene_gen, **overrides}
+    ref_spp = ref_passes * ref_pass_spp
+    spec, cfg, before_spec = _bench_scenes(seed=seed, kind=kind, res=res, spp=spp, ref_passes=ref_passes,
+                                           ref_spp=ref_spp, scene_gen=scene_gen)
+    cb_spp = 4 * spp
+    # One scene alive at a time: drjit traces a virtual call for every instance alive in the process,
+    # so a scene beside another renders slower (the Cornell box beside one generated scene: 2.4 against
+    # 3.6 Msamples/s alone). Each comparison below loads its scenes in turn, frees them, and alternates.
+    mi, dr, t = _loop_times(spec, cfg, spp=spp, ref_spp=ref_spp, ref_pass_spp=ref_pass_spp, repeats=repeats)
+    t.update(_scene_times(mi, spec, cfg, before_spec, res=res, spp=cb_spp, repeats=repeats))
+    scene = (f"{kind} seed {seed}, {len(spec.objects)} objects, {t['shapes']} shapes "
+             f"({t['before_shapes']} before merging), {res}x{res}")
+    out = _loop_figures(t, scene=scene, n_in=res * res * spp, n_ref=res * res * ref_spp, n_cb=res * res * cb_spp)
     if counts_res:
         out["launches"] = _launches_section(seed=seed, kind=kind, res=counts_res, scene_gen=scene_gen)
     if e2e_res:
-        e2e = end_to_end(res=e2e_res, ref_spp=e2e_ref_spp, workers=workers, scene_gen=scene_gen)
-        # the Cornell box at the dataset's size, with as many threads as the dataset's workers
-        cb = _cornell(mi, e2e_res, spec.max_depth)          # alone in this process (see above)
-        dr.set_thread_count(workers)
-        mi_render(cb, 64)
-        t, c = time.perf_counter(), time.process_time()
-        mi_render(cb, 1024)
-        n = e2e_res * e2e_res * 1024
-        cb_rate, cb_cpu_rate = n / (time.perf_counter() - t) / 1e6, n / (time.process_time() - c) / 1e6
-        dr.set_thread_count(threads)
-        del cb
-        _collect()
-        out.update({"dataset_msamples_per_s": e2e["msamples_per_s"], "dataset_wall_s": e2e["wall_s"],
-                    "dataset_cpu_s": e2e["cpu_s"], "dataset_samples": e2e["samples"],
-                    "dataset_cornell_msamples_per_s": cb_rate, "dataset_vs_cornell": e2e["msamples_per_s"] / cb_rate,
-                    "dataset_vs_cornell_per_cpu_s": e2e["msamples_per_cpu_s"] / cb_cpu_rate})
-        out.update({"dataset_plain_msamples_per_s": e2e["plain_msamples_per_s"],
-                    "dataset_vs_mi_render": e2e["msamples_per_s"] / e2e["plain_msamples_per_s"],
-                    "dataset_vs_mi_render_per_cpu_s": e2e["msamples_per_cpu_s"] / e2e["plain_msamples_per_cpu_s"]})
-        print(f"  dataset     {e2e['msamples_per_s']:.2f} Msamples/s end to end ({e2e['samples'] / 1e6:.1f} M samples, "
-              f"4 stills {e2e_res}x{e2e_res}, {e2e_ref_spp}-spp references, {workers} workers, {e2e['wall_s']:.0f} s) "
-              f"vs plain mi.render of the same frames and samples {e2e['plain_msamples_per_s']:.2f} "
-              f"({e2e['plain_wall_s']:.0f} s): ratio {out['dataset_vs_mi_render']:.2f}, per CPU-second "
-              f"{out['dataset_vs_mi_render_per_cpu_s']:.2f} (the throughput measure); vs the Cornell box "
-              f"{cb_rate:.2f}: {out['dataset_vs_cornell']:.2f} (content, not the pipeline)", flush=True)
+        out.update(_dataset_section(mi, dr, res=e2e_res, ref_spp=e2e_ref_spp, workers=workers,
+                                    threads=t["threads"], scene_gen=scene_gen, max_depth=spec.max_depth))
     if fph_res:
-        fph = frames_per_hour(res=fph_res, workers=workers, scene_gen=overrides)
-        out.update({"frames_per_hour": fph["frames_per_hour"],
-                    "frames_per_hour_per_worker": fph["frames_per_hour_per_worker"],
-                    "frame_s_by_kind": fph["frame_s"]})
-        print(f"  {fph_res}x{fph_res} frames/hour (default scene mix, 4096-spp references): "
-              f"{fph['frames_per_hour']:.1f} on {workers} workers ({fph['frames_per_hour_per_worker']:.1f} a worker; "
-              + ", ".join(f"{k} {v:.0f} s a frame" for k, v in fph["frame_s"].items()) + ")", flush=True)
+        out.update(_frames_per_hour_section(res=fph_res, workers=workers, scene_gen=overrides))
     if memory:
-        r = subprocess.run([sys.executable, "-c", _CHILD, str(seed), kind, str(memory_res), "8"],
-                           capture_output=True, text=True, env=_env(), cwd=ROOT)
-        tag = f"frame_{memory_res}x{memory_res}x8"
-        if r.returncode == 0:
-            child = json.loads(r.stdout.strip().splitlines()[-1])
-            out.update({f"{tag}_seconds": child["seconds"], f"{tag}_peak_gib": child["peak_rss_gib"]})
-        else:
-            raise RuntimeError(f"the {memory_res}x{memory_res} memory child failed: "
-                               + "\n".join((r.stderr or "").strip().splitlines()[-5:]))
-        print(f"  {memory_res}x{memory_res}x8 frame: peak memory {out[tag + '_peak_gib']:.2f} GiB "
-              f"(target < {TARGET_PEAK_GIB} at 256x256), {out[tag + '_seconds']:.1f} s")
+        out.update(_memory_section(seed=seed, kind=kind, res=memory_res))
     return out
 
 

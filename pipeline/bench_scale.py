@@ -15,8 +15,9 @@ client's). Per frame (milliseconds unless said), at each size:
   at 10,000 frames);
 - ``export10``: ``export`` of ten frames (exr), per exported frame;
 - ``open_zarr``: ``xarray.open_zarr`` of every group;
-- ``dataset_<kind>``: building the training dataset of each input kind on the train split (the fitness
-  check reads every frame it uses) and its first batch, per frame of the split;
+- ``dataset_<kind>``: the store's side of building the training dataset of each input kind on the train
+  split (its frames or clips, the fitness check of every frame it uses) and of its first batch, per
+  frame of the split;
 - ``files`` and ``bytes``: the store's files and bytes per frame.
 
 The table prints each stage at each size and the ratio of the largest size's per-frame cost to the
@@ -117,37 +118,37 @@ def _quiet(fn, *a, **kw):
         return fn(*a, **kw)
 
 
-def _dataset_stage(store: str, kind: str) -> float:
-    """Seconds to build ``kind``'s training dataset on the train split and draw its first batch."""
-    import warnings
+# what a training dataset of each input kind reads of a store (``training.inputs``: the kinds' arrays)
+KIND_ARRAYS = {"samples": ("inputs/radiance", "inputs/features"), "pixels": ("inputs/radiance", "inputs/features"),
+               "clips": ("inputs/radiance", "inputs/features"), "sampled-layers": ("layers/radiance",)}
 
-    from training.data import batch_loader, model_dataset
-    from training.inputs import InputSpec
-    spec = InputSpec(kind, frames=2 if kind == "clips" else 1, default_spp=1)
+
+def _dataset_stage(store: str, kind: str) -> float:
+    """Seconds for the store's side of building ``kind``'s training dataset on the train split (the same
+    calls ``training.datasets`` makes: the split's frames or clips, the fitness screen of every frame it
+    uses, ``stores.fitness``) and reading its first batch (4 crops of 8x8). The pipeline does not import
+    training; ``python -m training bench`` times the models."""
+    from stores.reader import open_store
     t = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ds = model_dataset(spec, store, "train", 1, 8, augment=True, seed=0)
-        next(iter(batch_loader(ds, 4, 0, 0, 1, workers=0)))
+    st = open_store(store)
+    frames = ([i for c in st.clips("train").values() for i in c] if kind == "clips"
+              else st.frames_in_split("train"))
+    st.check_frames(sorted(set(frames) | set(st.incomplete_frames())))
+    for i in frames[:4]:
+        for path in KIND_ARRAYS[kind]:
+            st.read_array(path, i, (0, 0, 8, 8))
     return time.perf_counter() - t
 
 
-def measure(frames: int, tmp: Path) -> dict:
-    """Every stage's cost at ``frames`` frames (the module docstring): ``{stage: value per frame}`` plus
-    ``_abs`` (whole-run figures: seconds, sizes)."""
-    import xarray as xr
-
+def _run_with_peaks(cfg, store: str, tmp: Path) -> tuple[dict, dict]:
+    """``run_dataset`` of ``cfg`` into ``store`` on a fresh :func:`_cluster` (stopped after), the peak
+    memory growth of its scheduler and of this process sampled throughout: (the run's summary,
+    ``{"scheduler_kib", "client_kib"}``)."""
     from pipeline.cli_dataset import run_dataset
-    from stores.export import export
-    from stores.reader import open_store
-    from stores.schema import GROUPS
-    from stores.validate import validate_store
-    cfg = scale_config(frames)
-    store = str(tmp / f"scale-{frames}.zarr")
     address, procs = _cluster(tmp)
     try:
         _wait_workers(address, 2)
-        import psutil
+        import psutil  # noqa: F401 - the sampler's
         peak = _Peak([procs[0].pid, os.getpid()])
         peak.start()
         s = _quiet(run_dataset, cfg, out=store, scheduler=address, progress=False)
@@ -155,13 +156,16 @@ def measure(frames: int, tmp: Path) -> dict:
         peak.join()
     finally:
         _stop(procs)
-    assert s["ok"] and s["complete"] == frames, s
-    t = s["timings"]
-    out = {"dataset": s["elapsed_s"], "render": s["render_s"], "write": t["write_s"],
-           "graph_build": t["build_graph_s"], "graph_submit": t["submit_s"],
-           "commit": t["commit_latency_mean_s"] * frames,       # per frame below: its mean latency
-           "scheduler_kib": (peak.peak[procs[0].pid] - peak.base[procs[0].pid]) / 1024,
-           "client_kib": (peak.peak[os.getpid()] - peak.base[os.getpid()]) / 1024}
+    return s, {"scheduler_kib": (peak.peak[procs[0].pid] - peak.base[procs[0].pid]) / 1024,
+               "client_kib": (peak.peak[os.getpid()] - peak.base[os.getpid()]) / 1024}
+
+
+def _validate_and_rerun(cfg, store: str) -> dict:
+    """Seconds of ``validate_store`` of the complete store (it must pass) and of the same run again on it
+    (it must render nothing)."""
+    from pipeline.cli_dataset import run_dataset
+    from stores.validate import validate_store
+    out = {}
     t0 = time.perf_counter()
     rep = validate_store(store)
     out["validate"] = time.perf_counter() - t0
@@ -170,6 +174,18 @@ def measure(frames: int, tmp: Path) -> dict:
     again = _quiet(run_dataset, cfg, out=store, progress=False)
     out["rerun"] = time.perf_counter() - t0
     assert again["rendered"] == 0 and again["ok"], again
+    return out
+
+
+def _read_stages(store: str, frames: int, tmp: Path) -> tuple[dict, int]:
+    """Seconds a frame of the stages that read the complete store (``export10``, ``open_zarr`` in all,
+    ``dataset_<kind>``), and the train split's frames."""
+    import xarray as xr
+
+    from stores.export import export
+    from stores.reader import open_store
+    from stores.schema import GROUPS
+    out = {}
     n_exp = min(10, frames)
     t0 = time.perf_counter()
     export(store, f"0-{n_exp - 1}", "exr", str(tmp / f"export-{frames}"))
@@ -181,10 +197,42 @@ def measure(frames: int, tmp: Path) -> dict:
     train = len(open_store(store).frames_in_split("train"))
     for kind in ("samples", "pixels", "clips", "sampled-layers"):
         out[f"dataset_{kind}"] = _dataset_stage(store, kind) * frames / max(1, train)
+    return out, train
+
+
+def _files_and_bytes(store: str) -> tuple[int, int]:
+    """The files under ``store`` and their bytes."""
     files = nbytes = 0
     for r, _, fs in os.walk(store):
         files += len(fs)
         nbytes += sum(os.path.getsize(os.path.join(r, f)) for f in fs)
+    return files, nbytes
+
+
+def measure(frames: int, tmp: Path) -> dict:
+    """Every stage's cost at ``frames`` frames (the module docstring): ``{stage: value per frame}`` plus
+    ``_abs`` (whole-run figures: seconds, sizes)."""
+    # imported before the run, so the client's memory growth is the run's own
+    import xarray  # noqa: F401
+
+    from pipeline.cli_dataset import run_dataset  # noqa: F401
+    from stores.export import export  # noqa: F401
+    from stores.reader import open_store  # noqa: F401
+    from stores.schema import GROUPS  # noqa: F401
+    from stores.validate import validate_store  # noqa: F401
+    cfg = scale_config(frames)
+    store = str(tmp / f"scale-{frames}.zarr")
+    s, kib = _run_with_peaks(cfg, store, tmp)
+    assert s["ok"] and s["complete"] == frames, s
+    t = s["timings"]
+    out = {"dataset": s["elapsed_s"], "render": s["render_s"], "write": t["write_s"],
+           "graph_build": t["build_graph_s"], "graph_submit": t["submit_s"],
+           "commit": t["commit_latency_mean_s"] * frames,       # per frame below: its mean latency
+           "scheduler_kib": kib["scheduler_kib"], "client_kib": kib["client_kib"]}
+    out.update(_validate_and_rerun(cfg, store))
+    reads, train = _read_stages(store, frames, tmp)
+    out.update(reads)
+    files, nbytes = _files_and_bytes(store)
     per = {k: 1e3 * v / frames for k, v in out.items()}
     per["scheduler_kib"], per["client_kib"] = out["scheduler_kib"] / frames, out["client_kib"] / frames
     per["files"], per["bytes"] = files / frames, nbytes / frames

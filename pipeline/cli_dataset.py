@@ -90,7 +90,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         raise ForeignStoreError(f"{store} is a non-empty folder that is not a store made by this pipeline "
                                 f"(it holds {shown}); nothing was touched: choose another --out, or pass "
                                 "--overwrite to delete its contents and build the dataset there")
-    if not schema._exists(store):
+    if not schema.store_exists(store):
         return cfg
     try:
         root, layout = schema.open_group(store, mode="r")
@@ -246,8 +246,8 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
     None when it cannot tell without creating or changing the store (no store yet, or one to grow)."""
     from stores import schema
     from stores.errors import StoreError
-    from stores.writer import _complete_flags
-    if not schema._exists(store):
+    from stores.writer import complete_flags
+    if not schema.store_exists(store):
         return None
     try:
         root, layout = schema.open_group(store, mode="r")
@@ -255,7 +255,7 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
         return None
     if layout.num_frames != cfg.num_frames or schema.absent_arrays(root):
         return None
-    done = _complete_flags(root)
+    done = complete_flags(root)
     lost = schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
     return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
@@ -263,13 +263,13 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
 def _summary(cfg: DatasetConfig, store: str, t0: float, *, results, failed, skipped, dashboard, cluster,
              validation) -> dict:
     """The run's summary dict, printed as the closing lines."""
-    from stores.writer import _complete_flags
+    from stores.writer import complete_flags
     from stores import schema
     elapsed = time.perf_counter() - t0
     render_s = sum(r["render_seconds"] for r in results)
     left = frames_to_render(cfg, store)
     complete = cfg.num_frames - len(left) if left is not None else \
-        int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
+        int(complete_flags(schema.open_group(store, check=False)[0]).sum())
     summary = {
         "store": store, "frames": cfg.num_frames, "complete": complete, "rendered": len(results),
         "skipped": skipped, "failed": failed, "elapsed_s": round(elapsed, 3),
@@ -304,8 +304,8 @@ def space_needed(cfg: DatasetConfig, store: str, frames: int) -> int | None:
         for root, _, files in os.walk(store):
             total += sum(os.path.getsize(os.path.join(root, f)) for f in files)
         from stores import schema
-        from stores.writer import _complete_flags
-        done = int(_complete_flags(schema.open_group(store, check=False)[0]).sum())
+        from stores.writer import complete_flags
+        done = int(complete_flags(schema.open_group(store, check=False)[0]).sum())
     except Exception:  # noqa: BLE001 - a store cut short by the full disk: fall back to the estimate
         done = 0
     per_frame = total / done if done else 0.18 * frame_bytes(cfg)
@@ -457,14 +457,7 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     botocore's retries (:mod:`stores.objectstore`). Whatever stops the run, the frames finished before are
     committed first (best effort), so the resume does not render them again."""
     import threading
-    ts = time.perf_counter()
-    futures = graph.submit(client)
-    if timings is not None:
-        timings["submit_s"] = time.perf_counter() - ts
-    by_future = {futures[k]: idx for idx, k in graph.writes.items()}
-    # Hold only the writes: the scheduler then frees each render result once its write is done
-    # (memory stays bounded by the frames in flight, not the dataset).
-    del futures
+    by_future = _submit_writes(client, graph, timings)
     commit = committer or Committer(writer)
     results: list[dict] = []
     failed: dict[int, str] = {}
@@ -473,64 +466,92 @@ def _execute(client, graph, writer, progress: bool, as_completed, *, watch_worke
     if watch_workers and by_future:
         threading.Thread(target=_watch_workers, args=(client, list(by_future), lost, stop),
                          name="watch-workers", daemon=True).start()
-    bar = None
-    if progress and by_future:
-        from tqdm import tqdm
-        bar = tqdm(total=len(by_future), unit="frame", desc="frames", file=sys.stderr, dynamic_ncols=True)
+    bar = _frames_bar(len(by_future)) if progress and by_future else None
 
     def full(e):
         return (on_disk_full or (lambda n: e))(len(by_future) - len(results))
-
-    def flush(how) -> None:
-        """A commit; the store's disk full is the run's StoreFullError."""
-        try:
-            how()
-        except OSError as e:
-            if not is_disk_full(e):
-                raise
-            raise full(e) from None
     finished = False
     try:
         for fut in as_completed(list(by_future), loop=client.loop):
-            idx = by_future[fut]
-            if fut.status == "finished":
-                r = fut.result()
-                commit.add(r)
-                results.append({k: v for k, v in r.items() if k != "record"})   # the committer holds it
-            elif fut.status == "cancelled":
-                continue                    # the run is stopping (workers lost): the frame stays incomplete
-            else:
-                exc = fut.exception()
-                if is_disk_full(exc):
-                    raise full(exc)
-                if unreachable_cause(exc) is not None:
-                    raise exc               # the object store is gone: every other write would fail alike
-                text = f"{type(exc).__name__}: {exc}"
-                failed[idx] = text
-                commit.fail(idx, text)
-            flush(commit.maybe_flush)
-            if bar is not None:
-                bar.update(1)
-                if failed:
-                    bar.set_postfix(failed=len(failed))
+            if _take(fut, by_future[fut], commit, results, failed, full):
+                _flush(commit.maybe_flush, full)
+                if bar is not None:
+                    bar.update(1)
+                    if failed:
+                        bar.set_postfix(failed=len(failed))
             fut.release()
-        flush(commit.flush)
+        _flush(commit.flush, full)
         finished = True
     finally:
-        stop.set()
-        if bar is not None:
-            bar.close()
-        client.cancel(list(by_future))
-        if not finished:
-            try:
-                commit.flush()              # keep what finished before the stop
-            except Exception:  # noqa: BLE001 - the stop's own error is the one to report
-                pass
+        _wind_down(client, list(by_future), commit, bar, stop, finished)
     if lost:
         raise WorkersLostError(
             f"every worker of the LocalCluster is gone (none for {lost[0]:.0f} s: killed or stopped from outside "
             f"this run); {len(results)} frame(s) were written now and stay complete: run the same command again "
             "to resume")
     return results, failed
+
+
+def _submit_writes(client, graph, timings: dict | None) -> dict:
+    """Submit ``graph`` (its seconds into ``timings["submit_s"]``): the futures of its writes, to their
+    frame indices. Only the writes are held: the scheduler then frees each render result once its
+    write is done (memory stays bounded by the frames in flight, not the dataset)."""
+    ts = time.perf_counter()
+    futures = graph.submit(client)
+    if timings is not None:
+        timings["submit_s"] = time.perf_counter() - ts
+    return {futures[k]: idx for idx, k in graph.writes.items()}
+
+
+def _wind_down(client, futures: list, commit: Committer, bar, stop, finished: bool) -> None:
+    """However :func:`_execute`'s loop ended: stop the worker watch, close the progress bar, cancel the
+    writes' ``futures`` and, unless every write was taken and committed, commit what finished before
+    the stop (best effort: the stop's own error is the one to report)."""
+    stop.set()
+    if bar is not None:
+        bar.close()
+    client.cancel(futures)
+    if not finished:
+        try:
+            commit.flush()              # keep what finished before the stop
+        except Exception:  # noqa: BLE001 - the stop's own error is the one to report
+            pass
+
+
+def _take(fut, idx: int, commit: Committer, results: list, failed: dict, full) -> bool:
+    """One finished write: its result to the committer, or its failure recorded; a full disk or an
+    unreachable object store stops the run (every other write would fail alike). False for a write
+    cancelled because the run is stopping (its frame stays incomplete)."""
+    if fut.status == "finished":
+        r = fut.result()
+        commit.add(r)
+        results.append({k: v for k, v in r.items() if k != "record"})   # the committer holds it
+        return True
+    if fut.status == "cancelled":
+        return False
+    exc = fut.exception()
+    if is_disk_full(exc):
+        raise full(exc)
+    if unreachable_cause(exc) is not None:
+        raise exc
+    text = f"{type(exc).__name__}: {exc}"
+    failed[idx] = text
+    commit.fail(idx, text)
+    return True
+
+
+def _flush(how, full) -> None:
+    """A commit; the store's disk full is the run's StoreFullError (``full(error)``)."""
+    try:
+        how()
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        raise full(e) from None
+
+
+def _frames_bar(n: int):
+    from tqdm import tqdm
+    return tqdm(total=n, unit="frame", desc="frames", file=sys.stderr, dynamic_ncols=True)
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ConfigError
-from scene_gen.checks import need
+from core.checks import need
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -83,7 +83,7 @@ def write_npz(path: Path, out: dict, feature_names) -> None:
 
 def run(args) -> int:
     from pipeline.render import render_frame
-    from scene_gen.imageio import write_png
+    from core.images import write_png
     from scene_gen.sampling import sample_scene
     from stores.contract import FEATURE_NAMES
 

@@ -38,11 +38,12 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
+from distributed import LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
-from scene_gen.checks import is_int, is_number, need
+from core.checks import is_int, is_number, need
 
 
 class ClusterError(PipelineError, ConnectionError):
@@ -214,37 +215,43 @@ def render_gpus(cfg: ClusterConfig) -> list[str]:
     return have[:g] if isinstance(g, int) else [str(x) for x in g]
 
 
-def _gpu_cluster_class():
-    from distributed import LocalCluster
+class GPULocalCluster(LocalCluster):
+    """One worker process per GPU, and never two on one: the worker of GPU ``d`` has
+    ``CUDA_VISIBLE_DEVICES=d`` (so drjit and torch see it as device 0) and the worker resource
+    ``GPU: 1``; a replacement worker takes the GPU no other worker holds, and the cluster never grows
+    past its GPUs (:meth:`scale` caps the count; a worker spec without a free GPU is refused).
 
-    class GPULocalCluster(LocalCluster):
-        """One worker process per GPU: the worker of GPU ``d`` has ``CUDA_VISIBLE_DEVICES=d`` (so drjit
-        and torch see it as device 0) and the worker resource ``GPU: 1``; a replaced worker takes a
-        GPU no other worker holds. dask-cuda's LocalCUDACluster does the same but needs NVML (pynvml)
-        and a GPU to start; this needs neither, so the CPU tests start it with pretended devices."""
+    Not dask-cuda's ``LocalCUDACluster``, which does the same per-GPU setup: it needs NVML (pynvml) and
+    a working driver to start, and numba; none of them is on the GPU check machine, and the CPU tests
+    start this one with pretended devices. What LocalCUDACluster adds beyond it (RMM pools, UCX) the
+    renderer does not use."""
 
-        def __init__(self, gpus: list[str], **kw):
-            self.gpus = list(gpus)
-            super().__init__(n_workers=0, **kw)
-            self.scale(len(self.gpus))
+    def __init__(self, gpus: list[str], **kw):
+        self.gpus = list(gpus)
+        super().__init__(n_workers=0, **kw)
+        self.scale(len(self.gpus))
 
-        def new_worker_spec(self):
-            ((name, spec),) = super().new_worker_spec().items()
-            held = {w["options"].get("env", {}).get("CUDA_VISIBLE_DEVICES") for w in self.worker_spec.values()}
-            gpu = next((g for g in self.gpus if g not in held), self.gpus[0])
-            opts = dict(spec["options"])
-            opts["env"] = {**opts.get("env", {}), "CUDA_VISIBLE_DEVICES": gpu}
-            opts["resources"] = {**(opts.get("resources") or {}), "GPU": 1}
-            return {name: {**spec, "options": opts}}
+    def scale(self, n: int = 0, memory=None, cores=None):
+        """Scale to ``n`` workers, at most one a GPU."""
+        return super().scale(min(int(n), len(self.gpus)), memory=memory, cores=cores)
 
-    return GPULocalCluster
+    def new_worker_spec(self):
+        ((name, spec),) = super().new_worker_spec().items()
+        held = {w["options"].get("env", {}).get("CUDA_VISIBLE_DEVICES") for w in self.worker_spec.values()}
+        free = [g for g in self.gpus if g not in held]
+        if not free:
+            raise ClusterError(f"every GPU of this LocalCluster ({', '.join(self.gpus)}) has a worker already; "
+                               "one worker a GPU")
+        opts = dict(spec["options"])
+        opts["env"] = {**opts.get("env", {}), "CUDA_VISIBLE_DEVICES": free[0]}
+        opts["resources"] = {**(opts.get("resources") or {}), "GPU": 1}
+        return {name: {**spec, "options": opts}}
 
 
 def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
     """A LocalCluster of ``workers`` (or ``cfg.workers``, or one per core) single-purpose processes on
     127.0.0.1, its dashboard at :func:`dashboard_bind` of ``cfg.dashboard_address``; where
-    :func:`render_gpus` finds GPUs, one worker per GPU instead (``GPULocalCluster``)."""
-    from distributed import LocalCluster
+    :func:`render_gpus` finds GPUs, one worker per GPU instead (:class:`GPULocalCluster`)."""
     from pipeline import worker_init
     check_dashboard(cfg.dashboard_address)
     worker_init.prepare_environment()
@@ -260,7 +267,7 @@ def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
         if workers or cfg.workers:
             say(f"cluster: one worker per GPU ({n}: {', '.join(gpus)}); --workers / cluster.workers apply to CPU "
                 "workers (cluster.gpus: null for those)", flush=True)
-        cluster = _gpu_cluster_class()(gpus, **kw)
+        cluster = GPULocalCluster(gpus, **kw)
         cluster.wait_for_workers(n, timeout=120)
         return cluster
     except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
@@ -316,80 +323,109 @@ def job_settings(cfg: ClusterConfig) -> dict:
       ``scheduler_options`` names one.
 
     Raises ConfigError (exit 2) naming the setting."""
-    import shlex
-
-    from dask.utils import parse_bytes
-
-    from pipeline import worker_init
-    from scene_gen.variant import VariantError, find_libllvm
-    where = "dataset.cluster.jobqueue"
     kw = dict(cfg.jobqueue)
-    tpw = cfg.threads_per_worker
+    _job_threads(kw, cfg.threads_per_worker)
+    _job_memory(kw)
+    kw["python"] = job_python(kw.get("python") or sys.executable)
+    logs = kw.get("log_directory")
+    if isinstance(logs, str) and logs and not logs.startswith(("$", "~")):
+        kw["log_directory"] = os.path.abspath(logs)     # the #SBATCH -o/-e paths, whatever the job's directory
+    extra_env = _job_workers(kw, cfg.kind)
+    kw["job_script_prologue"] = _job_prologue(kw, extra_env)
+    opts = kw.get("scheduler_options") or {}
+    need(isinstance(opts, dict), f"{JOBQUEUE}.scheduler_options", "a mapping of Scheduler arguments", opts,
+         ConfigError)
+    opts = dict(opts)
+    if "dashboard_address" not in opts and "dashboard" not in opts:
+        if cfg.dashboard_address is None:
+            opts["dashboard"] = False
+        else:
+            opts["dashboard_address"] = dashboard_bind(cfg.dashboard_address)
+    kw["scheduler_options"] = opts
+    return kw
+
+
+JOBQUEUE = "dataset.cluster.jobqueue"     # where the settings live, in messages
+
+
+def _job_threads(kw: dict, tpw: int) -> None:
+    """``cores``, ``processes`` (default ``cores / threads_per_worker``) and ``job_cpu`` of a job, checked."""
     cores, procs = kw.get("cores"), kw.get("processes")
-    need(is_int(cores) and cores >= 1, f"{where}.cores", "an integer >= 1 (the CPUs one job asks for)", cores,
+    need(is_int(cores) and cores >= 1, f"{JOBQUEUE}.cores", "an integer >= 1 (the CPUs one job asks for)", cores,
          ConfigError)
     if procs is None:
         if cores % tpw:
-            raise ConfigError(f"{where}.cores ({cores}) must be a multiple of dataset.cluster.threads_per_worker "
+            raise ConfigError(f"{JOBQUEUE}.cores ({cores}) must be a multiple of dataset.cluster.threads_per_worker "
                               f"({tpw}): a job runs cores / threads_per_worker workers")
         kw["processes"] = procs = cores // tpw
     else:
-        need(is_int(procs) and procs >= 1, f"{where}.processes", "an integer >= 1 (Dask workers a job)", procs,
+        need(is_int(procs) and procs >= 1, f"{JOBQUEUE}.processes", "an integer >= 1 (Dask workers a job)", procs,
              ConfigError)
     if procs * tpw != cores:
         fixes = [f"processes: {cores // tpw}"] if cores % tpw == 0 else []
         fixes += [f"dataset.cluster.threads_per_worker: {cores // procs}"] if cores % procs == 0 else []
-        raise ConfigError(f"{where}: cores ({cores}) must equal processes ({procs}) x "
+        raise ConfigError(f"{JOBQUEUE}: cores ({cores}) must equal processes ({procs}) x "
                           f"dataset.cluster.threads_per_worker ({tpw}): each of a job's workers gets cores / "
                           "processes threads and drjit renders "
                           f"with a worker's threads; set {' or '.join(fixes) or 'them to agree'}")
     job_cpu = kw.get("job_cpu")
-    need(job_cpu is None or (is_int(job_cpu) and job_cpu >= cores), f"{where}.job_cpu",
+    need(job_cpu is None or (is_int(job_cpu) and job_cpu >= cores), f"{JOBQUEUE}.job_cpu",
          f"null (= cores) or an integer >= cores ({cores}): the job's workers run {cores} threads", job_cpu,
          ConfigError)
+
+
+def _job_memory(kw: dict) -> None:
+    from dask.utils import parse_bytes
     mem = kw.get("memory")
     try:
         if isinstance(mem, bool) or int(parse_bytes(str(mem))) <= 0:
             raise ValueError(mem)
     except (ValueError, TypeError):
-        raise ConfigError(f"{where}.memory must be a size like '4GiB' (the memory one job asks for, shared by its "
-                          f"{procs} worker(s)), got {mem!r}") from None
-    kw["python"] = job_python(kw.get("python") or sys.executable)
-    logs = kw.get("log_directory")
-    if isinstance(logs, str) and logs and not logs.startswith(("$", "~")):
-        kw["log_directory"] = os.path.abspath(logs)     # the #SBATCH -o/-e paths, whatever the job's directory
+        raise ConfigError(f"{JOBQUEUE}.memory must be a size like '4GiB' (the memory one job asks for, shared by "
+                          f"its {kw['processes']} worker(s)), got {mem!r}") from None
 
+
+def _job_workers(kw: dict, kind: str) -> list[str]:
+    """The workers' command line (``worker_extra_args``: resources, ``gpus_per_job``, the preload) and the
+    environment lines that go with it (a GPU job's workers split its GPUs)."""
+    from pipeline import worker_init
     extra = kw.get("worker_extra_args") or []
-    need(isinstance(extra, list), f"{where}.worker_extra_args", "a list of `dask worker` arguments", extra,
+    need(isinstance(extra, list), f"{JOBQUEUE}.worker_extra_args", "a list of `dask worker` arguments", extra,
          ConfigError)
     extra = [str(a) for a in extra]
-    res = kw.pop("resources", None)
-    gpus = kw.pop("gpus_per_job", None)
+    res, gpus, extra_env = kw.pop("resources", None), kw.pop("gpus_per_job", None), []
     if gpus is not None:
-        if not (is_int(gpus) and gpus >= 1) or gpus != procs:
-            raise ConfigError(f"{where}.gpus_per_job must be an integer >= 1 equal to the job's workers (processes: "
-                              f"{procs}; one worker per GPU), got {gpus!r}; set processes and cores to match")
-        if cfg.kind == "slurm":
+        if not (is_int(gpus) and gpus >= 1) or gpus != kw["processes"]:
+            raise ConfigError(f"{JOBQUEUE}.gpus_per_job must be an integer >= 1 equal to the job's workers "
+                              f"(processes: {kw['processes']}; one worker per GPU), got {gpus!r}; set processes "
+                              "and cores to match")
+        if kind == "slurm":
             dirs = [str(d) for d in kw.get("job_extra_directives") or []]
             if not any(d.startswith(("--gres=gpu", "--gpus")) for d in dirs):
                 kw["job_extra_directives"] = dirs + [f"--gres=gpu:{gpus}"]
         res = {**(res or {}), "GPU": 1}
         extra_env = [f"export {worker_init.GPU_SPLIT_ENV}=1"]
-    else:
-        extra_env = []
     if res is not None:
         need(isinstance(res, dict) and res and all(
             isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
-            and is_number(v) and v > 0 for k, v in res.items()), f"{where}.resources",
+            and is_number(v) and v > 0 for k, v in res.items()), f"{JOBQUEUE}.resources",
             "a mapping of resource names to the amount each worker has, e.g. {GPU: 1}", res, ConfigError)
         if "--resources" in extra:
-            raise ConfigError(f"{where}: worker resources are given twice, as resources and as --resources in "
+            raise ConfigError(f"{JOBQUEUE}: worker resources are given twice, as resources and as --resources in "
                               "worker_extra_args; keep one")
         extra += ["--resources", ",".join(f"{k}={v}" for k, v in res.items())]
     if PRELOAD not in extra:
         extra += ["--preload", PRELOAD]
     kw["worker_extra_args"] = extra
+    return extra_env
 
+
+def _job_prologue(kw: dict, extra_env: list[str]) -> list[str]:
+    """The job script's first lines (``job_settings``' docstring), then the config's own."""
+    import shlex
+
+    from core.errors import VariantError
+    from core.variant import find_libllvm
     lines = [f"cd {shlex.quote(os.getcwd())}"]
     lines += [f"export {k}=1" for k in JOB_THREAD_ENV]
     try:
@@ -405,19 +441,8 @@ def job_settings(cfg: ClusterConfig) -> dict:
     kw.pop("env_extra", None)
     if isinstance(user, str):
         user = [user]
-    need(isinstance(user, list), f"{where}.job_script_prologue", "a list of shell lines", user, ConfigError)
-    kw["job_script_prologue"] = lines + [str(x) for x in user]
-
-    opts = kw.get("scheduler_options") or {}
-    need(isinstance(opts, dict), f"{where}.scheduler_options", "a mapping of Scheduler arguments", opts, ConfigError)
-    opts = dict(opts)
-    if "dashboard_address" not in opts and "dashboard" not in opts:
-        if cfg.dashboard_address is None:
-            opts["dashboard"] = False
-        else:
-            opts["dashboard_address"] = dashboard_bind(cfg.dashboard_address)
-    kw["scheduler_options"] = opts
-    return kw
+    need(isinstance(user, list), f"{JOBQUEUE}.job_script_prologue", "a list of shell lines", user, ConfigError)
+    return lines + [str(x) for x in user]
 
 
 def job_python(python: str) -> str:

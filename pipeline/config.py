@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SCENE_KINDS
 from stores.schema import StoreLayout
 
@@ -277,13 +277,12 @@ def balanced_splits(n: int, fractions: dict, seed: int) -> list[str]:
 
 
 def clip_id_for(seed: int, split: str, fractions: dict) -> int:
-    """The first of ``seed + j * 2**31`` (j = 0, 1, ...) that ``stores.reader.split_of_clip`` puts in
-    ``split`` (distinct scene seeds give distinct clip ids)."""
-    from stores.reader import split_of_clip
-    for j in range(MAX_CLIP_ID_TRIES):
-        c = int(seed) + j * CLIP_ID_STRIDE
-        if split_of_clip(c, fractions) == split:
-            return c
+    """The clip id the store's split hash puts in ``split`` for a scene of ``seed``
+    (``stores.reader.clip_id_in_split``: distinct scene seeds give distinct clip ids)."""
+    from stores.reader import clip_id_in_split
+    c = clip_id_in_split(seed, split, fractions, stride=CLIP_ID_STRIDE, tries=MAX_CLIP_ID_TRIES)
+    if c is not None:
+        return c
     raise ConfigError(f"dataset.split: no clip id in {MAX_CLIP_ID_TRIES} tries falls in split {split!r} "
                       f"(fraction {fractions.get(split)}); use a larger fraction")
 

@@ -1,12 +1,12 @@
-"""Errors raised by the pipeline. Command-line ``main()`` turns them into exit codes."""
-from scene_gen.errors import VariantError  # noqa: F401  (raised by the variant leaf, scene_gen.variant)
+"""Errors raised by the pipeline (on :mod:`core.errors`). Command-line ``main()`` turns them into exit codes."""
+from core.errors import ProjectError, SettingError
 
 
-class PipelineError(Exception):
+class PipelineError(ProjectError):
     """Base class of every pipeline error."""
 
 
-class ConfigError(PipelineError, ValueError):
+class ConfigError(PipelineError, SettingError):
     """A configuration value is invalid; the message names the field and its allowed range."""
 
 

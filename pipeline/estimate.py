@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 
 from pipeline.errors import ConfigError
-from scene_gen.checks import need
+from core.checks import need
 
 
 def scratch_dir() -> str | None:
@@ -122,7 +122,7 @@ def _warm_worker(threads: int, cache_dir: str | None = None) -> None:
     them from an earlier run."""
     if cache_dir:
         os.environ["DRJIT_CACHE_DIR"] = cache_dir
-    from pipeline.variant import mitsuba
+    from core.variant import mitsuba
     mi = mitsuba(threads=threads)
     import pipeline.render  # noqa: F401
     d = mi.cornell_box()

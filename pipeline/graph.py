@@ -18,11 +18,13 @@ Keys (stage first, because the dashboard's progress pane groups tasks by the key
                                             the client commits (``stores.writer``: metadata, status last)
 
 ``T`` is a short token of (dataset content, store path), so two datasets on one shared scheduler never
-share a key. Store writes: one task per frame gathers its parts and writes the frame's chunk-aligned
-region with ``status/complete`` last (``pipeline.tasks.write_frame``); at most one frame's parts wait in
-memory per write, and write tasks have a higher priority than renders so finished frames leave memory
-first. Validation and the summary run after the writes (``pipeline.cli_dataset``) because frames that
-keep failing are recorded in the store first.
+share a key. Store writes (schema v3, ``stores.writer``): one task per frame gathers its parts and writes
+the frame's image shards only (``pipeline.tasks.write_frame``) and returns its record; the client commits
+finished frames' records together (``frames/*``, then ``status/error``, then ``status/complete`` last;
+``pipeline.cli_dataset.Committer``), so no task writes a shared metadata chunk. At most one frame's parts
+wait in memory per write, and write tasks have a higher priority than renders so finished frames leave
+memory first. Validation and the summary run after the writes (``pipeline.cli_dataset``) because frames
+that keep failing are recorded in the store first.
 """
 from __future__ import annotations
 

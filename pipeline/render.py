@@ -34,7 +34,7 @@ roulette, box pixel filter, built by ``scene_gen.to_mitsuba``):
   Rec. 709 luminance.
 - **Guides** (float32, HWC): per-pixel means of the input samples' albedo, normal (not
   renormalised), depth and motion; ``camera_to_world`` and ``world_to_clip`` (float64 4x4, see
-  ``pipeline.camera`` for the conventions).
+  ``scene_gen.projection`` for the conventions).
 
 Time, motion blur and motion vectors. Time ``t`` in [0, 1) is the fraction of the shutter: the
 scene time is ``tau = frame + spec.shutter * t`` (frames). Mitsuba has no moving geometry inside one
@@ -60,7 +60,7 @@ motion 0, and vectors are capped at ``MOTION_LIMIT`` (16) image sizes (so they f
 not follow reflections or refraction (they describe the primary hit). They are computed for every
 scene (cheap); without moving objects or cameras they are exactly 0.
 
-Circle of confusion (``coc``): signed radius in pixels, ``pipeline.camera.coc_pixels`` (0 at the
+Circle of confusion (``coc``): signed radius in pixels, ``scene_gen.projection.coc_pixels`` (0 at the
 focus distance, + behind focus, - in front); 0 everywhere without defocus (no lens sampling:
 ``lens_u = lens_v = 0``).
 
@@ -88,9 +88,9 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline import camera as cam_geom
+from scene_gen import projection as cam_geom
 from pipeline.errors import ConfigError, RenderError
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 from scene_gen.spec import SceneSpec
 from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META, NUM_FEATURES
 
@@ -176,9 +176,10 @@ def stream_seed(scene_seed: int, frame: int, stream: int, *index: int, offset: i
     return int(ss.generate_state(1, np.uint32)[0] >> 1)
 
 
-def _rng(spec: SceneSpec, frame: int, cfg: RenderConfig, *index: int) -> np.random.Generator:
+def _rng(seed: int, frame: int, cfg: RenderConfig, *index: int) -> np.random.Generator:
+    """The time-jitter stream of a scene ``seed``'s frame (``STREAM_TIME``)."""
     return np.random.default_rng(np.random.SeedSequence(
-        [int(spec.seed), int(frame), STREAM_TIME, *map(int, index), int(cfg.seed_offset)]))
+        [int(seed), int(frame), STREAM_TIME, *map(int, index), int(cfg.seed_offset)]))
 
 
 def _van_der_corput(n: int) -> np.ndarray:
@@ -212,55 +213,34 @@ class FrameScene:
 
     def __init__(self, spec: SceneSpec, frame: int, cfg: RenderConfig,
                  on_scene_loaded: Callable | None = None, *, merge: bool = True):
-        from pipeline.variant import mitsuba
+        from core.variant import mitsuba
         from scene_gen import to_mitsuba
 
         self.mi = mi = mitsuba(threads=cfg.threads or None)
         import drjit as dr
         self.dr = dr
-        self.spec, self.frame, self.cfg = spec, int(frame), cfg
-        self.cam = spec.camera(frame)
-        self.prev_cam = spec.camera(frame - 1) if frame > 0 else self.cam
-        self.scene = to_mitsuba.load(spec, frame, cfg.res, merge=merge)
+        self.frame, self.cfg = int(frame), cfg
+        # the one call from spec to scene: nothing below reads the spec
+        self.loaded = ld = to_mitsuba.load_frame(spec, frame, cfg.res, merge=merge, on_loaded=on_scene_loaded)
+        self.scene, self.cam, self.prev_cam = ld.scene, ld.camera, ld.prev_camera
+        self.seed, self.num_frames, self.case = ld.seed, ld.num_frames, ld.case
         self.merged = bool(merge)
-        if spec.case:                       # a hard case that edits the loaded scene (the nan case)
-            from scene_gen.cases import scene_hook
-            hook = scene_hook(spec)
-            if hook is not None:
-                hook(self.scene)
-        if on_scene_loaded is not None:
-            on_scene_loaded(self.scene)
         self.sensor = self.scene.sensors()[0]
         self.integrator = self.scene.integrator()
         self.sampler = mi.load_dict({"type": "independent"})
-        self.has_motion = bool(spec.has_motion)
-        self.has_defocus = bool(self.cam.defocus)
-        self.camera_to_world = cam_geom.camera_to_world(self.cam)
+        self.has_motion, self.has_defocus = ld.has_motion, ld.has_defocus
+        self.camera_to_world = ld.camera_to_world
         self.view_axis = self.camera_to_world[:3, 2]
-        self.world_to_clip = cam_geom.world_to_clip(self.cam, cfg.res)
-        self.prev_world_to_clip = cam_geom.world_to_clip(self.prev_cam, cfg.res)
+        self.world_to_clip, self.prev_world_to_clip = ld.world_to_clip, ld.prev_world_to_clip
         self._check_sensor()
-
-        lut_size = self._shape_tables(merge)
+        lut_size = self._shape_tables()
         self.consts, self.consts_u = self._input_constants(lut_size)
         self.integrator_depths = self._path_depths()
-        self._params = None
-        self._base = {}
-        self._time = 0.0
-        if self.has_motion:
-            self._params = mi.traverse(self.scene)
-            for o in spec.objects:
-                if o.moving:
-                    key = f"{o.name}.vertex_positions"
-                    if key not in self._params:
-                        raise RenderError(f"moving object {o.name!r} has no {key!r} parameter in the Mitsuba scene")
-                    self._base[o.name] = np.array(self._params[key], np.float64).reshape(-1, 3)
 
-    def _shape_tables(self, merge: bool) -> int:
+    def _shape_tables(self) -> int:
         """The per-shape tables (index 0 = no hit; a merged shape's objects share one material and are
         static) in numpy and on the drjit side, where the input kernel looks them up by registry id -
         ``lut_base``. Returns the size of that lookup table."""
-        from scene_gen import to_mitsuba
         mi, dr = self.mi, self.dr
         shapes = self.scene.shapes()
         ids = np.asarray(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), np.int64).ravel()
@@ -269,7 +249,7 @@ class FrameScene:
         self._order = np.argsort(ids)
         self._sorted_ids = ids[self._order]
         # per-shape tables; a merged shape's objects share one material and are static
-        members = dict(to_mitsuba.shape_groups(self.spec, merge))
+        members = self.loaded.shapes
         n = len(shapes) + 1
         self.specular = np.zeros((n, 3))
         self.roughness = np.zeros(n)
@@ -310,8 +290,7 @@ class FrameScene:
     def _path_depths(self) -> tuple[int, int]:
         """(max_depth, rr_depth) of the scene's ``path`` integrator, which the input loop's own path tracer
         (``pipeline.primary_path``) follows; ``scene_gen.to_mitsuba.integrator_dict`` is their one source."""
-        from scene_gen.to_mitsuba import integrator_dict
-        d = integrator_dict(self.spec)
+        d = self.loaded.integrator
         text = str(self.integrator)
         if (d["type"] != "path" or d.get("hide_emitters") or "PathIntegrator" not in text
                 or f"max_depth = {d['max_depth']}," not in text or f"rr_depth = {d['rr_depth']}" not in text):
@@ -321,27 +300,19 @@ class FrameScene:
     def _check_sensor(self):
         m = np.array(self.sensor.world_transform().matrix, np.float64).reshape(4, 4)
         if not np.allclose(m, self.camera_to_world, atol=1e-4 * max(1.0, np.abs(self.camera_to_world).max())):
-            raise RenderError("the Mitsuba sensor's to_world differs from pipeline.camera.camera_to_world: "
-                              "scene_gen.to_mitsuba and pipeline.camera disagree on camera conventions")
+            raise RenderError("the Mitsuba sensor's to_world differs from scene_gen.projection.camera_to_world: "
+                              "scene_gen.to_mitsuba and scene_gen.projection disagree on camera conventions")
         x_fov = float(np.ravel(self.mi.traverse(self.sensor)["x_fov"])[0])
         if abs(x_fov - self.cam.fov) > 1e-3:
             raise RenderError(f"sensor x_fov {x_fov} differs from camera.fov {self.cam.fov} (fov_axis must be 'x')")
 
     def tau(self, t) -> np.ndarray | float:
         """Scene time in frames of shutter fraction(s) ``t``."""
-        return self.frame + self.spec.shutter * np.asarray(t, np.float64)
+        return self.loaded.tau(t)
 
     def set_time(self, t: float) -> None:
         """Put the moving objects where they are at shutter fraction ``t`` (no-op without motion)."""
-        if not self.has_motion or t == self._time:
-            return
-        dtau = self.spec.shutter * float(t)
-        for o in self.spec.objects:
-            if o.moving:
-                v = self._base[o.name] + np.asarray(o.velocity, np.float64) * dtau
-                self._params[f"{o.name}.vertex_positions"] = self.mi.Float(v.astype(np.float32).ravel())
-        self._params.update()
-        self._time = float(t)
+        self.loaded.set_time(t)
 
     def shape_index(self, registry_ids: np.ndarray) -> np.ndarray:
         """Table index (int64, 0 = no hit) of drjit shape registry ids (0 = no hit)."""
@@ -639,7 +610,7 @@ def _geometry(fs: FrameScene, seed: int, row0: int, rows: int, s_per: int, t: fl
 
 def _project(fs: FrameScene, rd: _Reads, slot: int, p, w):
     """Pixel coordinates (x, y) and validity of world points ``p`` (w = 1) or directions (w = 0) under
-    the world-to-clip matrix at ``slot`` of the frame's constants (rows x, y, w; ``pipeline.camera.
+    the world-to-clip matrix at ``slot`` of the frame's constants (rows x, y, w; ``scene_gen.projection.
     project_pixels`` in drjit; invalid: behind the camera or nearer than its near plane)."""
     dr = fs.dr
     W, H = fs.cfg.res
@@ -750,16 +721,16 @@ def _input_wavefronts(fs: FrameScene):
     arguments of :func:`_trace` and the ``(H, W, S)`` slice of the frame they fill. Time slices first
     (samples ``k * s_per ...`` of every pixel at slice time ``t_k``), then row chunks of at most
     ``cfg.max_wavefront`` lanes; each has its own seed."""
-    cfg, spec, frame = fs.cfg, fs.spec, fs.frame
+    cfg, frame = fs.cfg, fs.frame
     W, H = cfg.res
     slices = math.gcd(cfg.time_slices, cfg.spp) if fs.has_motion else 1
     s_per = cfg.spp // slices
-    times = slice_times(_rng(spec, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
+    times = slice_times(_rng(fs.seed, frame, cfg, 0), slices) if fs.has_motion else np.zeros(1)
     rows_per = max(1, min(H, cfg.max_wavefront // (W * s_per)))
     for k, t in enumerate(times):
         for c, row0 in enumerate(range(0, H, rows_per)):
             rows = min(rows_per, H - row0)
-            seed = stream_seed(spec.seed, frame, STREAM_INPUTS, k, c, offset=cfg.seed_offset)
+            seed = stream_seed(fs.seed, frame, STREAM_INPUTS, k, c, offset=cfg.seed_offset)
             yield (seed, row0, rows, s_per, float(t)), np.s_[row0:row0 + rows, :, k * s_per:(k + 1) * s_per]
 
 
@@ -857,11 +828,11 @@ def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices:
     """Plain ``mi.render`` mean (float64, HWC) of ``spp`` samples, time-sliced when the scene moves."""
     cfg = fs.cfg
     slices = math.gcd(max_slices or cfg.time_slices, spp) if fs.has_motion else 1
-    times = slice_times(_rng(fs.spec, fs.frame, cfg, stream, index), slices) if fs.has_motion else np.zeros(1)
+    times = slice_times(_rng(fs.seed, fs.frame, cfg, stream, index), slices) if fs.has_motion else np.zeros(1)
     acc = 0.0
     for k, t in enumerate(times):
         fs.set_time(float(t))
-        acc = acc + _mi_render(fs, spp // slices, stream_seed(fs.spec.seed, fs.frame, stream, index, k,
+        acc = acc + _mi_render(fs, spp // slices, stream_seed(fs.seed, fs.frame, stream, index, k,
                                                                 offset=cfg.seed_offset))
     return acc / slices
 
@@ -895,7 +866,7 @@ def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float
     passes = cfg.ref_passes
     pass_spp = cfg.ref_spp // passes
     k = math.gcd(cfg.ref_time_slices, pass_spp) if fs.has_motion else 1
-    shift = _rng(fs.spec, fs.frame, cfg, STREAM_REFERENCE).random()
+    shift = _rng(fs.seed, fs.frame, cfg, STREAM_REFERENCE).random()
     times = np.minimum((_van_der_corput(passes * k) + shift) % 1.0, np.nextafter(1.0, 0.0)).reshape(passes, k)
     cnt = np.zeros((H, W, 1))
     s1 = np.zeros((H, W, 3))
@@ -907,7 +878,7 @@ def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float
         img = 0.0
         for j in range(k):
             fs.set_time(float(times[p, j]) if fs.has_motion else 0.0)
-            img = img + _mi_render(fs, pass_spp // k, stream_seed(fs.spec.seed, fs.frame, STREAM_REFERENCE, p, j,
+            img = img + _mi_render(fs, pass_spp // k, stream_seed(fs.seed, fs.frame, STREAM_REFERENCE, p, j,
                                                                   offset=cfg.seed_offset))
         img = img / k
         nan = np.isnan(img).any(axis=-1, keepdims=True)
@@ -958,8 +929,9 @@ def _contiguous(out: dict, keys) -> dict:
 def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     """Per-sample inputs of a frame: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17),
     guides (float32, HWC: per-pixel sample means of albedo, normal, depth, motion), ``camera_to_world``
-    and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``
-    and ``seconds``."""
+    and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``,
+    the scene's ``scene_seed``, ``num_frames`` and ``case`` (what :func:`assemble` records of it) and
+    ``seconds``."""
     t0 = _time.perf_counter()
     out = input_samples(fs, sample_hook)
     bad = out.pop("nonfinite")
@@ -967,6 +939,7 @@ def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     _contiguous(out, INPUT_KEYS)
     fs.set_time(0.0)
     out.update(nonfinite_inputs=int(bad), has_motion=bool(fs.has_motion), has_defocus=bool(fs.has_defocus),
+               scene_seed=int(fs.seed), num_frames=int(fs.num_frames), case=str(fs.case),
                seconds=_time.perf_counter() - t0)
     return out
 
@@ -991,19 +964,18 @@ def reference_part(fs: FrameScene) -> dict:
             "seconds": _time.perf_counter() - t0}
 
 
-def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict, *,
-             spec: SceneSpec | None = None) -> dict:
-    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts. ``spec``: the
-    parsed ``spec_json``, when the caller has it (a clip's JSON grows with its length)."""
-    spec = SceneSpec.from_json(spec_json) if spec is None else spec
+def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
+    """The ``stores.contract`` frame dict (``FRAME_ARRAYS`` + ``meta``) from the three parts; what it records
+    of the scene comes from the inputs part (the loaded scene's), and ``spec_json`` is stored as it is
+    (never parsed here: a clip's JSON grows with its length)."""
     out = {k: inputs[k] for k in INPUT_KEYS}
     out.update({k: layers[k] for k in LAYER_KEYS})
     out.update({k: reference[k] for k in REFERENCE_KEYS})
     out["meta"] = {
         "scene_json": spec_json,
-        "scene_seed": int(spec.seed),
+        "scene_seed": int(inputs["scene_seed"]),
         "frame": int(frame),
-        "num_frames": int(spec.num_frames),
+        "num_frames": int(inputs["num_frames"]),
         "has_motion": bool(inputs["has_motion"]),
         "has_defocus": bool(inputs["has_defocus"]),
         "nonfinite_inputs": int(inputs["nonfinite_inputs"]),
@@ -1012,7 +984,7 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "reference_spp": int(reference["reference_spp"]),
         "reference_rel_stderr": float(reference["reference_rel_stderr"]),
         "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
-        "case": spec.case,              # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
+        "case": str(inputs["case"]),    # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
     }
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")
@@ -1020,32 +992,35 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
 
 
 def render_frame(spec: SceneSpec, frame: int, cfg: RenderConfig | None = None, *,
-                 on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None,
-                 scene: FrameScene | None = None, spec_json: str | None = None) -> dict:
-    """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``,
-    i.e. :func:`assemble` of :func:`inputs_part`, :func:`layers_part` and :func:`reference_part` on one
-    loaded scene (the dataset graph's whole-frame task; split, its three tasks do it on up to three),
-    plus ``oracle``.
+                 on_scene_loaded: Callable | None = None, sample_hook: Callable | None = None) -> dict:
+    """Render frame ``frame`` of ``spec``: the ``stores.contract.FRAME_ARRAYS`` dict plus ``meta``
+    (:func:`render_loaded` of the frame's :class:`FrameScene`), plus ``oracle``.
 
     ``on_scene_loaded(scene)`` may modify the freshly loaded ``mi.Scene`` (tests inject NaN emitters
-    with it); ``sample_hook`` see :func:`render_inputs`; ``scene``: an already loaded
-    :class:`FrameScene` of this spec, frame and config; ``spec_json``: ``spec.to_json()`` when the caller
-    has it. Raises ``RenderError`` / ``ConfigError``.
+    with it); ``sample_hook`` see :func:`render_inputs`. Raises ``RenderError`` / ``ConfigError``.
     """
     cfg = cfg or RenderConfig()
     if not isinstance(cfg, RenderConfig):
         raise ConfigError(f"cfg must be a RenderConfig, got {type(cfg).__name__}")
     if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= frame < spec.num_frames:
         raise RenderError(f"frame {frame!r} out of range: the scene has {spec.num_frames} frame(s)")
-    frame = int(frame)
     t0 = _time.perf_counter()
-    fs = scene if scene is not None else FrameScene(spec, frame, cfg, on_scene_loaded)
+    fs = FrameScene(spec, int(frame), cfg, on_scene_loaded)
     load_seconds = _time.perf_counter() - t0
-    parts = inputs_part(fs, sample_hook), layers_part(fs), reference_part(fs)
-    out = assemble(spec.to_json() if spec_json is None else spec_json, frame, *parts, spec=spec)
+    out = render_loaded(fs, spec.to_json(), sample_hook)
     out["meta"]["render_seconds"] += load_seconds
-    if cfg.oracle_spp > 0:
-        out["oracle"] = render_oracle(fs, cfg.oracle_spp)
+    return out
+
+
+def render_loaded(fs: FrameScene, spec_json: str, sample_hook: Callable | None = None) -> dict:
+    """The frame of a loaded :class:`FrameScene`: :func:`assemble` of :func:`inputs_part`,
+    :func:`layers_part` and :func:`reference_part` on it (the dataset graph's whole-frame task; split,
+    its three tasks do it on up to three), plus ``oracle`` when ``cfg.oracle_spp``. ``spec_json`` is the
+    scene's JSON, stored as it is."""
+    parts = inputs_part(fs, sample_hook), layers_part(fs), reference_part(fs)
+    out = assemble(spec_json, fs.frame, *parts)
+    if fs.cfg.oracle_spp > 0:
+        out["oracle"] = render_oracle(fs, fs.cfg.oracle_spp)
         fs.set_time(0.0)
     return out
 

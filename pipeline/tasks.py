@@ -213,10 +213,10 @@ def render_reference(spec_json: str, frame: int, render: dict) -> dict:
 
 
 def render_whole_frame(spec_json: str, frame: int, render: dict) -> dict:
-    """The whole frame in one task (``pipeline.render.render_frame``): the ``stores.contract`` dict."""
-    from pipeline.render import render_frame
+    """The whole frame in one task (``pipeline.render.render_loaded``): the ``stores.contract`` dict."""
+    from pipeline.render import render_loaded
     with frame_scene(spec_json, frame, render) as fs:
-        out = render_frame(fs.spec, int(frame), fs.cfg, scene=fs, spec_json=spec_json)
+        out = render_loaded(fs, spec_json)
         out["meta"]["render_seconds"] += fs.load_seconds
     del out["meta"]["scene_json"]       # the write task has it (its spec argument): not sent along a frame
     return out
@@ -225,8 +225,7 @@ def render_whole_frame(spec_json: str, frame: int, render: dict) -> dict:
 def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
     """The ``stores.contract`` frame dict from the three parts (``pipeline.render.assemble``)."""
     from pipeline.render import assemble as _assemble
-    spec = parsed_spec(spec_json, hashlib.sha1(spec_json.encode()).hexdigest())
-    return _assemble(spec_json, frame, inputs, layers, reference, spec=spec)
+    return _assemble(spec_json, frame, inputs, layers, reference)
 
 
 _writers: OrderedDict = OrderedDict()      # (store, generation) -> StoreWriter, a few per process

@@ -42,7 +42,8 @@ def gpu_for_worker(name: str, visible: str | None) -> str | None:
 def prepare_environment() -> None:
     """drjit's libLLVM, single-threaded BLAS/OpenMP pools and botocore's retries (inherited by worker
     processes)."""
-    from scene_gen.variant import VariantError, find_libllvm
+    from core.errors import VariantError
+    from core.variant import find_libllvm
     try:
         lib = find_libllvm()
     except VariantError:

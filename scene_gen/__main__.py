@@ -4,7 +4,7 @@
     python -m scene_gen spec --seed 3 --kind outdoor                   # the SceneSpec as JSON
     python -m scene_gen contact-sheet --count 16 --res 160 --spp 64 --out docs/contact_sheet.png
 
-Previews use a fixed tone map (``scene_gen.imageio.tonemap``: log(1 + x), then sRGB; no auto
+Previews use a fixed tone map (``core.images.display``: log(1 + x), then sRGB; no auto
 exposure), so what looks right here is what the training data holds. Errors are one line on stderr
 with exit code 2.
 """
@@ -20,11 +20,12 @@ import numpy as np
 
 from scene_gen import to_mitsuba
 from scene_gen.config import ConfigError, SceneGenConfig
-from scene_gen.errors import SceneGenError, VariantError
+from core.errors import VariantError
+from scene_gen.errors import SceneGenError
 from scene_gen.families import family_names
-from scene_gen.imageio import tonemap, write_exr, write_png
+from core.images import display as tonemap, write_exr, write_png
 from scene_gen.sampling import sample_scene
-from scene_gen.variant import mitsuba
+from core.variant import mitsuba
 
 
 def _config(path: str | None):

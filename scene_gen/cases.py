@@ -54,7 +54,7 @@ import numpy as np
 from scene_gen import cameras as cams
 from scene_gen.config import ConfigError, SceneGenConfig
 from scene_gen.spec import LightSpec, MaterialSpec, MeshSpec, ObjectSpec, SceneSpec, Transform
-from scene_gen.variant import mitsuba
+from core.variant import mitsuba
 
 MAX_DEPTH = 8.0          # D: placement depth cap (world units)
 SUN_SCALE = 150.0        # sunsky sun_scale of the sun case (the generator draws 1.2-2.6): sun radiance ~1.5e6

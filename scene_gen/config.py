@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from scene_gen.checks import is_number, known_keys, need, need_int
+from core.checks import is_number, known_keys, need, need_int
 from scene_gen.errors import ConfigError, SpecError  # noqa: F401  (ConfigError re-exported)
 from scene_gen.families import Setting, family_settings
 

@@ -1,7 +1,8 @@
-"""Errors raised by scene generation."""
+"""Errors raised by scene generation (on :mod:`core.errors`)."""
+from core.errors import ProjectError, SettingError
 
 
-class SceneGenError(Exception):
+class SceneGenError(ProjectError):
     """Base class of every scene_gen error."""
 
 
@@ -13,9 +14,5 @@ class MeshError(SceneGenError, RuntimeError):
     """A mesh could not be built or loaded (the message names the file or mesh kind)."""
 
 
-class ConfigError(SpecError):
+class ConfigError(SpecError, SettingError):
     """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
-
-
-class VariantError(SceneGenError, RuntimeError):
-    """The Mitsuba variant cannot start (missing or broken libLLVM, no CUDA, ...); ``scene_gen.variant``."""

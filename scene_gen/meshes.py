@@ -133,10 +133,6 @@ class MeshData:
         return int(self.faces.shape[0])
 
     @property
-    def num_vertices(self) -> int:
-        return int(self.vertices.shape[0])
-
-    @property
     def bounds(self) -> np.ndarray:
         """(float32, 2×3): per-axis minimum and maximum of the vertices."""
         if len(self.vertices) == 0:

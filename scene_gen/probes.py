@@ -16,7 +16,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from scene_gen.textures import _fbm
+from scene_gen.textures import fbm
 
 DEFAULTS = {
     "seed": 0, "sun_elevation": 35.0, "sun_azimuth": 40.0, "sun_radiance": 2.0e4, "sun_size": 1.2,
@@ -61,7 +61,7 @@ def _make_probe(params_json: str, height: int) -> np.ndarray:
     img = np.where(below, ground, sky) * p["sky_radiance"]
     if p["clouds"] > 0:
         rng = np.random.default_rng(np.random.SeedSequence([int(p["seed"]), 0xC10D]))
-        n = _fbm(rng, 2 * height)[:height, :]
+        n = fbm(rng, 2 * height)[:height, :]
         cover = np.clip((n - (1 - p["clouds"])) * 4, 0, 1) * (y > 0.02)
         img = img * (1 - cover[..., None]) + (0.9 * p["sky_radiance"]) * cover[..., None] * np.clip(y, 0.2, 1)[..., None]
     s = sun_direction(p)

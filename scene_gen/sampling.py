@@ -97,37 +97,42 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
     vel = np.array([o.velocity or (0.0, 0.0, 0.0) for o in objs], float).reshape(-1, 3)
     vis = cams.visible_any_frame(frames, centers, radii, vel, (res, res), cfg.shutter if motion else 0.0)
     keep = np.array([o.keep for o in objs], bool) | vis
-    # defocus: focus on a random visible content object
     if defocus:
-        cand = [i for i, o in enumerate(objs) if not o.keep and vis[i]]
-        if cand:
-            i = cand[int(r_lens.integers(len(cand)))]
-        else:
-            i = None
-        dists = []
-        for f, cam in enumerate(frames):
-            if i is None:
-                d = float(np.linalg.norm(np.subtract(cam.target, cam.origin)))
-            else:
-                d = float(cams.to_camera(cam, centers[i] + vel[i] * f)[0, 2])
-            dists.append(max(d, 0.1))
-        aperture = cams.sample_aperture(r_lens, dists[0], cfg.aperture_range)
-        frames = [cams.make_camera(c.origin, c.target, c.fov, aperture, d) for c, d in zip(frames, dists)]
-    # triangle budgets from the largest projected radius over the frames
+        frames = _focus(frames, objs, vis, centers, vel, r_lens, cfg)
     rpx = cams.max_projected_radius(frames, centers, radii, vel, (res, res))
-    out = []
-    for i, o in enumerate(objs):
-        if not keep[i] or (not cfg.pymeshlab and meshes.needs_pymeshlab(o.mesh)):
-            continue
-        mesh = o.mesh
-        if o.budget and cfg.pymeshlab:
-            b = triangle_budget(float(min(rpx[i], 1e6)), tris_per_px=cfg.tris_per_px, min=cfg.min_triangles,
-                                max=cfg.max_triangles)
-            mesh = MeshSpec(mesh.kind, mesh.params, mesh.seed, b, mesh.children)
-        v = o.velocity if (motion and o.velocity is not None and any(x != 0 for x in o.velocity)) else None
-        out.append(ObjectSpec(o.name, mesh, o.material, o.transform, velocity=v, emitter_radiance=o.emitter))
+    out = [_object_spec(o, rpx[i], motion, cfg) for i, o in enumerate(objs)
+           if keep[i] and (cfg.pymeshlab or not meshes.needs_pymeshlab(o.mesh))]
     return SceneSpec(kind=kind, seed=int(seed), objects=tuple(out), lights=tuple(lay.lights), cameras=tuple(frames),
                      shutter=float(cfg.shutter), max_depth=int(cfg.max_depth))
+
+
+def _focus(frames: list, objs: list, vis: np.ndarray, centers: np.ndarray, vel: np.ndarray,
+           r_lens: np.random.Generator, cfg: SceneGenConfig) -> list:
+    """The frames' cameras with a thin lens focused on a random visible content object (its distance in
+    each frame; the target's distance when none is visible) and one aperture for the clip."""
+    cand = [i for i, o in enumerate(objs) if not o.keep and vis[i]]
+    i = cand[int(r_lens.integers(len(cand)))] if cand else None
+    dists = []
+    for f, cam in enumerate(frames):
+        if i is None:
+            d = float(np.linalg.norm(np.subtract(cam.target, cam.origin)))
+        else:
+            d = float(cams.to_camera(cam, centers[i] + vel[i] * f)[0, 2])
+        dists.append(max(d, 0.1))
+    aperture = cams.sample_aperture(r_lens, dists[0], cfg.aperture_range)
+    return [cams.make_camera(c.origin, c.target, c.fov, aperture, d) for c, d in zip(frames, dists)]
+
+
+def _object_spec(o: Placed, rpx: float, motion: bool, cfg: SceneGenConfig) -> ObjectSpec:
+    """A placed object as the SceneSpec holds it: its mesh's triangle budget from its largest projected
+    radius over the frames (``rpx``, pixels), its velocity in a scene with motion."""
+    mesh = o.mesh
+    if o.budget and cfg.pymeshlab:
+        b = triangle_budget(float(min(rpx, 1e6)), tris_per_px=cfg.tris_per_px, min=cfg.min_triangles,
+                            max=cfg.max_triangles)
+        mesh = MeshSpec(mesh.kind, mesh.params, mesh.seed, b, mesh.children)
+    v = o.velocity if (motion and o.velocity is not None and any(x != 0 for x in o.velocity)) else None
+    return ObjectSpec(o.name, mesh, o.material, o.transform, velocity=v, emitter_radiance=o.emitter)
 
 
 def _apply_palette(rng: np.random.Generator, objs: list, k: int) -> None:

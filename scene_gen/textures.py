@@ -25,7 +25,7 @@ def _value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
     return a * (1 - f)[:, None] + b * f[:, None]
 
 
-def _fbm(rng: np.random.Generator, size: int, octaves: int = 5) -> np.ndarray:
+def fbm(rng: np.random.Generator, size: int, octaves: int = 5) -> np.ndarray:
     out = np.zeros((size, size))
     amp, total = 1.0, 0.0
     for o in range(octaves):
@@ -48,7 +48,7 @@ def _pattern(spec: TextureSpec, size: int) -> np.ndarray:
         duty = rng.uniform(0.2, 0.8)
         return ((u * n) % 1.0 < duty).astype(np.float64)
     if spec.kind == "noise":
-        v = _fbm(rng, size)
+        v = fbm(rng, size)
         lo, hi = np.percentile(v, [2, 98])
         return np.clip((v - lo) / max(hi - lo, 1e-6), 0, 1)
     if spec.kind == "cells":

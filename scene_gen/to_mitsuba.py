@@ -17,21 +17,21 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from scene_gen import meshes
+from scene_gen import meshes, projection
 from scene_gen.errors import SpecError
 from scene_gen.probes import make_probe
 from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
 from scene_gen.textures import make_texture
-from scene_gen.variant import mitsuba
+from core.variant import mitsuba
 
 TEXTURE_SIZE = 256
 PROBE_HEIGHT = 256
-NEAR_CLIP = 1e-2   # sensor clip planes (world units); Mitsuba starts camera rays on the near plane
-FAR_CLIP = 1e4
+NEAR_CLIP, FAR_CLIP = projection.NEAR, projection.FAR     # the sensor's clip planes
 
 
 def _mi():
@@ -180,26 +180,11 @@ def light_dict(light: LightSpec, mi=None) -> dict:
     raise ValueError(f"light kind {light.kind!r} is attached to shapes, not a standalone emitter")
 
 
-def camera_to_world(cam: CameraSpec) -> np.ndarray:
-    """4x4 camera-to-world (float64) with Mitsuba's look-at convention (+z forward, +y up, +x left)."""
-    o, t, up = (np.asarray(x, np.float64) for x in (cam.origin, cam.target, cam.up))
-    d = t - o
-    d /= np.linalg.norm(d)
-    left = np.cross(up, d)
-    if np.linalg.norm(left) < 1e-9:  # up parallel to the view direction: pick another up
-        left = np.cross(np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 0.0, 1.0]), d)
-    left /= np.linalg.norm(left)
-    new_up = np.cross(d, left)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
-    return m
-
-
 def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None) -> dict:
     mi = mi or _mi()
     w, h = res
     d = {"type": "thinlens" if cam.defocus else "perspective", "fov": float(cam.fov), "fov_axis": "x",
-         "near_clip": NEAR_CLIP, "far_clip": FAR_CLIP, "to_world": mi.ScalarTransform4f(camera_to_world(cam).tolist()),
+         "near_clip": NEAR_CLIP, "far_clip": FAR_CLIP, "to_world": mi.ScalarTransform4f(projection.camera_to_world(cam).tolist()),
          "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
                   "rfilter": {"type": "box"}, "sample_border": False},
          "sampler": {"type": "independent"}}
@@ -317,3 +302,100 @@ def load(spec: SceneSpec, frame: int = 0, res: tuple[int, int] | int = (256, 256
          merge: bool = False):
     """``mi.load_dict(scene_dict(...))``."""
     return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau, merge=merge))
+
+
+@dataclass(eq=False)
+class LoadedScene:
+    """One frame of a SceneSpec loaded into Mitsuba (:func:`load_frame`), with everything a renderer asks of
+    its scene, so that it never reads the spec again: the Mitsuba ``scene``; the scene's ``seed``,
+    ``num_frames``, hard ``case`` and ``shutter``; this frame's camera and the previous one's (a clip's
+    first frame: its own) with their matrices at the film ``res`` (``scene_gen.projection``); the objects
+    each Mitsuba shape holds (``shapes``: shape id -> objects, one material each), the ``path``
+    integrator's settings, and the objects that move, which :meth:`set_time` puts where they are at a
+    shutter fraction."""
+
+    scene: Any
+    seed: int
+    frame: int
+    num_frames: int
+    case: str
+    shutter: float
+    res: tuple[int, int]
+    camera: CameraSpec
+    prev_camera: CameraSpec
+    shapes: dict[str, tuple[ObjectSpec, ...]]
+    integrator: dict
+    moving: tuple[ObjectSpec, ...]
+    _params: Any = None
+    _base: dict = field(default_factory=dict)
+    _time: float = 0.0
+
+    @property
+    def has_motion(self) -> bool:
+        """Objects move during the exposure (``SceneSpec.has_motion``)."""
+        return self.shutter > 0.0 and bool(self.moving)
+
+    @property
+    def has_defocus(self) -> bool:
+        return bool(self.camera.defocus)
+
+    @property
+    def camera_to_world(self) -> np.ndarray:
+        return projection.camera_to_world(self.camera)
+
+    @property
+    def world_to_clip(self) -> np.ndarray:
+        return projection.world_to_clip(self.camera, self.res)
+
+    @property
+    def prev_world_to_clip(self) -> np.ndarray:
+        return projection.world_to_clip(self.prev_camera, self.res)
+
+    def _moving_objects(self) -> "LoadedScene":
+        """Where the moving objects' vertices are at rest (the shutter's start), read once at load."""
+        if self.has_motion:
+            self._params = _mi().traverse(self.scene)
+            for o in self.moving:
+                key = f"{o.name}.vertex_positions"
+                if key not in self._params:
+                    raise SpecError(f"moving object {o.name!r} has no {key!r} parameter in the Mitsuba scene")
+                self._base[o.name] = np.array(self._params[key], np.float64).reshape(-1, 3)
+        return self
+
+    def tau(self, t) -> np.ndarray | float:
+        """Scene time in frames of shutter fraction(s) ``t``."""
+        return self.frame + self.shutter * np.asarray(t, np.float64)
+
+    def set_time(self, t: float) -> None:
+        """Put the moving objects where they are at shutter fraction ``t`` (no-op without motion)."""
+        if not self.has_motion or t == self._time:
+            return
+        mi = _mi()
+        dtau = self.shutter * float(t)
+        for o in self.moving:
+            v = self._base[o.name] + np.asarray(o.velocity, np.float64) * dtau
+            self._params[f"{o.name}.vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+        self._params.update()
+        self._time = float(t)
+
+
+def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge: bool = True,
+               on_loaded=None) -> LoadedScene:
+    """Frame ``frame`` of ``spec`` loaded into Mitsuba at film ``res`` (W, H): the one call that turns a
+    SceneSpec into what a renderer needs (:class:`LoadedScene`). ``merge``: see :func:`scene_dict`. A
+    hard case that edits the loaded scene (``scene_gen.cases.scene_hook``: the ``nan`` case) is applied,
+    then ``on_loaded(scene)`` (tests inject values with it), before anything renders."""
+    from scene_gen.cases import scene_hook
+    res = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
+    scene = load(spec, frame, res, merge=merge)
+    hook = scene_hook(spec) if spec.case else None
+    if hook is not None:
+        hook(scene)
+    if on_loaded is not None:
+        on_loaded(scene)
+    cam = spec.camera(frame)
+    return LoadedScene(scene=scene, seed=int(spec.seed), frame=int(frame), num_frames=spec.num_frames,
+                       case=spec.case, shutter=float(spec.shutter), res=res, camera=cam,
+                       prev_camera=spec.camera(frame - 1) if frame > 0 else cam,
+                       shapes=dict(shape_groups(spec, merge)), integrator=integrator_dict(spec),
+                       moving=tuple(o for o in spec.objects if o.moving))._moving_objects()

@@ -703,8 +703,8 @@ def _dataset_figures(r: dict, summary: Path, store: Path, workers: int) -> dict:
             " | ".join(r["tail"])
         try:
             from stores import schema
-            from stores.writer import _complete_flags
-            d["complete"] = int(_complete_flags(schema.open_group(str(store), check=False)[0]).sum())
+            from stores.writer import complete_flags
+            d["complete"] = int(complete_flags(schema.open_group(str(store), check=False)[0]).sum())
             d["frames_per_s_wall"] = d["complete"] / r["seconds"]
         except Exception as e:  # noqa: BLE001 - no store yet
             d["complete"] = f"unknown ({_err(e)})"

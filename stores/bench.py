@@ -60,18 +60,12 @@ def _dir_bytes(path: str) -> int:
                if f != "zarr.json")
 
 
-def compare_codecs(frames: list[dict]) -> list[dict]:
-    """Per-sample inputs (radiance + features) of ``frames`` under candidate encodings, whole frames
-    sample-major ``(S, C, H, W)`` like the store (one row channel-major ``(C, H, W, S)``): ratio to
-    float32 bytes and decode time per frame."""
+def _codec_cases() -> list[tuple]:
+    """The candidate encodings of :func:`compare_codecs`: ``(name, Blosc codec (None: raw bytes),
+    radiance encoder, feature dtype or rounding ("br16", "grp16"), layout ("sm", "cm"))``."""
     from numcodecs import Blosc
 
-    from stores.codecs import decode_log16, encode_log16
-    layouts = {"sm": (2, 3, 0, 1), "cm": (3, 0, 1, 2)}
-    rad_l = {k: [np.ascontiguousarray(f["radiance"].transpose(p)) for f in frames] for k, p in layouts.items()}
-    feat_l = {k: [np.ascontiguousarray(f["features"].transpose(p)) for f in frames] for k, p in layouts.items()}
-    rad, feat = rad_l["sm"], feat_l["sm"]
-    raw = sum(r.nbytes + f.nbytes for r, f in zip(rad, feat))
+    from stores.codecs import KEEPBITS, bitround, encode_log16
     lz4 = Blosc("lz4", 5, Blosc.SHUFFLE)
     zstd = Blosc("zstd", 3, Blosc.BITSHUFFLE)
     lz4b = Blosc("lz4", 5, Blosc.BITSHUFFLE)
@@ -87,7 +81,6 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
         ("  the same, channel-major (C,H,W,S)", lz4, ident, np.float16, "cm"),
         ("log16 radiance + f16 features, lz4-5 + shuffle", lz4, encode_log16, np.float16, "sm"),
     ]
-    from stores.codecs import KEEPBITS, bitround
     br = lambda r: bitround(r, KEEPBITS)  # noqa: E731
     lz4hc = Blosc("lz4hc", 9, Blosc.BITSHUFFLE)
     cases += [
@@ -98,48 +91,65 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
         ("  the same, sample-major (S,C,H,W)", lz4hc, br, "br16", "sm"),
         ("  the same (C,H,W,S), zstd-5 + bitshuffle", Blosc("zstd", 5, Blosc.BITSHUFFLE), br, "br16", "cm"),
     ]
-    from stores.codecs import bitround_channels, feature_keepbits
-    feat_axis = {"sm": 1, "cm": 0}
-    rows = []
-    for name, codec, enc_r, fdt, lay in cases:
-        nbytes, dec_s = 0, 0.0
-        overflow = 0
-        for r, f in zip(rad_l[lay], feat_l[lay]):
-            with np.errstate(over="ignore"):
-                if fdt == "br16":                 # compact's features: rounded once in float32, then float16
-                    ef = np.ascontiguousarray(bitround(f, KEEPBITS).astype(np.float16))
-                    er = np.ascontiguousarray(enc_r(r))
-                elif fdt == "grp16":              # compact2's: each feature group to its own bits
-                    ef = bitround_channels(f, feature_keepbits(), feat_axis[lay]).astype(np.float16)
-                    ef = np.ascontiguousarray(ef)
-                    er = np.ascontiguousarray(enc_r(r))
-                else:
-                    er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
-            overflow += int(np.isinf(er.astype(np.float32)).sum()) if er.dtype == np.float16 else 0
-            if codec is None:
-                nbytes += er.nbytes + ef.nbytes
-                continue
-            br, bf = codec.encode(er), codec.encode(ef)
-            nbytes += len(br) + len(bf)
-            t = time.perf_counter()
-            dr = np.frombuffer(codec.decode(br), er.dtype)
-            if er.dtype == np.uint16:
-                dr = decode_log16(dr)
-            np.frombuffer(codec.decode(bf), ef.dtype)
-            dec_s += time.perf_counter() - t
-        rows.append({"encoding": name, "ratio": nbytes / raw, "decode_ms_per_frame": 1e3 * dec_s / len(rad),
-                     "inf_after_encoding": overflow})
-    return rows
+    return cases
 
 
-def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, crops: int, crop: int,
-                      repeats: int = 3) -> dict:
-    """Write ``frame_list`` to a schema v1 and a v2 store (interleaved, ``repeats`` times, medians),
-    then time the same random crops and whole frames from both (interleaved, medians)."""
-    paths = {v: os.path.join(tmp, f"ck-v{v}.zarr") for v in (1, 2)}
-    for v, p in paths.items():
-        schema.create_store(p, layout, {"bench": True}, schema_version=v)
-    writers = {v: StoreWriter(p) for v, p in paths.items()}
+def _encode_inputs(r: np.ndarray, f: np.ndarray, enc_r, fdt, lay: str) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's radiance ``r`` and features ``f`` (layout ``lay``) as a case of :func:`_codec_cases`
+    hands them to its codec, each contiguous."""
+    from stores.codecs import KEEPBITS, bitround, bitround_channels, feature_keepbits
+    with np.errstate(over="ignore"):
+        if fdt == "br16":                 # compact's features: rounded once in float32, then float16
+            ef = np.ascontiguousarray(bitround(f, KEEPBITS).astype(np.float16))
+            er = np.ascontiguousarray(enc_r(r))
+        elif fdt == "grp16":              # compact2's: each feature group to its own bits
+            ef = bitround_channels(f, feature_keepbits(), {"sm": 1, "cm": 0}[lay]).astype(np.float16)
+            ef = np.ascontiguousarray(ef)
+            er = np.ascontiguousarray(enc_r(r))
+        else:
+            er, ef = np.ascontiguousarray(enc_r(r)), np.ascontiguousarray(f.astype(fdt))
+    return er, ef
+
+
+def _codec_row(case: tuple, rads: list, feats: list, raw: int) -> dict:
+    """One row of :func:`compare_codecs`: ``case`` (of :func:`_codec_cases`) over the frames' radiance
+    ``rads`` and features ``feats`` in its layout; ``raw``: their float32 bytes."""
+    from stores.codecs import decode_log16
+    name, codec, enc_r, fdt, lay = case
+    nbytes, dec_s = 0, 0.0
+    overflow = 0
+    for r, f in zip(rads, feats):
+        er, ef = _encode_inputs(r, f, enc_r, fdt, lay)
+        overflow += int(np.isinf(er.astype(np.float32)).sum()) if er.dtype == np.float16 else 0
+        if codec is None:
+            nbytes += er.nbytes + ef.nbytes
+            continue
+        br, bf = codec.encode(er), codec.encode(ef)
+        nbytes += len(br) + len(bf)
+        t = time.perf_counter()
+        dr = np.frombuffer(codec.decode(br), er.dtype)
+        if er.dtype == np.uint16:
+            dr = decode_log16(dr)
+        np.frombuffer(codec.decode(bf), ef.dtype)
+        dec_s += time.perf_counter() - t
+    return {"encoding": name, "ratio": nbytes / raw, "decode_ms_per_frame": 1e3 * dec_s / len(rads),
+            "inf_after_encoding": overflow}
+
+
+def compare_codecs(frames: list[dict]) -> list[dict]:
+    """Per-sample inputs (radiance + features) of ``frames`` under candidate encodings, whole frames
+    sample-major ``(S, C, H, W)`` like the store (one row channel-major ``(C, H, W, S)``): ratio to
+    float32 bytes and decode time per frame."""
+    layouts = {"sm": (2, 3, 0, 1), "cm": (3, 0, 1, 2)}
+    rad_l = {k: [np.ascontiguousarray(f["radiance"].transpose(p)) for f in frames] for k, p in layouts.items()}
+    feat_l = {k: [np.ascontiguousarray(f["features"].transpose(p)) for f in frames] for k, p in layouts.items()}
+    raw = sum(r.nbytes + f.nbytes for r, f in zip(rad_l["sm"], feat_l["sm"]))
+    return [_codec_row(case, rad_l[case[4]], feat_l[case[4]], raw) for case in _codec_cases()]
+
+
+def _write_interleaved(writers: dict, frame_list: list[dict], repeats: int) -> dict:
+    """Seconds of every ``write_frame`` of ``frame_list``, ``repeats`` times, by schema version, the
+    versions' writes of a frame back to back."""
     write = {1: [], 2: []}
     for _ in range(repeats):
         for i, fr in enumerate(frame_list):
@@ -147,13 +157,14 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
                 t = time.perf_counter()
                 w.write_frame(i, fr)
                 write[v].append(time.perf_counter() - t)
+    return write
+
+
+def _checksum_read_ways(paths: dict, images: list[str], crop: int) -> dict:
+    """The reads :func:`compare_checksums` times, by name, each ``fn(i, y, x)``: crops through the fast
+    path and through zarr-python, and whole frames (every image array), of the v1 and the v2 store."""
     stores = {v: open_store(p) for v, p in paths.items()}
     zstores = {v: open_store(p, fast=False) for v, p in paths.items()}
-    crop = min(crop, layout.height, layout.width)
-    rng = np.random.default_rng(1)
-    picks = [(int(rng.integers(len(frame_list))), int(rng.integers(0, layout.height - crop + 1)),
-              int(rng.integers(0, layout.width - crop + 1))) for _ in range(crops)]
-    images = [s.path for s in ARRAYS if s.image]
 
     def crop_read(st, i, y, x):
         st.read_array("inputs/radiance", i, (y, x, crop, crop))
@@ -166,6 +177,12 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
     ways = {f"crop_v{v}": (lambda v: lambda i, y, x: crop_read(stores[v], i, y, x))(v) for v in (1, 2)}
     ways.update({f"zarr_crop_v{v}": (lambda v: lambda i, y, x: crop_read(zstores[v], i, y, x))(v) for v in (1, 2)})
     ways.update({f"frame_v{v}": (lambda v: lambda i, y, x: frame_read(stores[v], i))(v) for v in (1, 2)})
+    return ways
+
+
+def _alternating_median_ms(ways: dict, picks: list, repeats: int) -> dict:
+    """Median ms of each of ``ways`` over ``picks`` ``repeats`` times, after one warm-up call each; all
+    ways back to back a pick, alternating which goes first."""
     times = {k: [] for k in ways}
     for fn in ways.values():
         fn(*picks[0])
@@ -174,16 +191,38 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
             t = time.perf_counter()
             ways[k](*pick)
             times[k].append(time.perf_counter() - t)
-    med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
-    # the checksum arithmetic alone: CRC-32C over every byte of one frame's image shards (v2)
+    return {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+
+
+def _crc_seconds(path: str, images: list[str]) -> tuple[float, int]:
+    """The checksum arithmetic alone: seconds of CRC-32C over every byte of frame 0's image shards in
+    the store at ``path`` (mean of 5), and those bytes."""
     from stores.codecs import crc32c
-    blobs = [open(os.path.join(paths[2], *a.split("/"), *schema.chunk_key(schema.ARRAY_BY_PATH[a], 0).split("/")),
+    blobs = [open(os.path.join(path, *a.split("/"), *schema.chunk_key(schema.ARRAY_BY_PATH[a], 0).split("/")),
                   "rb").read() for a in images]
     t = time.perf_counter()
     for _ in range(5):
         for b in blobs:
             crc32c(b)
-    crc_s = (time.perf_counter() - t) / 5
+    return (time.perf_counter() - t) / 5, sum(len(b) for b in blobs)
+
+
+def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, crops: int, crop: int,
+                      repeats: int = 3) -> dict:
+    """Write ``frame_list`` to a schema v1 and a v2 store (interleaved, ``repeats`` times, medians),
+    then time the same random crops and whole frames from both (interleaved, medians)."""
+    paths = {v: os.path.join(tmp, f"ck-v{v}.zarr") for v in (1, 2)}
+    for v, p in paths.items():
+        schema.create_store(p, layout, {"bench": True}, schema_version=v)
+    write = _write_interleaved({v: StoreWriter(p) for v, p in paths.items()}, frame_list, repeats)
+    images = [s.path for s in ARRAYS if s.image]
+    crop = min(crop, layout.height, layout.width)
+    ways = _checksum_read_ways(paths, images, crop)
+    rng = np.random.default_rng(1)
+    picks = [(int(rng.integers(len(frame_list))), int(rng.integers(0, layout.height - crop + 1)),
+              int(rng.integers(0, layout.width - crop + 1))) for _ in range(crops)]
+    med = _alternating_median_ms(ways, picks, repeats)
+    crc_s, nbytes = _crc_seconds(paths[2], images)
     out = {f"write_ms_v{v}": 1e3 * float(np.median(write[v])) for v in (1, 2)}
     out.update({f"{k}_ms": v for k, v in med.items()})
     for v, p in paths.items():
@@ -192,10 +231,98 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
         a, b = out[f"{k}_ms_v1" if k == "write" else f"{k}_v1_ms"], out[f"{k}_ms_v2" if k == "write" else f"{k}_v2_ms"]
         out[f"{k}_overhead"] = b / a - 1.0
     out["bytes_overhead"] = out["bytes_v2"] / out["bytes_v1"] - 1.0
-    nbytes = sum(len(b) for b in blobs)
     out.update({"crc_ms_per_frame": 1e3 * crc_s, "crc_gb_per_s": nbytes / crc_s / 1e9, "frame_shard_bytes": nbytes})
     out.update({"frames": len(frame_list), "crop": crop, "crops": crops})
     return out
+
+
+def _write_synthetic(store: str, *, frames: int, size: int, spp: int, encoding: str | None) -> tuple[list, float]:
+    """Write ``frames`` synthetic frames to a new store at ``store``: (the frames, write seconds a frame)."""
+    synth = _synthetic()
+    w = open_or_create(store, StoreLayout(num_frames=frames, height=size, width=size, spp=spp,
+                                          encoding=encoding), {"bench": True})
+    frame_list = []
+    t_write = 0.0
+    for i in range(frames):
+        fr = synth(1000 + i, size, size, spp, sun=(i == 0))
+        frame_list.append(fr)
+        t = time.perf_counter()
+        w.write_frame(i, fr)
+        t_write += time.perf_counter() - t
+    return frame_list, t_write / frames
+
+
+def _crop_read_ways(s, store, tmp: str, crop: int, spp: int) -> dict:
+    """The crop reads :func:`run` times, by name, each ``fn(i, y, x)``: the fast path (``s``), zarr-python,
+    2 read threads, float32 tensors (``SampleFrames``' read), the ``np.load`` ceiling and, where tiles
+    are square, tile-aligned crops."""
+    lay = s.layout
+    zs = open_store(store, fast=False)
+    import torch
+
+    def tensors(i, y, x):        # what training.datasets.SampleFrames makes of a crop: float32 tensors
+        for name in ("inputs/radiance", "inputs/features"):
+            a = s.read_array(name, i, (y, x, crop, crop), samples=spp)
+            torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32)
+    tile = lay.tile_y
+    npy = os.path.join(tmp, "crop.npy")
+    np.save(npy, np.zeros((spp, 20, crop, crop), np.float32))
+
+    def read(st, i, y, x):
+        st.read_array("inputs/radiance", i, (y, x, crop, crop), samples=spp)
+        st.read_array("inputs/features", i, (y, x, crop, crop), samples=spp)
+
+    st2 = open_store(store, threads=2)
+    ways = {"fast": lambda i, y, x: read(s, i, y, x), "zarr": lambda i, y, x: read(zs, i, y, x),
+            "threads2": lambda i, y, x: read(st2, i, y, x),
+            "tensors": tensors,
+            "ceiling": lambda i, y, x: np.load(npy)}
+    if lay.tile_x == tile:
+        ways["aligned"] = lambda i, y, x: read(s, i, (y // tile) * tile, (x // tile) * tile)
+    return ways
+
+
+def _interleaved_median_s(ways: dict, picks: list) -> dict:
+    """Median seconds of each of ``ways`` over ``picks``, after one warm-up call each; all ways back to
+    back a pick."""
+    times = {k: [] for k in ways}
+    for k, fn in ways.items():                 # warm the page cache and the readers
+        fn(*picks[0])
+    for i, y, x in picks:                      # interleaved, so machine load hits all alike
+        for k, fn in ways.items():
+            t = time.perf_counter()
+            fn(i, y, x)
+            times[k].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def _crop_figures(med: dict, *, encoding: str, crop: int, spp: int, crops: int, mb: float) -> dict:
+    """:func:`run`'s crop-read figures from the median seconds ``med`` of :func:`_crop_read_ways`."""
+    out = {
+        "encoding": encoding, "crop": crop, "spp": spp, "crops": crops, "mb_per_crop": mb,
+        "crops_per_s": 1 / med["fast"], "mb_per_s": mb / med["fast"],
+        "zarr_crops_per_s": 1 / med["zarr"], "zarr_mb_per_s": mb / med["zarr"],
+        "tensor_crops_per_s": 1 / med["tensors"], "tensor_mb_per_s": mb / med["tensors"],
+        "ceiling_crops_per_s": 1 / med["ceiling"], "ceiling_mb_per_s": mb / med["ceiling"],
+        "fraction_of_ceiling": med["ceiling"] / med["fast"],
+        "tensor_fraction_of_ceiling": med["ceiling"] / med["tensors"],
+    }
+    out.update({"threads2_crops_per_s": 1 / med["threads2"], "threads2_mb_per_s": mb / med["threads2"],
+                "threads2_fraction_of_ceiling": med["ceiling"] / med["threads2"]})
+    if "aligned" in med:
+        out.update({"aligned_crops_per_s": 1 / med["aligned"], "aligned_mb_per_s": mb / med["aligned"],
+                    "aligned_fraction_of_ceiling": med["ceiling"] / med["aligned"]})
+    return out
+
+
+def _stored_over_raw(store, lay: StoreLayout, frames: int) -> float:
+    """Bytes of the image arrays' files / their float32 bytes over ``frames`` frames."""
+    stored = raw = 0
+    for spec in ARRAYS:
+        if spec.image:
+            stored += _dir_bytes(os.path.join(os.fspath(store), *spec.path.split("/")))
+            raw += int(np.prod(spec.shape(lay)[1:])) * 4 * frames
+    return stored / max(raw, 1)
 
 
 def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: int = 4, size: int = 256,
@@ -207,18 +334,9 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
     try:
         frame_list = []
         if store is None:
-            synth = _synthetic()
             store = os.path.join(tmp, "bench.zarr")
-            w = open_or_create(store, StoreLayout(num_frames=frames, height=size, width=size, spp=spp,
-                                                  encoding=encoding), {"bench": True})
-            t_write = 0.0
-            for i in range(frames):
-                fr = synth(1000 + i, size, size, spp, sun=(i == 0))
-                frame_list.append(fr)
-                t = time.perf_counter()
-                w.write_frame(i, fr)
-                t_write += time.perf_counter() - t
-            out["write_s_per_frame"] = t_write / frames
+            frame_list, out["write_s_per_frame"] = _write_synthetic(store, frames=frames, size=size, spp=spp,
+                                                                    encoding=encoding)
         s = open_store(store)
         lay = s.layout
         crop = min(crop, lay.height, lay.width)
@@ -228,57 +346,9 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         picks = [(int(rng.choice(done)), int(rng.integers(0, lay.height - crop + 1)),
                   int(rng.integers(0, lay.width - crop + 1))) for _ in range(crops)]
         mb = crop * crop * spp * 20 * 4 / 1e6
-        zs = open_store(store, fast=False)
-        import torch
-
-        def tensors(i, y, x):        # what training.datasets.SampleFrames makes of a crop: float32 tensors
-            for name in ("inputs/radiance", "inputs/features"):
-                a = s.read_array(name, i, (y, x, crop, crop), samples=spp)
-                torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32)
-        t = lay.tile_y
-        npy = os.path.join(tmp, "crop.npy")
-        np.save(npy, np.zeros((spp, 20, crop, crop), np.float32))
-
-        def read(st, i, y, x):
-            st.read_array("inputs/radiance", i, (y, x, crop, crop), samples=spp)
-            st.read_array("inputs/features", i, (y, x, crop, crop), samples=spp)
-
-        st2 = open_store(store, threads=2)
-        ways = {"fast": lambda i, y, x: read(s, i, y, x), "zarr": lambda i, y, x: read(zs, i, y, x),
-                "threads2": lambda i, y, x: read(st2, i, y, x),
-                "tensors": tensors,
-                "ceiling": lambda i, y, x: np.load(npy)}
-        if lay.tile_x == t:
-            ways["aligned"] = lambda i, y, x: read(s, i, (y // t) * t, (x // t) * t)
-        times = {k: [] for k in ways}
-        for k, fn in ways.items():                 # warm the page cache and the readers
-            fn(*picks[0])
-        for i, y, x in picks:                      # interleaved, so machine load hits all alike
-            for k, fn in ways.items():
-                t = time.perf_counter()
-                fn(i, y, x)
-                times[k].append(time.perf_counter() - t)
-        med = {k: float(np.median(v)) for k, v in times.items()}
-        out.update({
-            "encoding": lay.encoding, "crop": crop, "spp": spp, "crops": crops, "mb_per_crop": mb,
-            "crops_per_s": 1 / med["fast"], "mb_per_s": mb / med["fast"],
-            "zarr_crops_per_s": 1 / med["zarr"], "zarr_mb_per_s": mb / med["zarr"],
-            "tensor_crops_per_s": 1 / med["tensors"], "tensor_mb_per_s": mb / med["tensors"],
-            "ceiling_crops_per_s": 1 / med["ceiling"], "ceiling_mb_per_s": mb / med["ceiling"],
-            "fraction_of_ceiling": med["ceiling"] / med["fast"],
-            "tensor_fraction_of_ceiling": med["ceiling"] / med["tensors"],
-        })
-        out.update({"threads2_crops_per_s": 1 / med["threads2"], "threads2_mb_per_s": mb / med["threads2"],
-                    "threads2_fraction_of_ceiling": med["ceiling"] / med["threads2"]})
-        if "aligned" in med:
-            out.update({"aligned_crops_per_s": 1 / med["aligned"], "aligned_mb_per_s": mb / med["aligned"],
-                        "aligned_fraction_of_ceiling": med["ceiling"] / med["aligned"]})
-        stored = raw = 0
-        for spec in ARRAYS:
-            if spec.image:
-                stored += _dir_bytes(os.path.join(os.fspath(store), *spec.path.split("/")))
-                raw += int(np.prod(spec.shape(lay)[1:])) * 4 * len(done)
-        out["stored_over_raw"] = stored / max(raw, 1)
+        med = _interleaved_median_s(_crop_read_ways(s, store, tmp, crop, spp), picks)
+        out.update(_crop_figures(med, encoding=lay.encoding, crop=crop, spp=spp, crops=crops, mb=mb))
+        out["stored_over_raw"] = _stored_over_raw(store, lay, len(done))
         if compare and frame_list:
             out["codecs"] = compare_codecs(frame_list)
         if checksums and frame_list:
@@ -340,6 +410,90 @@ def _rel_error(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.abs(y[nz] - x[nz]) / np.abs(x[nz])
 
 
+def _write_reencoded(dst: str, lay: StoreLayout, data: list[dict], source) -> list[float]:
+    """Write the frames ``data`` into a new store at ``dst`` of layout ``lay``: seconds of each write."""
+    w = open_or_create(dst, lay, {"reencoded_from": os.fspath(source)})
+    t_write = []
+    for j, fr in enumerate(data):
+        t = time.perf_counter()
+        w.write_frame(j, fr)
+        t_write.append(time.perf_counter() - t)
+    return t_write
+
+
+def _group_bytes(dst: str, lay: StoreLayout, frames: int) -> tuple[dict, dict]:
+    """Stored bytes and float32 bytes of ``frames`` frames, by array group (:data:`GROUP_OF`)."""
+    sizes, raw = {}, {}
+    for spec in ARRAYS:
+        if spec.image:
+            g = GROUP_OF.get(spec.path, "guides")
+            sizes[g] = sizes.get(g, 0) + _dir_bytes(os.path.join(dst, *spec.path.split("/")))
+            raw[g] = raw.get(g, 0) + int(np.prod(spec.shape(lay)[1:])) * 4 * frames
+    return sizes, raw
+
+
+def _readback_errors(dst: str, data: list[dict], e: dict, row: dict) -> None:
+    """Read the frames back from ``dst``: their relative errors against ``data`` appended to ``e`` (lists
+    by key), zeros of the input radiance that changed and whether the references are bit-exact into ``row``."""
+    from stores.contract import FEATURE_GROUPS
+    back = open_store(dst)
+    for j, fr in enumerate(data):
+        got = back.read_frame(j)
+        e.setdefault("radiance", []).append(_rel_error(fr["radiance"], got["radiance"]))
+        for g, sl in FEATURE_GROUPS.items():
+            e.setdefault(f"features/{g}", []).append(_rel_error(fr["features"][..., sl],
+                                                                got["features"][..., sl]))
+        for k in ("layers", "guides_albedo", "guides_normal", "guides_depth", "guides_motion"):
+            e.setdefault(k, []).append(_rel_error(fr[k], got[k]))
+        row["zeros_changed"] += int((got["radiance"][fr["radiance"] == 0] != 0).sum())
+        row["reference_bit_exact"] &= bool(np.array_equal(got["reference"], fr["reference"])
+                                           and np.array_equal(got["reference_stderr"],
+                                                              fr["reference_stderr"]))
+
+
+def _reencode_store(path, tmp: str, *, frames: int, crops: int, encodings: tuple[str, ...],
+                    tot: dict, raw_tot: dict, errs: dict) -> dict:
+    """:func:`reencode` of the store at ``path``: its row; its bytes added to ``tot`` (stored, by
+    encoding and group) and ``raw_tot`` (float32, by group), its errors to ``errs`` (by encoding)."""
+    src = open_store(path)
+    done = src.complete_frames()
+    pick = sorted({done[int(k)] for k in np.linspace(0, len(done) - 1, min(frames, len(done)))})
+    data = [src.read_frame(i) for i in pick]
+    lay0 = src.layout
+    row: dict = {"frames": pick, "source_encoding": lay0.encoding, "zeros_changed": 0,
+                 "reference_bit_exact": True}
+    for enc in encodings:
+        lay = StoreLayout(**{**lay0.to_dict(), "num_frames": len(pick), "encoding": enc})
+        dst = os.path.join(tmp, f"{os.path.basename(os.fspath(path).rstrip('/'))}-{enc}.zarr")
+        t_write = _write_reencoded(dst, lay, data, path)
+        sizes, raw = _group_bytes(dst, lay, len(pick))
+        for g in sizes:
+            tot[enc][g] = tot[enc].get(g, 0) + sizes[g]
+            if enc == encodings[0]:
+                raw_tot[g] = raw_tot.get(g, 0) + raw[g]
+        row[enc] = {"ratio": {g: sizes[g] / raw[g] for g in sizes},
+                    "total": sum(sizes.values()) / sum(raw.values()),
+                    "write_ms_per_frame": 1e3 * float(np.median(t_write)),
+                    "crop_read": run(dst, crops=crops, compare=False, checksums=False, verbose=False)}
+        if enc != "lz4":
+            _readback_errors(dst, data, errs[enc], row)
+    return row
+
+
+def _error_summary(errs: dict) -> dict:
+    """By encoding with errors: the input radiance's max, 99.9th percentile, mean and samples, and the
+    max of every other key's errors (0 where it has none)."""
+    out = {}
+    for enc, e in errs.items():
+        if not e:
+            continue
+        rad = np.concatenate(e.pop("radiance"))
+        out[enc] = {"radiance": {"max": float(rad.max()), "p99.9": float(np.percentile(rad, 99.9)),
+                                 "mean": float(rad.mean()), "samples": int(rad.size)}}
+        out[enc].update({k: float(max((a.max() for a in v if a.size), default=0.0)) for k, v in e.items()})
+    return out
+
+
 def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True,
              encodings: tuple[str, ...] = REENCODINGS) -> dict:
     """Write ``frames`` complete frames (evenly spaced) of each store in ``paths`` into a new store of
@@ -350,7 +504,6 @@ def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True,
     non-zero samples, max per feature group and per guide; zeros must stay zero, references
     bit-exact). ``radiance_rel_error`` is that of ``encodings[0]``. Measure from a lossless (``lz4``)
     store: re-encoding a lossy one measures nothing but the difference."""
-    from stores.contract import FEATURE_GROUPS
     tmp = tempfile.mkdtemp(prefix="stores-reencode-")
     out: dict = {"stores": {}, "encodings": list(encodings)}
     tot = {e: {} for e in encodings}
@@ -358,62 +511,10 @@ def reencode(paths, *, frames: int = 4, crops: int = 40, verbose: bool = True,
     errs: dict = {e: {} for e in encodings}
     try:
         for path in paths:
-            src = open_store(path)
-            done = src.complete_frames()
-            pick = sorted({done[int(k)] for k in np.linspace(0, len(done) - 1, min(frames, len(done)))})
-            data = [src.read_frame(i) for i in pick]
-            lay0 = src.layout
-            row: dict = {"frames": pick, "source_encoding": lay0.encoding, "zeros_changed": 0,
-                         "reference_bit_exact": True}
-            for enc in encodings:
-                lay = StoreLayout(**{**lay0.to_dict(), "num_frames": len(pick), "encoding": enc})
-                dst = os.path.join(tmp, f"{os.path.basename(os.fspath(path).rstrip('/'))}-{enc}.zarr")
-                w = open_or_create(dst, lay, {"reencoded_from": os.fspath(path)})
-                t_write = []
-                for j, fr in enumerate(data):
-                    t = time.perf_counter()
-                    w.write_frame(j, fr)
-                    t_write.append(time.perf_counter() - t)
-                sizes, raw = {}, {}
-                for spec in ARRAYS:
-                    if spec.image:
-                        g = GROUP_OF.get(spec.path, "guides")
-                        sizes[g] = sizes.get(g, 0) + _dir_bytes(os.path.join(dst, *spec.path.split("/")))
-                        raw[g] = raw.get(g, 0) + int(np.prod(spec.shape(lay)[1:])) * 4 * len(pick)
-                for g in sizes:
-                    tot[enc][g] = tot[enc].get(g, 0) + sizes[g]
-                    if enc == encodings[0]:
-                        raw_tot[g] = raw_tot.get(g, 0) + raw[g]
-                row[enc] = {"ratio": {g: sizes[g] / raw[g] for g in sizes},
-                            "total": sum(sizes.values()) / sum(raw.values()),
-                            "write_ms_per_frame": 1e3 * float(np.median(t_write)),
-                            "crop_read": run(dst, crops=crops, compare=False, checksums=False, verbose=False)}
-                if enc == "lz4":
-                    continue
-                back = open_store(dst)
-                e = errs[enc]
-                for j, fr in enumerate(data):
-                    got = back.read_frame(j)
-                    e.setdefault("radiance", []).append(_rel_error(fr["radiance"], got["radiance"]))
-                    for g, sl in FEATURE_GROUPS.items():
-                        e.setdefault(f"features/{g}", []).append(_rel_error(fr["features"][..., sl],
-                                                                            got["features"][..., sl]))
-                    for k in ("layers", "guides_albedo", "guides_normal", "guides_depth", "guides_motion"):
-                        e.setdefault(k, []).append(_rel_error(fr[k], got[k]))
-                    row["zeros_changed"] += int((got["radiance"][fr["radiance"] == 0] != 0).sum())
-                    row["reference_bit_exact"] &= bool(np.array_equal(got["reference"], fr["reference"])
-                                                       and np.array_equal(got["reference_stderr"],
-                                                                          fr["reference_stderr"]))
-            out["stores"][os.fspath(path)] = row
-        out["errors"] = {}
-        for enc, e in errs.items():
-            if not e:
-                continue
-            rad = np.concatenate(e.pop("radiance"))
-            out["errors"][enc] = {"radiance": {"max": float(rad.max()), "p99.9": float(np.percentile(rad, 99.9)),
-                                               "mean": float(rad.mean()), "samples": int(rad.size)}}
-            out["errors"][enc].update({k: float(max((a.max() for a in v if a.size), default=0.0))
-                                       for k, v in e.items()})
+            out["stores"][os.fspath(path)] = _reencode_store(path, tmp, frames=frames, crops=crops,
+                                                             encodings=encodings, tot=tot, raw_tot=raw_tot,
+                                                             errs=errs)
+        out["errors"] = _error_summary(errs)
         first = next((enc for enc in encodings if enc in out["errors"]), None)
         if first:
             out["radiance_rel_error"] = out["errors"][first]["radiance"]

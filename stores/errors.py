@@ -5,7 +5,10 @@ Every specific error also inherits the matching built-in exception (as zarr's
 """
 
 
-class StoreError(Exception):
+from core.errors import ProjectError
+
+
+class StoreError(ProjectError):
     """Base class of every stores error."""
 
 

@@ -14,7 +14,7 @@ written, so an export that stops (a damaged store, a full disk, Ctrl-C) leaves n
   ``depth.exr`` (``Z``, OpenEXR's depth channel name), ``motion.exr`` (``motion_to_prev.x``,
   ``motion_to_prev.y``: the screen-space offset to the pixel's position in the previous frame,
   ``p_prev - p_cur`` in pixels, x right, y down), and 8-bit PNG previews
-  (``*.png``, :func:`stores.imageio.to_srgb8`) of input_mean, layers and reference through the
+  (``*.png``, :func:`core.images.to_srgb8`) of input_mean, layers and reference through the
   training tone map (``log(1 + x)`` then the sRGB curve, the layer paper's eq. 7, clipped to [0, 1]),
   of albedo through the sRGB curve, and of normal as ``n * 0.5 + 0.5``.
 * ``oidn``: the naming read by Intel Open Image Denoise's training toolkit (``training/dataset.py``:
@@ -47,7 +47,7 @@ import numpy as np
 
 from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS
 from stores.errors import ExportError, StoreError
-from stores.imageio import read_exr_channels, write_exr, write_png
+from core.images import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
 from stores.validate import cli_main, parse_frames
 

@@ -141,10 +141,10 @@ def check_values(fr: dict, layout=None) -> ValueCheck:
 
 def reference_limits(ref: np.ndarray, stderr: np.ndarray) -> tuple[float, float]:
     """What a reference's own noise allows a metric to show: the expected PSNR (dB, on tone-mapped
-    values, ``stores.imageio.tonemap``, peak 1) and relMSE (``(d - r)^2 / (r^2 + 0.01)``) of the *true*
+    values, ``core.images.tonemap``, peak 1) and relMSE (``(d - r)^2 / (r^2 + 0.01)``) of the *true*
     image scored against this reference (``ref``, ``stderr``: float, HWC). Delta method: the
     tone-mapped error of a pixel is ``T'(ref) * stderr``, its slope taken by central differences."""
-    from stores.imageio import tonemap
+    from core.images import tonemap
     ref = np.asarray(ref, np.float64)
     se = np.asarray(stderr, np.float64)
     h = np.maximum(se, 1e-6)
@@ -165,12 +165,10 @@ def renderer_findings(meta: dict) -> tuple[list[str], list[str]]:
     return found, []
 
 
-def frame_problems(store, i: int, *, data: dict | None = None) -> list[str]:
-    """Why frame ``i`` of ``store`` (a :class:`stores.reader.Store` or a path) is unfit (module
-    docstring), ``[]`` when it is fit. Reads every array of the frame (``data``: already read, in
-    ``Store.read_frame``'s layout). Damage raises ``StoreCorruptionError``."""
-    from stores.reader import Store, open_store
-    st = store if isinstance(store, Store) else open_store(store)
+def frame_problems(st, i: int, *, data: dict | None = None) -> list[str]:
+    """Why frame ``i`` of the store ``st`` (a :class:`stores.reader.Store`; ``stores.reader.frame_problems``
+    takes a path too) is unfit (module docstring), ``[]`` when it is fit. Reads every array of the frame
+    (``data``: already read, in ``Store.read_frame``'s layout). Damage raises ``StoreCorruptionError``."""
     meta = st.frames_meta(i, scene=False)
     if not meta["complete"]:
         return ["incomplete" + (f" (last error: {meta['error']})" if meta["error"] else "")]
@@ -178,14 +176,12 @@ def frame_problems(store, i: int, *, data: dict | None = None) -> list[str]:
     return check_values(fr, st.layout).problems + renderer_findings(meta)[0]
 
 
-def check_frames(store, frames, *, progress: bool = False, threads: int | None = None) -> dict[int, list[str]]:
-    """:func:`frame_problems` of every frame in ``frames`` (in parallel threads: decoding and numpy
-    release the GIL), frame -> problems for the unfit ones only. A progress bar on stderr for long
-    lists when ``progress``."""
-    from stores.reader import Store, open_store
-    st = store if isinstance(store, Store) else open_store(store)
+def check_frames(st, frames, *, progress: bool = False, threads: int | None = None) -> dict[int, list[str]]:
+    """:func:`frame_problems` of every frame in ``frames`` of the store ``st`` (in parallel threads:
+    decoding and numpy release the GIL), frame -> problems for the unfit ones only. A progress bar on
+    stderr for long lists when ``progress``."""
     frames = sorted({int(i) for i in frames})
-    st._meta()                                  # fill the metadata cache once, before the threads share it
+    st.metadata_damage()                        # fill the metadata cache once, before the threads share it
     n = threads or min(8, max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1))
     bar = None
     if progress and len(frames) >= 64:

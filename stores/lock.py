@@ -271,59 +271,79 @@ class StoreLock:
             self._lease = S3Lease(self.store, self._record()).acquire()
             self.took_over = self._lease.took_over
             return self
-        if not os.path.isdir(self.store):
-            try:
-                os.makedirs(self.store, exist_ok=True)
-            except OSError as e:
-                if is_disk_full(e):
-                    raise store_full(self.store, "making its folder") from None
-                raise _path_error(self.store, "cannot make the store's folder", e) from e
-            self._made_dir = True
-        me = socket.gethostname()
+        self._make_dir()
         for _ in range(20):
-            try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-            except OSError as e:
-                self._drop_made_dir()
-                raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = self._holder_record(fd)
-                os.close(fd)
-                raise self._refuse(holder, "; wait for it to finish (or stop it) and run again") from None
-            try:                    # a run that was releasing may have unlinked the file we locked
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
-            except FileNotFoundError:
-                same = False
-            if not same:
-                os.close(fd)
-                continue
-            holder = self._read(fd)
-            if holder:
-                if holder.get("host") != me:
-                    os.close(fd)
-                    raise self._refuse(holder, f"; it runs on another host, so this one ({me}) cannot tell "
-                                               "whether it is alive: if it is not, delete the lock file")
-                if pid_alive(holder.get("pid", -1), holder.get("proc_start")) and holder.get("pid") != os.getpid():
-                    os.close(fd)
-                    raise self._refuse(holder, " (its process is alive but holds no lock: if it is not a "
-                                               "dataset run, delete the lock file)")
-                self.took_over = holder
-            data = json.dumps(self._record()).encode()
-            try:
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, data, 0)
-                os.fsync(fd)
-            except OSError as e:
-                os.close(fd)
-                self._drop_made_dir()
-                if is_disk_full(e):
-                    raise store_full(self.store, f"writing its lock file {self.path}") from None
-                raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
+            fd = self._locked_fd()
+            if fd is None:
+                continue                        # the file we locked was unlinked by a run releasing it
+            self._check_holder(fd)
+            self._write_record(fd)
             self._fd = fd
             return self
         raise StoreLockedError(f"could not take the lock {self.path}: it kept changing under this run")
+
+    def _make_dir(self) -> None:
+        if os.path.isdir(self.store):
+            return
+        try:
+            os.makedirs(self.store, exist_ok=True)
+        except OSError as e:
+            if is_disk_full(e):
+                raise store_full(self.store, "making its folder") from None
+            raise _path_error(self.store, "cannot make the store's folder", e) from e
+        self._made_dir = True
+
+    def _locked_fd(self) -> int | None:
+        """The lock file opened and ``flock``-ed (StoreLockedError while another run holds it), or None when
+        the file was replaced in between (try again)."""
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as e:
+            self._drop_made_dir()
+            raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = self._holder_record(fd)
+            os.close(fd)
+            raise self._refuse(holder, "; wait for it to finish (or stop it) and run again") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:
+            os.close(fd)
+            return None
+        return fd
+
+    def _check_holder(self, fd: int) -> None:
+        """Refuse a record left by a run that may be alive (another host's, or a live process here); a dead
+        one's is taken over (``took_over``)."""
+        holder, me = self._read(fd), socket.gethostname()
+        if not holder:
+            return
+        if holder.get("host") != me:
+            os.close(fd)
+            raise self._refuse(holder, f"; it runs on another host, so this one ({me}) cannot tell "
+                                       "whether it is alive: if it is not, delete the lock file")
+        if pid_alive(holder.get("pid", -1), holder.get("proc_start")) and holder.get("pid") != os.getpid():
+            os.close(fd)
+            raise self._refuse(holder, " (its process is alive but holds no lock: if it is not a "
+                                       "dataset run, delete the lock file)")
+        self.took_over = holder
+
+    def _write_record(self, fd: int) -> None:
+        data = json.dumps(self._record()).encode()
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, data, 0)
+            os.fsync(fd)
+        except OSError as e:
+            os.close(fd)
+            self._drop_made_dir()
+            if is_disk_full(e):
+                raise store_full(self.store, f"writing its lock file {self.path}") from None
+            raise _path_error(self.store, f"cannot write its lock file {self.path}", e) from e
 
     def release(self) -> None:
         """Drop the lock and delete the lock file (only if it is still ours), and the store's folder

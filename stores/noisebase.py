@@ -116,7 +116,7 @@ def rgbe_decode(rgbe: np.ndarray, exposure) -> np.ndarray:
 
 
 def camera(camera_to_world: np.ndarray, world_to_clip: np.ndarray) -> dict[str, np.ndarray]:
-    """Noisebase's camera arrays of a frame from ours (``pipeline.camera``: Mitsuba's look-at frame, +x
+    """Noisebase's camera arrays of a frame from ours (``scene_gen.projection``: Mitsuba's look-at frame, +x
     left, +y up, +z forward; OpenGL-like clip space with the same screen mapping as Noisebase's):
     ``camera_position``, ``camera_target`` (one unit along the view axis), ``camera_up``, ``proj_mat``
     (our ``world_to_clip`` times the inverse of Noisebase's view matrix, which is exact, so Noisebase's
@@ -215,26 +215,14 @@ def sequence_files(path) -> list[str]:
     return files
 
 
-class _Root:
-    """What :meth:`training.inputs.InputKind.check_store` looks up: the arrays a NoisebaseStore provides."""
-
-    def __init__(self, paths):
-        self.paths = frozenset(paths)
-
-    def __getitem__(self, path):
-        if path not in self.paths:
-            raise KeyError(path)
-        return path
-
-
 ARRAYS = ("inputs/radiance", "inputs/features", "reference/radiance", "reference/stderr", "guides/albedo",
           "guides/normal", "guides/depth", "guides/motion")
 
 
 class NoisebaseStore:
-    """A folder of Noisebase ``sampleset_v1`` sequences read like a store of ours (the parts training,
-    evaluation and the fitness screen use): ``layout``, ``read_array``, ``meta_column``, ``clips``,
-    splits. Frame ``i`` is frame ``i - offset`` of its sequence. See the module docstring."""
+    """A folder of Noisebase ``sampleset_v1`` sequences read as a :class:`stores.protocol.TrainingStore`
+    (what training, evaluation and the fitness screen use). Frame ``i`` is frame ``i - offset`` of its
+    sequence. See the module docstring."""
 
     schema_version = "noisebase-" + FORMAT
     missing_features = MISSING_FEATURES
@@ -245,6 +233,7 @@ class NoisebaseStore:
         self.files = sequence_files(self.path)
         self._groups: dict[int, object] = {}
         self._members: dict[int, frozenset] = {}
+        self._moves: dict[int, bool] = {}
         self.frames_per_sequence, shapes = [], set()
         for n, f in enumerate(self.files):
             color = self._array(n, "color")
@@ -258,7 +247,6 @@ class NoisebaseStore:
         self.offsets = np.concatenate([[0], np.cumsum(self.frames_per_sequence)]).astype(int)
         self.layout = StoreLayout(num_frames=int(self.offsets[-1]), height=int(H), width=int(W), spp=int(S),
                                   layer_spp=())
-        self.root = _Root(ARRAYS)
         self.config = {"source": "noisebase", "format": FORMAT, "files": [os.path.basename(f) for f in self.files]}
 
     # -- the sequences
@@ -332,6 +320,9 @@ class NoisebaseStore:
         from stores.reader import DEFAULT_SPLIT
         return dict(DEFAULT_SPLIT)
 
+    def has_array(self, path: str) -> bool:
+        return path in ARRAYS
+
     def complete_frames(self) -> list[int]:
         return list(range(self.num_frames))
 
@@ -339,9 +330,10 @@ class NoisebaseStore:
         return []
 
     def meta_column(self, key: str) -> np.ndarray:
-        """``clip_id`` (the sequence), ``frame`` (index in it), ``num_frames``; ``has_motion`` (any non-zero
-        world motion or camera change in the sequence), ``has_defocus`` (False: the format has no lens),
-        ``scene_json`` ('') and ``case`` ('')."""
+        """``clip_id`` (the sequence), ``frame`` (index in it), ``num_frames``; ``has_motion`` (the camera
+        moves in the sequence, or its last frame's samples have non-zero world motion: a moving object
+        moves in every frame after the first; :meth:`_sequence_moves`), ``has_defocus`` (False: the
+        format has no lens), ``scene_json`` ('') and ``case`` ('')."""
         seq = np.repeat(np.arange(len(self.files)), self.frames_per_sequence)
         if key == "clip_id":
             return seq.astype(np.int64)
@@ -350,12 +342,25 @@ class NoisebaseStore:
         if key == "num_frames":
             return np.asarray(self.frames_per_sequence, np.int64)[seq]
         if key == "has_motion":
-            return np.array([True] * self.num_frames)
+            return np.array([self._sequence_moves(n) for n in range(len(self.files))], bool)[seq]
         if key == "has_defocus":
             return np.zeros(self.num_frames, bool)
         if key in ("scene_json", "case"):
             return np.array([""] * self.num_frames)
         raise KeyError(f"{self.path} (Noisebase) has no frame column {key!r}")
+
+    def _sequence_moves(self, n: int) -> bool:
+        """Whether sequence ``n`` holds motion: its camera arrays change between frames, or its last
+        frame's per-sample world motion is not all zero (read once, then kept)."""
+        moves = self._moves.get(n)
+        if moves is None:
+            last = self.frames_per_sequence[n] - 1
+            cams = [np.asarray(self._read(n, k, slice(None), 0))
+                    for k in ("camera_position", "camera_target", "camera_up")]
+            moves = any(bool((c != c[:1]).any()) for c in cams) or (
+                last > 0 and bool(np.any(self._read(n, "motion", last, last))))
+            self._moves[n] = moves
+        return moves
 
     def split_of_frame(self, i: int) -> str:
         from stores.reader import split_of_clip

@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from stores import schema
+from stores import fitness, schema
 from stores.contract import FRAME_ARRAYS, FRAME_META
 from stores.codecs import crc32c
 from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
@@ -45,6 +45,18 @@ def split_of_clip(clip_id: int, fractions: dict | None = None) -> str:
         if u < acc:
             return name
     return names[-1]
+
+
+def clip_id_in_split(seed: int, split: str, fractions: dict | None = None, *, stride: int = 2 ** 31,
+                     tries: int = 64) -> int | None:
+    """The first clip id of ``seed + j * stride`` (j = 0, 1, ... < ``tries``) that :func:`split_of_clip`
+    puts in ``split``, None when none does: how a dataset gives a scene the split it wants (distinct
+    seeds give distinct ids while ``seed < stride``)."""
+    for j in range(int(tries)):
+        c = int(seed) + j * int(stride)
+        if split_of_clip(c, fractions) == split:
+            return c
+    return None
 
 
 class _ShardReader:
@@ -143,8 +155,6 @@ class _ShardReader:
              pool=None, *, strict: bool = False) -> np.ndarray:
         """Region ``[frame, ..., y0:y1, x0:x1, ...]`` without the frame axis (and only the first
         ``samples`` samples, for arrays with a sample axis), storage dtype."""
-        from numcodecs import blosc
-        inner = list(self.inner[1:])
         out_shape = list(self.shape[1:])
         iy, ix = self.iy - 1, self.ix - 1
         out_shape[iy], out_shape[ix] = y1 - y0, x1 - x0
@@ -153,7 +163,7 @@ class _ShardReader:
             out_shape[self.isample - 1] = samples
             keep[self.isample - 1] = slice(0, samples)
         out = np.empty(out_shape, self.dtype)
-        ty, tx = inner[iy], inner[ix]
+        ty, tx = self.inner[1:][iy], self.inner[1:][ix]
         path = self.shard_path(frame)
         try:
             fd = os.open(path, os.O_RDONLY)
@@ -172,29 +182,10 @@ class _ShardReader:
                 xs, xe = max(x0, cx * tx), min(x1, (cx + 1) * tx)
                 dst = [slice(None)] * len(out_shape)
                 dst[iy], dst[ix] = slice(ys - y0, ye - y0), slice(xs - x0, xe - x0)
-                off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
-                if off == _EMPTY:
+                chunk = self._inner_chunk(fd, frame, path, idx, cy, cx)
+                if chunk is None:
                     out[tuple(dst)] = self.fill
                     return
-                buf = os.pread(fd, nbytes, off)
-                if len(buf) != nbytes:
-                    raise self._corrupt(frame, path, f"short read of inner chunk ({cy}, {cx})")
-                if self.crc:
-                    if nbytes < 4 or crc32c(memoryview(buf)[:-4]) != int.from_bytes(buf[-4:], "little"):
-                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) fails its crc32c checksum")
-                    buf = memoryview(buf)[:-4]
-                if self.blosc:
-                    try:
-                        buf = blosc.decompress(buf)     # releases the GIL outside the main thread
-                    except (RuntimeError, ValueError, TypeError, OverflowError) as e:
-                        raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) does not decode: {e}") from e
-                if len(buf) != self.chunk_nbytes:
-                    raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
-                                                     f"not {self.chunk_nbytes}")
-                if self.order is None:
-                    chunk = np.frombuffer(buf, self.dtype).reshape(inner)
-                else:
-                    chunk = np.frombuffer(buf, self.dtype).reshape(self.stored).transpose(self.back)
                 src = list(keep)
                 src[iy], src[ix] = slice(ys - cy * ty, ye - cy * ty), slice(xs - cx * tx, xe - cx * tx)
                 out[tuple(dst)] = chunk[tuple(src)]
@@ -209,6 +200,32 @@ class _ShardReader:
         finally:
             os.close(fd)
         return out
+
+    def _inner_chunk(self, fd: int, frame: int, path: str, idx: np.ndarray, cy: int, cx: int) -> np.ndarray | None:
+        """Inner chunk ``(cy, cx)`` of the open shard ``fd`` in the array's inner-chunk layout, None when
+        it was never written (the fill value); every byte checked (crc32c, Blosc's size)."""
+        from numcodecs import blosc
+        off, nbytes = int(idx[cy, cx, 0]), int(idx[cy, cx, 1])
+        if off == _EMPTY:
+            return None
+        buf = os.pread(fd, nbytes, off)
+        if len(buf) != nbytes:
+            raise self._corrupt(frame, path, f"short read of inner chunk ({cy}, {cx})")
+        if self.crc:
+            if nbytes < 4 or crc32c(memoryview(buf)[:-4]) != int.from_bytes(buf[-4:], "little"):
+                raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) fails its crc32c checksum")
+            buf = memoryview(buf)[:-4]
+        if self.blosc:
+            try:
+                buf = blosc.decompress(buf)     # releases the GIL outside the main thread
+            except (RuntimeError, ValueError, TypeError, OverflowError) as e:
+                raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) does not decode: {e}") from e
+        if len(buf) != self.chunk_nbytes:
+            raise self._corrupt(frame, path, f"inner chunk ({cy}, {cx}) holds {len(buf)} bytes, "
+                                             f"not {self.chunk_nbytes}")
+        if self.order is None:
+            return np.frombuffer(buf, self.dtype).reshape(self.inner[1:])
+        return np.frombuffer(buf, self.dtype).reshape(self.stored).transpose(self.back)
 
 
 class Store:
@@ -311,7 +328,7 @@ class Store:
             have = self._listed.get(spec.path)
             if have is not None and key in have:
                 return
-            have = self._listed[spec.path] = schema._chunk_keys(self.root, spec)   # new since? list again
+            have = self._listed[spec.path] = schema.chunk_keys(self.root, spec)   # new since? list again
             if have is not None and key in have:
                 return
         lost = schema.missing_chunks(self.root, frames, self.version, paths=paths)
@@ -415,7 +432,7 @@ class Store:
         """Complete frames whose clip's SceneSpec JSON chunk (at the clip's first frame) is missing,
         frame -> (first frame, file) (schema v3)."""
         spec = self._specs["frames/scene_json"]
-        names = schema._chunk_names_1d(self.root, spec)
+        names = schema.chunk_names_1d(self.root, spec)
         out, seen = {}, {}
         for i in done:
             f0 = self._clip_start(table, i)
@@ -470,6 +487,11 @@ class Store:
             out = [self.scene_json(i) for i in range(self.num_frames)]
             return np.array(out, dtype=object).astype(str)
         return t[key].copy()
+
+    def complete_flags(self) -> np.ndarray:
+        """``status/complete`` of every frame (bool): a flag whose chunk is damaged reads False
+        (:meth:`metadata_damage` lists it); nothing is raised."""
+        return self._meta()[0]["complete"].copy()
 
     def complete_frames(self) -> list[int]:
         return [int(i) for i in np.nonzero(self._meta_table()["complete"])[0]]
@@ -660,14 +682,28 @@ class Store:
 
     def frame_problems(self, i: int) -> list[str]:
         """See :func:`frame_problems`."""
-        return frame_problems(self, i)
+        return fitness.frame_problems(self, i)
+
+    def check_frames(self, frames, *, progress: bool = False) -> dict[int, list[str]]:
+        """The unfit frames of ``frames``, frame -> problems (:func:`stores.fitness.check_frames`)."""
+        return fitness.check_frames(self, frames, progress=progress)
+
+    missing_features: tuple[str, ...] = ()          # every feature group is stored
+
+    def has_array(self, path: str) -> bool:
+        """Whether the store has the array ``path`` (``inputs/radiance``, ``layers/radiance``, ...)."""
+        try:
+            self.root[path]
+            return True
+        except KeyError:
+            return False
 
 
 def frame_problems(store, i: int) -> list[str]:
-    """Why frame ``i`` should not be trained, evaluated or exported (``[]`` if nothing):
-    :func:`stores.fitness.frame_problems`, the one check ``validate`` applies too."""
-    from stores.fitness import frame_problems as _problems
-    return _problems(store, i)
+    """Why frame ``i`` of ``store`` (a :class:`Store` or a path) should not be trained, evaluated or
+    exported (``[]`` if nothing): :func:`stores.fitness.frame_problems`, the one check ``validate``
+    applies too."""
+    return fitness.frame_problems(store if isinstance(store, Store) else open_store(store), i)
 
 
 def _missing_error(lost: dict[int, list[tuple[str, str]]]) -> MissingShardError:

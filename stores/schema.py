@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from scene_gen.checks import need, need_int
+from core.checks import need, need_int
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
@@ -554,7 +554,7 @@ def _object_url(store, key: str) -> str:
     return f"{proto}://{path.rstrip('/')}/{key}"
 
 
-def _chunk_keys(root, spec: ArraySpec) -> set[str] | None:
+def chunk_keys(root, spec: ArraySpec) -> set[str] | None:
     """Every chunk key (``c/...``) of ``spec``'s array in a store that is not local, from one listing of
     its prefix (a HEAD request a frame would cost in proportion to the store); None if it cannot list."""
     from zarr.core.sync import sync
@@ -586,8 +586,8 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
     from zarr.storage import LocalStore
     listed = not isinstance(root.store, LocalStore) and len(frames) > 8
     for spec in specs:
-        names = _chunk_names_1d(root, spec) if len(frames) > 8 else None
-        keys = _chunk_keys(root, spec) if listed and names is None else None    # URL image shards: one listing
+        names = chunk_names_1d(root, spec) if len(frames) > 8 else None
+        keys = chunk_keys(root, spec) if listed and names is None else None    # URL image shards: one listing
         seen: dict[int, tuple[bool, str]] = {}            # chunk index -> (exists, file): a chunk holds many frames
         for i in frames:
             c = i // spec.frame_chunk
@@ -603,12 +603,12 @@ def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> d
     return {i: out[i] for i in sorted(out)}
 
 
-def _chunk_names_1d(root, spec: ArraySpec) -> set[str] | None:
+def chunk_names_1d(root, spec: ArraySpec) -> set[str] | None:
     """The chunk files of a one-dimensional array (names under ``c/``) from one listing, else None (a
-    store that is neither local nor listable). At a URL, :func:`_chunk_keys` lists every array."""
+    store that is neither local nor listable). At a URL, :func:`chunk_keys` lists every array."""
     from zarr.storage import LocalStore
     if not isinstance(root.store, LocalStore):
-        keys = _chunk_keys(root, spec)
+        keys = chunk_keys(root, spec)
         if keys is None or len(spec.dims) != 1:
             return None
         return {k.split("/", 1)[1] for k in keys if k.startswith("c/") and k.count("/") == 1}
@@ -672,7 +672,7 @@ def _is_local(p) -> bool:
     return not (isinstance(p, str) and "://" in p)
 
 
-def _exists(path_or_url) -> bool:
+def store_exists(path_or_url) -> bool:
     """Whether a Zarr v3 group (a root ``zarr.json``) is at ``path_or_url``. Only "not found" means no:
     any other failure (permissions, network, a broken URL) is raised."""
     p = _zarr_store(path_or_url)
@@ -698,7 +698,7 @@ def foreign_entries(path_or_url) -> list[str] | None:
     there is nothing (no path, an empty folder or prefix, one holding only our lock file) or a store (a
     root ``zarr.json``); else the names found there (sorted; ``['<file>']`` for a plain file)."""
     p = _zarr_store(path_or_url)
-    if _exists(p):
+    if store_exists(p):
         return None
     if not _is_local(p):
         fs, root = url_fs(p)
@@ -805,7 +805,7 @@ def _make_room(p, overwrite: bool) -> None:
     if overwrite:
         _clear(p)
         return
-    if _exists(p):
+    if store_exists(p):
         raise StoreExistsError(f"a store already exists at {p!s}; open it (open_or_create) or pass "
                                "overwrite=True")
     found = foreign_entries(p)
@@ -891,7 +891,7 @@ def open_group(path_or_url, mode: str = "r", *, check: bool = True):
     SchemaVersionError, ArrayMetadataError (an edited or damaged ``zarr.json``). Consolidated
     metadata is never used here (it may be stale)."""
     import zarr
-    if not _exists(path_or_url):
+    if not store_exists(path_or_url):
         if isinstance(path_or_url, (str, os.PathLike)) and os.path.exists(os.fspath(path_or_url)):
             raise ForeignStoreError(f"{path_or_url!s} exists but is not a Zarr v3 group (no zarr.json)")
         raise StoreNotFoundError(f"no store at {path_or_url!s}")

@@ -189,14 +189,9 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     root, lay = schema.open_group(path, mode="r", check=False)
     version = schema.version_of(root)
     rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(), num_frames=lay.num_frames)
-
-    def damage(where, msg):
-        where.problems.append(msg)
-        where.damage.append(msg)
-
     bad = schema.array_problems(root, lay, version)
     for p in bad:
-        damage(rep, f"array metadata: {p}")
+        _damage(rep, f"array metadata: {p}")
     if bad:
         rep.problems.append("frames not checked: their arrays' metadata disagrees with the schema")
         return rep
@@ -209,55 +204,68 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     rep.damaged_meta_frames = sorted(set(meta_damage) & {int(i) for i in indices})
     lost = store.missing_data(indices)
     if version < 2:
-        specs = [s for s in schema.arrays(version) if s.image]
-        skipped = {}
-        done = store._meta()[0]["complete"]
-        for i in indices:
-            if done[i]:
-                for spec in specs:
-                    if not schema.chunk_file(root, spec, i)[0]:
-                        skipped.setdefault(spec.path, []).append(int(i))
-        for a, fs in skipped.items():
-            rep.notes.append(f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}"
-                             f"{' ...' if len(fs) > 10 else ''} (schema v1 skipped all-zero shards: read as zeros)")
+        rep.notes.extend(_v1_skipped_shards(store, root, version, indices))
     for i in indices:
         fr_rep = FrameReport(index=i, complete=False)
         rep.frames.append(fr_rep)
-        missing = {f for _, f in lost.get(i, [])}
-        for e in meta_damage.get(i, []):        # missing metadata chunks are listed with the shards below
-            if not (isinstance(e, MissingShardError) and e.path in missing):
-                damage(fr_rep, str(e))
-        for array, f in lost.get(i, []):
-            damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
-        try:
-            meta = store.frames_meta(i, scene=False)
-        except StoreCorruptionError as e:       # a camera matrix, or the metadata damage listed above
-            if i not in meta_damage and e.path not in missing:
-                damage(fr_rep, str(e))
-            continue
-        fr_rep.complete, fr_rep.error = meta["complete"], meta["error"]
-        if not meta["complete"]:
-            fr_rep.problems.append("incomplete" + (f" (error: {meta['error']})" if meta["error"] else ""))
-            continue
-        if fr_rep.damage:
-            continue
-        fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
-        fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"]
-                                        + meta["nonfinite_reference"])
-        found, notes = renderer_findings(meta)       # stores.fitness: the one fitness check, as train sees it
-        fr_rep.problems.extend(found)
-        fr_rep.notes.extend(notes)
-        if not read_values:
-            continue
-        data = {}
-        for key in FRAME_KEYS:
-            try:
-                data[key] = store.read_frame(i, [key])[key]
-            except StoreCorruptionError as e:
-                damage(fr_rep, str(e))
-        if not fr_rep.damage:
-            check_frame_values(data, fr_rep, store.layout)
+        _check_frame(store, i, fr_rep, meta_damage.get(i, []), lost.get(i, []), read_values)
     return rep
+
+
+def _damage(where, msg: str) -> None:
+    where.problems.append(msg)
+    where.damage.append(msg)
+
+
+def _v1_skipped_shards(store, root, version: int, indices) -> list[str]:
+    """Notes on complete v1 frames without a shard file (v1 skipped all-zero shards: read as zeros)."""
+    specs = [s for s in schema.arrays(version) if s.image]
+    skipped, done = {}, store.complete_flags()
+    for i in indices:
+        if done[i]:
+            for spec in specs:
+                if not schema.chunk_file(root, spec, i)[0]:
+                    skipped.setdefault(spec.path, []).append(int(i))
+    return [f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}{' ...' if len(fs) > 10 else ''} "
+            "(schema v1 skipped all-zero shards: read as zeros)" for a, fs in skipped.items()]
+
+
+def _check_frame(store, i: int, fr_rep: FrameReport, meta_errors: list, lost: list, read_values: bool) -> None:
+    """Frame ``i``'s report: its metadata damage and lost files (``meta_errors``, ``lost``: ``[(array,
+    file)]``), completeness, the renderer's counts and (``read_values``) the values of every array."""
+    missing = {f for _, f in lost}
+    for e in meta_errors:                       # missing metadata chunks are listed with the shards below
+        if not (isinstance(e, MissingShardError) and e.path in missing):
+            _damage(fr_rep, str(e))
+    for array, f in lost:
+        _damage(fr_rep, f"{array}: frame {i} is complete but its chunk file {f} is missing")
+    try:
+        meta = store.frames_meta(i, scene=False)
+    except StoreCorruptionError as e:           # a camera matrix, or the metadata damage listed above
+        if not meta_errors and e.path not in missing:
+            _damage(fr_rep, str(e))
+        return
+    fr_rep.complete, fr_rep.error = meta["complete"], meta["error"]
+    if not meta["complete"]:
+        fr_rep.problems.append("incomplete" + (f" (error: {meta['error']})" if meta["error"] else ""))
+        return
+    if fr_rep.damage:
+        return
+    fr_rep.ref_rel_stderr_meta = meta["reference_rel_stderr"]
+    fr_rep.renderer_nonfinite = int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"])
+    found, notes = renderer_findings(meta)       # stores.fitness: the one fitness check, as train sees it
+    fr_rep.problems.extend(found)
+    fr_rep.notes.extend(notes)
+    if not read_values:
+        return
+    data = {}
+    for key in FRAME_KEYS:
+        try:
+            data[key] = store.read_frame(i, [key])[key]
+        except StoreCorruptionError as e:
+            _damage(fr_rep, str(e))
+    if not fr_rep.damage:
+        check_frame_values(data, fr_rep, store.layout)
 
 
 def _consolidation_note(path, root, version: int) -> str | None:

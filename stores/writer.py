@@ -111,7 +111,7 @@ class StoreWriter:
         """Write frame ``index`` from the renderer's dict (``FRAME_ARRAYS`` + ``meta``), its data and then
         its commit (completion flag last). ``on_progress(path)`` is called after each array is written
         (logging, tests). For one process writing a store; a dataset run splits the two parts."""
-        if self.version >= 3 and bool(_complete_flags(self.root, [self._check_index(index)])[0]):
+        if self.version >= 3 and bool(complete_flags(self.root, [self._check_index(index)])[0]):
             # rewriting a complete frame: invalidate it first, so a crash mid-way leaves it incomplete
             self.commit({}, {index: "being rewritten"})
         record = self.write_frame_data(index, arrays, on_progress=on_progress)
@@ -224,12 +224,12 @@ class StoreWriter:
     def frame_complete(self, index: int) -> bool:
         """Marked complete and (schema v2) every chunk file of the frame is there."""
         index = self._check_index(index)
-        return bool(_complete_flags(self.root, [index])[0]) and not schema.missing_chunks(self.root, [index])
+        return bool(complete_flags(self.root, [index])[0]) and not schema.missing_chunks(self.root, [index])
 
     def incomplete_frames(self) -> list[int]:
         """Frames to (re-)render: not marked complete (or with an unreadable completion flag), or
         marked complete but missing chunk files (schema v2; :func:`frames_with_missing_data`)."""
-        done = _complete_flags(self.root)
+        done = complete_flags(self.root)
         lost = schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
         return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
@@ -248,7 +248,7 @@ def _write_all(items) -> None:
     from zarr.core.sync import sync
 
     async def all_():
-        await asyncio.gather(*(a._async_array.setitem(index, value) for a, index, value in items))
+        await asyncio.gather(*(a.async_array.setitem(index, value) for a, index, value in items))
     sync(all_())
 
 
@@ -298,7 +298,7 @@ def _set_many(arr, values) -> set[int]:
     return lost
 
 
-def _complete_flags(root, frames=None) -> np.ndarray:
+def complete_flags(root, frames=None) -> np.ndarray:
     """``status/complete`` (bool, F, or of ``frames``); a flag whose chunk is damaged (fails its
     checksum, garbage) reads False, so a resume re-renders that frame and rewrites it."""
     arr = root["status/complete"]
@@ -322,7 +322,7 @@ def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
     ``[(array, file), ...]`` (schema v2; ``{}`` for v1, whose writers skipped all-zero chunks).
     ``StoreWriter.incomplete_frames`` includes them, so a resume re-renders them."""
     root, _ = schema.open_group(path, mode="r", check=False)
-    done = _complete_flags(root)
+    done = complete_flags(root)
     return schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
 
 
@@ -339,7 +339,7 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
     on this host (the same pid and process start time: a later process that reused the pid does not
     count)."""
     from stores.errors import IncompleteStoreError, StoreLockedError
-    if overwrite or not schema._exists(path):
+    if overwrite or not schema.store_exists(path):
         schema.create_store(path, layout, config, overwrite=overwrite)
         return StoreWriter(path)
     # The store keeps its own encoding: ``layout.encoding`` None (a config that does not name it)

@@ -26,9 +26,9 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def mi():
-    """Mitsuba with the project's variant (``pipeline.variant``: llvm_ad_rgb without a GPU), drjit's
+    """Mitsuba with the project's variant (``core.variant``: llvm_ad_rgb without a GPU), drjit's
     thread pool left at its default."""
-    from pipeline.variant import mitsuba
+    from core.variant import mitsuba
     return mitsuba()
 
 

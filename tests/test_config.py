@@ -254,9 +254,9 @@ def test_a_batch_jobs_memory_is_shared_by_the_workers_it_will_run():
 
 
 def test_the_shared_checks_name_the_setting_in_one_line():
-    """scene_gen.checks, behind every config: '<name> must be <allowed>, got <value>' in the caller's error
+    """core.checks, behind every config: '<name> must be <allowed>, got <value>' in the caller's error
     class; bools are not integers or numbers; numpy integers only where asked for."""
-    from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+    from core.checks import is_int, is_number, known_keys, need, need_int
     with pytest.raises(ConfigError, match=r"^render\.spp must be an integer in \[1, 4096\], got 0$"):
         need_int("render.spp", 0, 1, 4096, ConfigError)
     with pytest.raises(ConfigError, match=r"^x must be an integer >= 1, got True$"):

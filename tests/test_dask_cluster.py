@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def _render_threads():
     """In a worker: the thread count the render tasks give drjit, and drjit's pool after applying it."""
     from pipeline import tasks
-    from pipeline.variant import mitsuba
+    from core.variant import mitsuba
     cfg = tasks._render_cfg({"res": [4, 4]})
     mitsuba(threads=cfg.threads)
     import drjit as dr
@@ -148,6 +148,10 @@ def test_a_gpu_machine_gets_one_worker_per_gpu_each_seeing_its_own(monkeypatch):
         while gone in conn.client.scheduler_info(n_workers=-1)["workers"] and time.monotonic() - t0 < 60:
             time.sleep(0.2)
         assert sorted(conn.client.run(_gpu_env).values()) == ["0", "1"]
+        conn.cluster.scale(3)                                  # more workers than GPUs: still one a GPU
+        assert len(conn.cluster.worker_spec) == 2
+        with pytest.raises(cl.ClusterError, match="one worker a GPU"):
+            conn.cluster.new_worker_spec()
     finally:
         conn.close()
 

@@ -211,3 +211,85 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
             assert a[k].tolist() == b[k].tolist(), f"{k} differs between the LocalCluster and the distributed run"
     ga, gb = zarr.open_group(str(local_store["out"]), mode="r"), zarr.open_group(str(out), mode="r")
     assert ga.attrs["config"] == gb.attrs["config"]
+
+
+# configs/smoke.yaml's store, pinned: a refactor changes no byte of what the pipeline makes. Floating arrays
+# by their sum and their sum of magnitudes (to 1e-6: another CPU's LLVM code may round a last bit
+# differently), the others by a digest of their bytes (strings: of their text). Regenerate only for an
+# intended change of the data, said in its commit: ``python tests/test_dask_dataset.py STORE``.
+SMOKE_PINS = {
+    'frames/camera_to_world': [9.912317113934503, 31.134297160363264],
+    'frames/case': '6a3cf5192354f716',
+    'frames/clip_id': 'a468b34d366b8677',
+    'frames/frame': 'a1e03200f1f82ad2',
+    'frames/frame_in_clip': '013f21dd7052786e',
+    'frames/has_defocus': '4afc7d9851818033',
+    'frames/has_motion': '27ecd0a598e76f8a',
+    'frames/nonfinite_inputs': '66687aadf862bd77',
+    'frames/nonfinite_layers': '66687aadf862bd77',
+    'frames/nonfinite_reference': '66687aadf862bd77',
+    'frames/num_frames': 'ce98ee78a2670379',
+    'frames/reference_rel_stderr': [0.318124033000454, 0.318124033000454],
+    'frames/reference_spp': '998b63595acf1fb2',
+    'frames/scene_json': 'aafcb784b64c45f4',
+    'frames/scene_seed': '43bd3cbd2bcccfa3',
+    'frames/world_to_clip': [-0.6706299520342249, 72.17428488528515],
+    'guides/albedo': [518.0067596435547, 518.0067596435547],
+    'guides/depth': [9844.8203125, 9844.8203125],
+    'guides/frame': 'a1e03200f1f82ad2',
+    'guides/motion': [-30.215238571166992, 155.89928245544434],
+    'guides/normal': [377.6360778789749, 837.679565431572],
+    'guides/rgb': '9b9cb9ec7869fdb7',
+    'guides/uv': 'c5e76510a6a07431',
+    'guides/xyz': '6d421ec4b623af3b',
+    'inputs/feature': 'eefb6b2ffed06d94',
+    'inputs/features': [92357.66985970736, 106566.06956416368],
+    'inputs/frame': 'a1e03200f1f82ad2',
+    'inputs/radiance': [5177.5612921779975, 5177.5612921779975],
+    'inputs/rgb': '9b9cb9ec7869fdb7',
+    'layers/frame': 'a1e03200f1f82ad2',
+    'layers/level': 'cd9a54ed1f18bf97',
+    'layers/radiance': [3916.433743318543, 3916.433743318543],
+    'layers/rgb': '9b9cb9ec7869fdb7',
+    'layers/spp': '210e104a95762a48',
+    'reference/frame': 'a1e03200f1f82ad2',
+    'reference/radiance': [641.7283452257398, 641.7283452257398],
+    'reference/rgb': '9b9cb9ec7869fdb7',
+    'reference/stderr': [37.69280995684676, 37.69280995684676],
+    'status/complete': '27ecd0a598e76f8a',
+    'status/error': '6a3cf5192354f716',
+    'status/frame': 'a1e03200f1f82ad2',
+}
+
+
+def store_digests(store) -> dict:
+    import hashlib
+    g = zarr.open_group(str(store), mode="r")
+    out = {}
+    for grp, sub in g.groups():
+        for name, a in sub.arrays():
+            key, v = f"{grp}/{name}", a[...]
+            if key in TIMING:
+                continue
+            if v.dtype.kind == "f":
+                v64 = v.astype(np.float64)
+                out[key] = [float(v64.sum()), float(np.abs(v64).sum())]
+            elif v.dtype.kind in "OTU":
+                out[key] = hashlib.sha256("\n".join(map(str, np.asarray(v).ravel())).encode()).hexdigest()[:16]
+            else:
+                out[key] = hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()[:16]
+    return out
+
+
+def test_the_smoke_store_is_pinned(local_store):
+    got = store_digests(local_store["out"])
+    assert set(got) == set(SMOKE_PINS)
+    for key, want in SMOKE_PINS.items():
+        if isinstance(want, list):
+            assert got[key] == pytest.approx(want, rel=1e-6, abs=1e-9), key
+        else:
+            assert got[key] == want, key
+
+
+if __name__ == "__main__":
+    print(json.dumps(store_digests(sys.argv[1]), indent=1, sort_keys=True))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from stores.imageio import read_exr, write_exr
+from core.images import read_exr, write_exr
 from test_temporal import make_clip_store
 from test_training import make_store
 from training import checkpoint as ckpt

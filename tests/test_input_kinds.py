@@ -72,7 +72,7 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
                "--json", tmp_path / "b.json") == 0
     assert json.loads((tmp_path / "b.json").read_text())[name]["ms_per_mp"] > 0
 
-    from stores.imageio import read_exr
+    from core.images import read_exr
     from stores.reader import open_store
     last = open_store(clip_store).frames_in_split("test")[-1]        # a recurrent model runs its clip first
     assert cli("denoise", "--checkpoint", run / "checkpoint.pt", "--store", clip_store, "--frame", last,
@@ -128,7 +128,6 @@ def test_an_output_that_is_not_the_kinds_target_is_refused(probes, clip_store, t
 
 def test_the_clips_kind_steps_the_model_through_the_window(probes):
     from training.inputs import KINDS as INPUT_KINDS
-    from training.inputs import frame_at
     from training.models import build
     torch.manual_seed(0)
     model = build(probes["clips"])
@@ -139,9 +138,24 @@ def test_the_clips_kind_steps_the_model_through_the_window(probes):
         assert out.shape == (2, 3, 3, 8, 8)
         state = None
         for t in range(3):                           # by hand: what evaluation does frame by frame
-            o, state, _ = model.step(frame_at(batch, t), state)
+            o, state, _ = model.step({k: (v if k == "origin" else v[:, t]) for k, v in batch.items()}, state)
             assert torch.equal(out[:, t], o)
     assert model.stepwise
+
+
+def test_time_is_unrolled_in_the_kinds_alone():
+    """The recurrent models declare a step (and temporal how a window starts), never their own unrolling:
+    forward comes from the base class for every registered model that steps, and a model is recurrent
+    exactly when it defines step."""
+    from training.models import build, get, names
+    from training.models.common import Denoiser
+    for name in names():
+        cls = get(name)
+        if cls.step is not Denoiser.step:
+            assert cls.forward is Denoiser.forward, name
+            assert "stepwise" not in vars(cls), name
+            assert build(name, **cls.tiny).stepwise, name
+    assert not build("nbg").stepwise and build("temporal-small").stepwise and build("nppd").stepwise
 
 
 # ------------------------------------------------------------------------------ torchrun

@@ -7,7 +7,7 @@ import skimage.data
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from training import metrics
-from training.tonemap import tonemap
+from core.images import tonemap
 
 
 @pytest.fixture(scope="module")

@@ -137,7 +137,7 @@ def test_noisebase_loader_reads_the_export(store, exported, noisebase_env, tmp_p
 def test_positions_are_the_samples_own(store):
     """The re-traced geometry is exactly the stored samples': depth bit for bit before rounding, and the
     stored motion is the projection of position + motion with the previous camera."""
-    from pipeline import camera as C
+    from scene_gen import projection as C
     from pipeline.render import FrameScene, render_inputs, sample_geometry
     spec = clip_spec(11, defocus=False)
     fs = FrameScene(spec, 2, render_cfg())
@@ -328,3 +328,24 @@ def test_a_lost_or_corrupt_chunk_is_named_never_zeros(exported, tmp_path, member
                                       "--steps", "1", "--batch", "1", "--crop", "8", "--workers", "0",
                                       "--device", "cpu", "--no-progress") == 3
         assert member in capsys.readouterr().err
+
+
+from store_contract import StoreContract  # noqa: E402
+
+
+class TestZarrStoreContract(StoreContract):
+    """Our Zarr store of the module's clips (real renders): the training store contract."""
+
+    @pytest.fixture
+    def contract_store(self, store):
+        from stores.reader import open_store
+        return open_store(store)
+
+
+class TestNoisebaseStoreContract(StoreContract):
+    """The same clips exported as Noisebase sequences, read back: the same contract."""
+
+    @pytest.fixture
+    def contract_store(self, exported):
+        from stores.noisebase import NoisebaseStore
+        return NoisebaseStore(exported)

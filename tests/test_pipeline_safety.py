@@ -134,12 +134,12 @@ def test_library_refuses_foreign_folders_and_existing_stores_unless_overwrite(tm
     assert w.num_frames == 2 and not (folders["plain"] / "thesis.tex").exists()
     with pytest.raises(StoreExistsError, match="already exists"):
         schema.create_store(folders["plain"], TINY)
-    assert schema._exists(folders["plain"]) and schema.foreign_entries(folders["plain"]) is None
+    assert schema.store_exists(folders["plain"]) and schema.foreign_entries(folders["plain"]) is None
     empty = tmp_path / "empty.zarr"
     empty.mkdir()
     schema.create_store(empty, TINY)                              # an empty folder is a fine place
     # URLs: only "not found" means no store
-    assert schema._exists(f"file://{folders['plain']}") and not schema._exists(f"file://{tmp_path}/none.zarr")
+    assert schema.store_exists(f"file://{folders['plain']}") and not schema.store_exists(f"file://{tmp_path}/none.zarr")
 
 
 # ---- 7. one writer per store ---------------------------------------------------------------------

@@ -210,7 +210,7 @@ def test_unbiased_motion(mi):
     layer_taus = []
     for lvl in range(c.layer_levels):
         g = math.gcd(c.time_slices, 2 ** lvl)
-        layer_taus.append(spec.shutter * R.slice_times(R._rng(spec, 0, c, R.STREAM_LAYER, lvl), g))
+        layer_taus.append(spec.shutter * R.slice_times(R._rng(spec.seed, 0, c, R.STREAM_LAYER, lvl), g))
     ref_taus = (np.arange(8) + 0.5) / 8 * spec.shutter
     _check_unbiased(mi, spec, out, c, layer_taus=layer_taus, input_taus=spec.shutter * tk, ref_taus=ref_taus)
     # the blur is real: the motion-blurred reference differs from the frame at rest
@@ -309,7 +309,7 @@ def test_lens_uniform_and_coc(mi):
     """Lens samples are uniform on the unit disk; CoC is 0 at the focus distance and obeys the thin lens."""
     from scipy import stats
 
-    from pipeline import camera as C
+    from scene_gen import projection as C
     from pipeline import render as R
     c = cfg(res=(16, 12), spp=16, ref_spp=0, layer_levels=0)
     # plane exactly at the focus distance: CoC 0 everywhere on it
@@ -378,9 +378,9 @@ def test_motion_vectors_reproject(mi):
 
 def _features_oracle(fs, tr: dict, t: float) -> np.ndarray:
     """The 17 features (float64, N×17) from a debug trace's raw fields, in numpy float64 with
-    ``pipeline.camera``'s projection and circle of confusion: an independent form of the renderer's
+    ``scene_gen.projection``'s projection and circle of confusion: an independent form of the renderer's
     drjit feature kernel (which computes them in float32, in the trace's own kernel)."""
-    from pipeline import camera as C
+    from scene_gen import projection as C
     from pipeline.render import MOTION_LIMIT
     W, H = fs.cfg.res
     hit = tr["hit"].astype(bool)
@@ -599,7 +599,7 @@ def test_bad_frame_and_config_type():
 def test_points_inside_the_near_plane_have_no_projection():
     """A point in front of the camera but nearer than the near plane (which the sensor clips) projects to
     NaN, so its motion is 0 rather than a vector beyond float16 (found by the hard-case ``motion``)."""
-    from pipeline import camera as cam_geom
+    from scene_gen import projection as cam_geom
     from scene_gen.spec import CameraSpec
     cam = CameraSpec(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0), fov=45.0)
     m = cam_geom.world_to_clip(cam, (64, 64))

@@ -97,7 +97,7 @@ def test_sampled_scene_renders_finite_and_exposed(mi, kind):
 
 
 def test_preview_cli_writes_exr_and_png(mi, tmp_path):
-    from scene_gen.imageio import read_exr
+    from core.images import read_exr
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("scene_gen:\n  outdoor_objects: 6\n  indoor_objects: 6\n")
     out = tmp_path / "p" / "outdoor-3.exr"

@@ -69,7 +69,7 @@ def _cluster(**kw):
 def test_smoke_slurm_has_the_smoke_content_and_a_job_script_with_what_a_worker_needs():
     pytest.importorskip("dask_jobqueue")
     from pipeline.config import load_config
-    from scene_gen.variant import find_libllvm
+    from core.variant import find_libllvm
     cfg = load_config(SMOKE_SLURM)
     assert cfg.content_dict() == load_config(SMOKE).content_dict()      # its store equals smoke.yaml's
     jq = dict(cfg.cluster.jobqueue, log_directory=None)
@@ -376,7 +376,7 @@ def test_smoke_slurm_renders_through_sbatch_jobs_and_equals_a_local_cluster_run(
 def test_workers_are_slurm_jobs_with_the_job_script_environment_and_the_dashboard_lists_them(slurm_config):
     from pipeline import cluster as cl
     from pipeline.config import load_config
-    from scene_gen.variant import find_libllvm
+    from core.variant import find_libllvm
     config, name = slurm_config
     conn = cl.connect(load_config(config).cluster)
     try:

@@ -57,7 +57,7 @@ def test_a_paired_difference_is_shown_only_when_its_interval_excludes_zero():
 
 def test_the_report_says_when_an_interval_cannot_be_known():
     """Frames of one clip give no interval; the report says so rather than "no difference shown"."""
-    from training.report import _difference_cell
+    from training.report import difference_cell as _difference_cell
     a = {i: 0.1 for i in range(8)}
     b = {i: 0.05 for i in range(8)}
     one_clip = stats.paired_difference(a, b, {i: 0 for i in range(8)})

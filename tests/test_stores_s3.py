@@ -314,7 +314,7 @@ def test_a_missing_or_corrupted_object_is_named_never_zeros(s3, capsys):
 # ---- export and training from S3 ------------------------------------------------------------------------
 def test_export_and_training_read_from_s3_what_a_local_copy_holds(synthetic_s3, tmp_path):
     from pipeline.__main__ import main
-    from stores.imageio import read_exr
+    from core.images import read_exr
     from stores.reader import open_store
     from test_training import make_store
     from training.data import batch_loader, model_dataset

@@ -132,7 +132,7 @@ def test_export_exr(store2, tmp_path):
     from PIL import Image
     png = Image.open(d / "reference.png")
     assert png.size == (W, H) and png.mode == "RGB"
-    from stores.imageio import to_srgb8            # the training tone map (values: tests/test_tonemap_io.py)
+    from core.images import to_srgb8            # the training tone map (values: tests/test_tonemap_io.py)
     np.testing.assert_array_equal(np.asarray(png), to_srgb8(frames[1]["reference"]))
     assert not (tmp_path / "e" / "frame_000000").exists()
     assert sorted(os.listdir(tmp_path / "e")) == ["frame_000001"]          # no temporary folder left
@@ -294,7 +294,7 @@ def test_pipeline_cli_dispatches_to_stores(store2, tmp_path, capsys):
 
 def test_reference_limits_match_a_simulated_reference():
     """The PSNR ceiling and relMSE floor are what the true image scores against a noisy reference."""
-    from stores.imageio import tonemap
+    from core.images import tonemap
     rng = np.random.default_rng(3)
     truth = rng.uniform(0.05, 4.0, (64, 64, 3))
     se = 0.02 * truth + 0.002

@@ -1,4 +1,4 @@
-"""stores.imageio: the one tone map (the layer paper's eq. 7) that training, previews and exports
+"""core.images: the one tone map (the layer paper's eq. 7) that training, previews and exports
 share, its display form, and OpenEXR files that round-trip."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from stores import imageio
+from core import images as imageio
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,10 +38,13 @@ def test_tonemap_keeps_layout_dtype_and_gradients():
 
 
 def test_training_previews_and_exports_share_one_tone_map():
-    import scene_gen.imageio
-    import training.tonemap
-    assert training.tonemap.tonemap is imageio.tonemap and training.tonemap.srgb is imageio.srgb
-    assert scene_gen.imageio.tonemap is imageio.display and scene_gen.imageio.write_exr is imageio.write_exr
+    """One module holds the tone map: the losses and metrics, the scene previews and the exports use it."""
+    import scene_gen.__main__ as previews
+    import stores.export as export
+    import training.losses as losses
+    import training.metrics as metrics
+    assert losses.tonemap is metrics.tonemap is imageio.tonemap and previews.tonemap is imageio.display
+    assert export.write_exr is imageio.write_exr
     x = np.array([0.0, 0.5, 1.0, 1.7, 50.0])
     np.testing.assert_allclose(imageio.display(x), np.clip(imageio.tonemap(x), 0, 1), rtol=1e-6)
 
@@ -86,6 +89,6 @@ def test_exr_round_trips(tmp_path):
 
 
 def test_imageio_does_not_import_torch():
-    code = "import sys, stores.imageio, scene_gen.imageio; assert 'torch' not in sys.modules, 'torch imported'"
+    code = "import sys, core.images, core.checks, core.errors, core.variant; assert 'torch' not in sys.modules, 'torch imported'"
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

@@ -470,3 +470,26 @@ def test_an_incomplete_frame_is_refused_by_name_or_left_out_and_recorded(tmp_pat
         assert main(ev + ["--skip-bad-frames"]) == 0
     res = json.loads((tmp_path / "e.json").read_text())
     assert res["left_out"] == {str(frame): ["incomplete"]} and frame not in [f["index"] for f in res["frames"]]
+
+
+def test_train_options_are_the_config_fields_and_the_shared_ones_come_from_them():
+    """train's command line is TrainConfig's fields (a new setting is an option without a second
+    definition), and evaluate, bench and denoise take --device, --precision and --compile from the same
+    fields, with the same defaults and choices."""
+    from dataclasses import fields
+
+    from training.__main__ import parser
+    from training.cli import HIDDEN
+    base = ["--model", "nbg", "--store", "s"]
+    a = parser().parse_args(["train", *base, "--val-crop", "64", "--grad-clip-norm", "0.5", "--compile"])
+    names = {f.name for f in fields(TrainConfig)} - HIDDEN
+    assert names <= set(vars(a)) and a.val_crop == 64 and a.grad_clip_norm == 0.5 and a.compile is True
+    from training.cli import config_from
+    assert config_from(a, {}).val_crop == 64
+    runs = {"evaluate": ["--checkpoint", "c", "--store", "s", "--out", "o"],
+            "bench": [], "denoise": ["--checkpoint", "c", "--out", "o"]}
+    for cmd, args in runs.items():
+        ns = parser().parse_args([cmd, *args])
+        assert (ns.device, ns.precision, ns.compile) == ("auto", "auto", False), cmd
+        with pytest.raises(SystemExit):
+            parser().parse_args([cmd, *args, "--precision", "fp8"])

@@ -79,11 +79,19 @@ def test_cli_train_evaluate_report(store, tmp_path):
     assert main(["report", "--runs", str(tmp_path / "nothing"), "--store", store, "--out", str(rep)]) == 2
 
 
-def test_frame_kinds_put_the_scene_family_first():
-    from training.evaluate import frame_kinds
+def test_frame_kinds_put_the_scene_family_first(store):
+    """A frame's family is the kind of its scene when the store's config made scenes of that kind; the
+    store knows its families (training never asks the scene generator)."""
+    from stores.reader import open_store
+    from training.evaluate import frame_kinds, frame_tags, scene_families
     assert frame_kinds({"scene_kind": "indoor", "has_motion": True}) == ["indoor", "motion"]
     assert frame_kinds({"scene_kind": "outdoor"}) == ["outdoor", "plain"]
-    assert frame_kinds({"scene_kind": "synthetic", "has_fireflies": True}) == ["fireflies"]
+    assert frame_kinds({"scene_kind": "", "has_fireflies": True}) == ["fireflies"]
+    st = open_store(store)                                       # a synthetic store: no scene families
+    assert scene_families(st) == () and frame_tags(st, 0)["scene_kind"] == ""
+    made = type("S", (), {"config": {"scenes": [{"kind": "indoor", "count": 2}, {"kind": "outdoor"},
+                                                 {"kind": "indoor", "frames": 8}]}})()
+    assert scene_families(made) == ("indoor", "outdoor")
 
 
 def test_firefly_share_counts_outlier_pixels():

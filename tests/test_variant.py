@@ -4,11 +4,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-SNIPPET = ("from pipeline.variant import mitsuba\n"
-           "from pipeline.errors import VariantError\n"
+SNIPPET = ("from core.variant import mitsuba\n"
+           "from core.errors import VariantError\n"
            "try:\n    mitsuba()\nexcept VariantError as e:\n    print('VariantError:', e); raise SystemExit(3)\n"
            "print('ok')\n")
 
@@ -47,12 +48,12 @@ def test_unknown_variant_is_refused():
 
 
 def test_scene_gen_renders_without_importing_pipeline():
-    """The variant is a leaf (scene_gen.variant): scene generation and its Mitsuba scenes need no
+    """The variant is a leaf (core.variant): scene generation and its Mitsuba scenes need no
     pipeline module (pipeline imports scene_gen, never the other way)."""
     code = ("import sys\n"
             "from scene_gen.sampling import sample_scene\n"
             "from scene_gen import to_mitsuba\n"
-            "from scene_gen.variant import mitsuba\n"
+            "from core.variant import mitsuba\n"
             "spec = sample_scene(2, 'outdoor', res=8)\n"
             "mi = mitsuba()\n"
             "img = mi.render(to_mitsuba.load(spec, 0, 8, merge=True), spp=1)\n"
@@ -64,10 +65,11 @@ def test_scene_gen_renders_without_importing_pipeline():
     assert r.stdout.strip().splitlines()[-1] == "[]"
 
 
-def test_pipeline_variant_is_the_leaf():
-    import pipeline.variant as pv
-    import scene_gen.variant as sv
-    from pipeline.errors import VariantError
-    from scene_gen.errors import SceneGenError
-    assert pv.mitsuba is sv.mitsuba and pv.VariantError is VariantError is sv.VariantError
-    assert issubclass(VariantError, SceneGenError) and issubclass(VariantError, RuntimeError)
+def test_the_variant_is_chosen_in_core_alone():
+    """One module chooses the variant (core.variant); its error is a project error and a RuntimeError."""
+    import core.variant
+    from core.errors import ProjectError, VariantError
+    assert core.variant.VariantError is VariantError
+    assert issubclass(VariantError, ProjectError) and issubclass(VariantError, RuntimeError)
+    root = Path(__file__).resolve().parent.parent
+    assert not (root / "pipeline" / "variant.py").exists() and not (root / "scene_gen" / "variant.py").exists()

@@ -26,13 +26,9 @@ def _model_cfg(text: str) -> dict:
 
 
 def _train(a) -> int:
-    from .config import TrainConfig
+    from .cli import config_from
     from .loop import train
-    cfg = TrainConfig(model=a.model, model_cfg=_model_cfg(a.model_cfg), loss=a.loss, lr=a.lr, warmup=a.warmup,
-                      batch=a.batch, crop=a.crop, spp=a.spp, steps=a.steps, seed=a.seed, val_every=a.val_every,
-                      val_frames=a.val_frames, val_split=a.val_split, checkpoint_every=a.checkpoint_every,
-                      device=a.device, precision=a.precision, workers=a.workers,
-                      skip_bad_frames=a.skip_bad_frames, log_every=a.log_every, compile=a.compile)
+    cfg = config_from(a, _model_cfg(a.model_cfg))
     out = a.out or f"data/runs/{a.model}"
     res = train(cfg, a.store, out, progress=not a.no_progress, seconds=a.seconds)
     if res.get("rank", 0) != 0:          # under torchrun: rank 0 speaks for the run
@@ -89,6 +85,11 @@ def _fma(a) -> int:
     return 0
 
 
+def _hard_cases(a) -> int:
+    from .hardcases import hard_cases_cli
+    return hard_cases_cli(a)
+
+
 def _scaling(a) -> int:
     from .scaling import load_scaling_config
     from .scaling_run import run_study
@@ -105,98 +106,56 @@ def _model_names() -> str:
         return "see training/models"
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training", description=__doc__,
-                                epilog=EXIT_CODES_HELP)
-    sub = p.add_subparsers(dest="cmd", required=True)
+INFER_COMPILE = ("run the model through torch.compile (the first frame of each size compiles: tens of seconds "
+                 "on a CPU)")
+INFER_PRECISION = "autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else fp32)"
+SPLIT_HELP = "train, val or test (default test: held-out scenes)"
 
+
+def _train_parser(sub) -> None:
+    from .cli import add_config_options
     t = sub.add_parser("train", help="train a denoiser; writes OUT/checkpoint.pt and OUT/metrics.csv (resumes)")
-    t.add_argument("--model", required=True, help="a registered model: " + _model_names())
-    t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`")
+    t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`, or a "
+                                                  "folder of Noisebase sequences")
     t.add_argument("--out", help="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
-    t.add_argument("--steps", type=int, default=1000, help="optimiser steps (default 1000)")
     t.add_argument("--seconds", type=float, default=None,
                    help="stop after this many seconds of training (the checkpoint is written; the same command "
                         "resumes toward --steps)")
-    t.add_argument("--crop", type=int, default=None,
-                   help="square training crop in pixels (default 128, the paper's, or the whole frame of a "
-                        "store with smaller frames; a crop larger than the frames is refused)")
-    t.add_argument("--batch", type=int, default=4, help="crops per step (default 4, the paper's)")
-    t.add_argument("--spp", type=int, default=None,
-                   help="samples per pixel fed to the model (default: the model's, 8 for the layer family, 1 for "
-                        "nbg and wskpn; for temporal the average budget per pixel, default 4, at most the sum of "
-                        "the store's layers; at most what the store holds)")
-    t.add_argument("--lr", type=float, default=None,
-                   help="Adam learning rate (default: the model's; layer family 0.0005, NVlabs/layerdenoise's; "
-                        "nbg 1e-4, wskpn 1e-3, their papers')")
-    t.add_argument("--warmup", type=int, default=None,
-                   help="steps of linear learning-rate warm-up (default: 50 for the layer family, 0 otherwise)")
-    t.add_argument("--loss", default=None,
-                   help="smape (eq. 9, linear radiance), l2-tonemap or l1 (tone-mapped, eq. 7), l1-temporal "
-                        "(Hasselgren et al. eq. 4, clips); default: the model's (smape; nbg: l1; "
-                        "temporal: l1-temporal)")
-    t.add_argument("--seed", type=int, default=0, help="seeds weights, crops and augmentation")
-    t.add_argument("--val-every", type=int, default=100, help="validate on held-out scenes every N steps")
-    t.add_argument("--val-frames", type=int, default=8, help="validation frames (from the --val-split split)")
-    t.add_argument("--val-split", default="val",
-                   help="split to validate on (default val; a store without it trains without validation)")
-    t.add_argument("--workers", type=int, default=1,
-                   help="DataLoader worker processes (default 1; 0 loads in the training process)")
-    t.add_argument("--checkpoint-every", type=int, default=100, help="write checkpoint.pt every N steps")
-    t.add_argument("--log-every", type=int, default=10,
-                   help="write the training loss to metrics.csv, and read it from the device and check it for "
-                        "NaN/Inf, every N steps (default 10; between reads no step waits for the device)")
-    t.add_argument("--compile", action="store_true",
-                   help="run the forward pass and loss through torch.compile (the first step compiles: tens of "
-                        "seconds on a CPU, a minute or more on a GPU)")
-    t.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
-                                                     "PyTorch sees a GPU, else the CPU)")
-    t.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
-                   help="autocast precision of the forward pass, weights kept in fp32; fp16 scales the loss "
-                        "(default auto: bf16 on a GPU that has it, else fp32)")
+    add_config_options(t, skip=("model_cfg",), model="a registered model: " + _model_names())
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
     t.add_argument("--no-progress", action="store_true")
-    t.add_argument("--skip-bad-frames", action="store_true",
-                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
-                        "references), with a warning naming them; default: refuse them")
     t.set_defaults(fn=_train)
 
+
+def _evaluate_parser(sub) -> None:
+    from .cli import add_shared
     e = sub.add_parser("evaluate", help="per-frame and mean metrics with ms per megapixel, as JSON")
     e.add_argument("--checkpoint", required=True, help="a checkpoint.pt, or 'input' / 'oidn' for a baseline")
     e.add_argument("--store", required=True, help="the Zarr store to evaluate on")
-    e.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
+    e.add_argument("--split", default="test", help=SPLIT_HELP)
     e.add_argument("--spp", type=int, default=None,
                    help="input samples per pixel (default: what the checkpoint was trained at; for a baseline "
                         "all the store holds); a count the store does not hold is refused")
     e.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     e.add_argument("--out", required=True, help="JSON file for per-frame and mean metrics")
     e.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
-    e.add_argument("--skip-bad-frames", action="store_true",
-                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
-                        "references), with a warning naming them; default: refuse them")
-    e.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
-                                                     "PyTorch sees a GPU, else the CPU)")
-    e.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
-                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
-                        "fp32)")
-    e.add_argument("--compile", action="store_true",
-                   help="run the model through torch.compile (the first frame of each size compiles: tens of "
-                        "seconds on a CPU)")
+    add_shared(e, precision=INFER_PRECISION, compile=INFER_COMPILE)
     e.set_defaults(fn=_evaluate)
 
+
+def _report_parser(sub) -> None:
+    from .cli import add_shared
     r = sub.add_parser("report", help="evaluate runs and baselines; Markdown table, plot and crops")
     r.add_argument("--runs", nargs="+", required=True, help="run folders (each with checkpoint.pt)")
     r.add_argument("--store", required=True, help="the Zarr store to evaluate on")
     r.add_argument("--out", required=True, help="report folder: report.md, speed_vs_error.png, crops.png")
-    r.add_argument("--split", default="test", help="train, val or test (default test: held-out scenes)")
+    r.add_argument("--split", default="test", help=SPLIT_HELP)
     r.add_argument("--spp", type=int, default=None,
                    help="input samples per pixel for every run (default: each run at its training spp, with the "
                         "baselines at each of those spp)")
     r.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
     r.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
-    r.add_argument("--skip-bad-frames", action="store_true",
-                   help="leave out frames validate flags (NaN the renderer replaced, negative or all-zero "
-                        "references), with a warning naming them; default: refuse them")
+    add_shared(r, names=("skip_bad_frames",))
     r.add_argument("--clips-store", help="also evaluate everything on the test split of this store of moving "
                                          "clips (a section with tPSNR; recurrent models carry their state)")
     r.add_argument("--hard-cases", help="also evaluate everything on each case of this store of "
@@ -206,6 +165,8 @@ def main(argv=None) -> int:
                         "the noisy input): paired per-frame differences with 95%% intervals")
     r.set_defaults(fn=_report)
 
+
+def _hard_cases_parser(sub) -> None:
     h = sub.add_parser("hard-cases", help="every run, OIDN and the noisy input on each case of a hard-case store "
                                           "(configs/hard-cases.yaml): DIR/hard-cases.md and .json")
     h.add_argument("--store", required=True, help="a store of configs/hard-cases.yaml (every split is evaluated)")
@@ -213,12 +174,11 @@ def main(argv=None) -> int:
     h.add_argument("--out", required=True, help="folder for hard-cases.md and hard-cases.json")
     h.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
     h.add_argument("--frames", type=int, default=0, help="at most this many frames per split (0: all)")
-
-    def _hard_cases(a) -> int:
-        from .hardcases import hard_cases_cli
-        return hard_cases_cli(a)
     h.set_defaults(fn=_hard_cases)
 
+
+def _bench_parser(sub) -> None:
+    from .cli import add_shared
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")
     b.add_argument("--models", nargs="*", help="registered models to time (default: all)")
     b.add_argument("--size", type=int, default=128, help="square frame size in pixels (default 128)")
@@ -227,22 +187,23 @@ def main(argv=None) -> int:
     b.add_argument("--repeats", type=int, default=3, help="timed forward passes; the best counts (default 3)")
     b.add_argument("--json", help='write {name: {"ms_per_mp": ...}} (with "oidn") to this file')
     b.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
-    b.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
-                                                     "PyTorch sees a GPU, else the CPU)")
-    b.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
-                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
-                        "fp32)")
-    b.add_argument("--compile", action="store_true",
-                   help="also time every model through torch.compile, with its speed-up and its largest "
-                        "difference from the eager output (with --train: the compiled training step)")
+    add_shared(b, names=("device", "precision", "compile"), precision=INFER_PRECISION,
+               compile="also time every model through torch.compile, with its speed-up and its largest "
+                       "difference from the eager output (with --train: the compiled training step)")
     b.add_argument("--train", action="store_true",
                    help="training steps a second instead (the step `train` runs, fused Adam), each family at its "
                         "paper's crop and batch (default models: layer, temporal, nbg, wskpn)")
-    b.add_argument("--seconds", type=float, default=3.0, help="with --train: seconds of timed steps a model (default 3)")
-    b.add_argument("--crop", type=int, default=None, help="with --train: crop edge for every model (default: the paper's)")
-    b.add_argument("--batch", type=int, default=None, help="with --train: at most this batch (default: the paper's)")
+    b.add_argument("--seconds", type=float, default=3.0,
+                   help="with --train: seconds of timed steps a model (default 3)")
+    b.add_argument("--crop", type=int, default=None,
+                   help="with --train: crop edge for every model (default: the paper's)")
+    b.add_argument("--batch", type=int, default=None,
+                   help="with --train: at most this batch (default: the paper's)")
     b.set_defaults(fn=_bench)
 
+
+def _denoise_parser(sub) -> None:
+    from .cli import add_shared
     d = sub.add_parser("denoise", help="apply a trained checkpoint to your own render (EXR images, a store "
                                        "frame or a render-frame .npz), like OIDN's oidnDenoise")
     d.add_argument("--checkpoint", required=True, help="a checkpoint.pt written by `train` (or 'oidn')")
@@ -258,17 +219,12 @@ def main(argv=None) -> int:
     d.add_argument("--tile", type=int, default=0,
                    help="denoise in square tiles of this many pixels (with overlap) to bound memory; "
                         "0: automatic (whole image when it fits)")
-    d.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ... (default auto: CUDA where "
-                                                     "PyTorch sees a GPU, else the CPU)")
-    d.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp16", "fp32"],
-                   help="autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else "
-                        "fp32)")
-    d.add_argument("--compile", action="store_true",
-                   help="run the model through torch.compile (the first frame of each size compiles: tens of "
-                        "seconds on a CPU)")
+    add_shared(d, names=("device", "precision", "compile"), precision=INFER_PRECISION, compile=INFER_COMPILE)
     d.add_argument("--out", required=True, help="denoised radiance, written as OpenEXR")
     d.set_defaults(fn=_denoise)
 
+
+def _scaling_parser(sub) -> None:
     s = sub.add_parser("scaling", help="quality against the number of training frames and their scene variety, "
                                        "with a fit and intervals: OUT/scaling.md, scaling.png, scaling.json (resumes)")
     s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
@@ -283,10 +239,19 @@ def main(argv=None) -> int:
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(fn=_scaling)
 
-    f = sub.add_parser("fma", help="figure 10: FMAs against spp")
-    f.set_defaults(fn=_fma)
 
-    a = p.parse_args(argv)
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m training", description=__doc__, epilog=EXIT_CODES_HELP)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for add in (_train_parser, _evaluate_parser, _report_parser, _hard_cases_parser, _bench_parser,
+                _denoise_parser, _scaling_parser):
+        add(sub)
+    sub.add_parser("fma", help="figure 10: FMAs against spp").set_defaults(fn=_fma)
+    return p
+
+
+def main(argv=None) -> int:
+    a = parser().parse_args(argv)
     from stores.errors import StoreCorruptionError, StoreError, store_unreachable, unreachable_cause
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
 

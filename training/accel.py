@@ -12,6 +12,8 @@ from contextlib import nullcontext
 
 import torch
 
+from core.checks import need
+
 from .errors import ConfigError
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -22,13 +24,11 @@ DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 def check_device(name) -> None:
     """ConfigError unless ``name`` is auto, cpu, cuda or cuda:N."""
     ok = isinstance(name, str) and (name in DEVICES or (name.startswith("cuda:") and name[5:].isdigit()))
-    if not ok:
-        raise ConfigError(f'"device" must be "auto", "cpu" or "cuda[:N]", got {name!r}')
+    need(ok, '"device"', '"auto", "cpu" or "cuda[:N]"', name, ConfigError)
 
 
 def check_precision(name) -> None:
-    if name not in PRECISIONS:
-        raise ConfigError(f'"precision" must be one of {", ".join(PRECISIONS)}, got {name!r}')
+    need(name in PRECISIONS, '"precision"', f"one of {', '.join(PRECISIONS)}", name, ConfigError)
 
 
 def device_name(name: str) -> str:

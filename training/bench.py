@@ -61,7 +61,7 @@ def _row(wall: float, cpu: float, mp: float, **extra) -> dict:
     return {"ms_per_mp": ms, "cpu_ms_per_mp": cpu * 1e3 / mp, "ms_per_720p": ms * MP_720P, **extra}
 
 
-def _forward(model, batch, stepwise: bool, state, device, precision: str):
+def forward_once(model, batch, stepwise: bool, state, device, precision: str):
     """One timed call: a recurrent model's step with ``state``, else the forward pass."""
     from .accel import autocast
     with torch.no_grad(), autocast(device, precision):
@@ -78,12 +78,12 @@ def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats:
     with its quartiles; and the largest difference of the outputs."""
     from .accel import compile_model
     eager_step, eager_forward = (model.step if stepwise else None), model.forward
-    eager = _forward(model, batch, stepwise, state, dev, precision).float()
+    eager = forward_once(model, batch, stepwise, state, dev, precision).float()
     # models of one class share their forward's code: dynamo guards each on its instance, and past its
     # recompile limit (8) it runs the code eagerly, unsaid; so each model starts afresh
     torch._dynamo.reset()
     compile_model(model)
-    out = _forward(model, batch, stepwise, state, dev, precision).float()         # compiles
+    out = forward_once(model, batch, stepwise, state, dev, precision).float()         # compiles
     diff = float((out - eager).abs().max() / eager.abs().max().clamp_min(1e-12))
 
     def run_eager():
@@ -98,7 +98,7 @@ def _compiled(model, batch, stepwise: bool, state, dev, precision: str, repeats:
         run_eager()
         te.append(time.perf_counter() - t)
         t = time.perf_counter()
-        _forward(model, batch, stepwise, state, dev, precision)
+        forward_once(model, batch, stepwise, state, dev, precision)
         tc.append(time.perf_counter() - t)
     # the speed-up is the median of the pairs' ratios: a ratio of two best-ofs moved by +-15% from run to
     # run here (temporal 1.12x and 1.43x), the median of 40 pairs by +-3%
@@ -126,7 +126,7 @@ def time_model(m, spp: int, size, repeats: int, dev, precision: str, compile: bo
         with torch.no_grad():
             state = fast.step(batch, None)[1]
     mp = h * w / 1e6
-    s, c = _best(lambda: _forward(fast, batch, stepwise, state, dev, precision), repeats)
+    s, c = _best(lambda: forward_once(fast, batch, stepwise, state, dev, precision), repeats)
     row = _row(s, c, mp, spp=spp, fmas_per_pixel=float(fast.fmas_per_pixel(spp)), params=m.param_count(),
                device=str(dev), precision=precision, size=size if isinstance(size, int) else [h, w],
                ms_per_frame=s * 1e3)

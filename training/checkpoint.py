@@ -141,10 +141,6 @@ def _old_globals() -> list:
     return out
 
 
-def _global_name(g) -> str:
-    return g[1] if isinstance(g, tuple) else f"{g.__module__}.{g.__qualname__}"
-
-
 OLD_GLOBAL_NAMES = ("torch.torch_version.TorchVersion", "numpy.ndarray", "numpy.dtype",
                     "numpy.core.multiarray._reconstruct", "numpy._core.multiarray._reconstruct")
 
@@ -277,6 +273,19 @@ def build_model(ck: dict, device="cpu"):
     return model.to(device).eval()
 
 
+def find_runs(runs) -> list[Path]:
+    """Run directories holding a ``checkpoint.pt`` (a run folder or its checkpoint file; globs that matched
+    nothing are skipped)."""
+    found = []
+    for r in runs:
+        p = Path(r)
+        if (p / "checkpoint.pt").is_file():
+            found.append(p)
+        elif p.is_file() and p.suffix == ".pt":
+            found.append(p.parent)
+    return found
+
+
 def main(argv=None) -> int:
     """``python -m training.checkpoint upgrade FILE [--out NEW]``: convert a trusted old checkpoint."""
     import argparse
@@ -299,16 +308,3 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
-
-
-def find_runs(runs) -> list[Path]:
-    """Run directories holding a ``checkpoint.pt`` (a run folder or its checkpoint file; globs that matched
-    nothing are skipped)."""
-    found = []
-    for r in runs:
-        p = Path(r)
-        if (p / "checkpoint.pt").is_file():
-            found.append(p)
-        elif p.is_file() and p.suffix == ".pt":
-            found.append(p.parent)
-    return found

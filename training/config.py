@@ -1,10 +1,10 @@
 """Training settings: a frozen, self-validating dataclass that round-trips through a dict (checked with
-``scene_gen.checks``, the mechanism every config of the project shares)."""
+``core.checks``, the mechanism every config of the project shares)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 
 from .errors import ConfigError
 
@@ -42,30 +42,56 @@ class TrainConfig:
     ``precision`` (:mod:`training.accel`) may change between a run and its resumption (a run started
     on a GPU in bf16 resumes on a CPU in fp32)."""
 
-    model: str = "layer"
-    model_cfg: dict = field(default_factory=dict)
-    loss: str | None = None     # None: the model's default (below: the layer family's)
-    lr: float | None = None
-    grad_clip_norm: float | None = None
-    grad_clip_value: float | None = None
-    warmup: int | None = None   # optimiser steps of linear learning-rate warm-up (0: off)
-    batch: int = 4
-    crop: int | None = None     # None: the paper's 128, or the whole frame where frames are smaller
-    spp: int | None = None      # None: the model's declared default (8 for the layer family)
-    steps: int = 1000
-    seed: int = 0
-    val_every: int = 100        # optimiser steps between validations (0: only at the end)
-    val_frames: int = 8         # held-out frames per validation (0: all of the split)
-    val_crop: int = 128         # crop of validation frames (0: full frames)
-    val_split: str = "val"
-    log_every: int = 10
-    checkpoint_every: int = 100
-    device: str = "auto"        # auto: CUDA where present, else the CPU (training.accel)
-    precision: str = "auto"     # auto: bf16 on a GPU that has it, else fp32; bf16, fp16 or fp32
-    workers: int = 1            # DataLoader worker processes (0: in-process)
-    skip_bad_frames: bool = False   # leave out frames validate flags (default: refuse them)
+    # Each field's ``help`` is its command-line option's (``training.cli``: ``train`` builds its options from
+    # these fields, and the other commands take --device, --precision, --compile and --skip-bad-frames
+    # from here too).
+    model: str = field(default="layer", metadata={"help": "a registered model"})
+    model_cfg: dict = field(default_factory=dict, metadata={"help": "JSON model settings, e.g. '{\"layers\": 3}'"})
+    loss: str | None = field(default=None, metadata={"help": (
+        "smape (eq. 9, linear radiance), l2-tonemap or l1 (tone-mapped, eq. 7), l1-temporal (Hasselgren et al. "
+        "eq. 4, clips); default: the model's (smape; nbg: l1; temporal: l1-temporal)")})
+    lr: float | None = field(default=None, metadata={"help": (
+        "Adam learning rate (default: the model's; layer family 0.0005, NVlabs/layerdenoise's; nbg 1e-4, wskpn "
+        "1e-3, their papers')")})
+    grad_clip_norm: float | None = field(default=None, metadata={"help": (
+        "clip the gradients' norm to this (0: off; default: the model's, 0.001 for the layer family)")})
+    grad_clip_value: float | None = field(default=None, metadata={"help": (
+        "then clamp every gradient to +-this (0: off; default: the model's, 0.25 for the layer family)")})
+    warmup: int | None = field(default=None, metadata={"help": (
+        "steps of linear learning-rate warm-up (default: 50 for the layer family, 0 otherwise)")})
+    batch: int = field(default=4, metadata={"help": "crops per step (default 4, the paper's)"})
+    crop: int | None = field(default=None, metadata={"help": (
+        "square training crop in pixels (default 128, the paper's, or the whole frame of a store with smaller "
+        "frames; a crop larger than the frames is refused)")})
+    spp: int | None = field(default=None, metadata={"help": (
+        "samples per pixel fed to the model (default: the model's, 8 for the layer family, 1 for nbg and wskpn; "
+        "for temporal the average budget per pixel, default 4, at most the sum of the store's layers; at most "
+        "what the store holds)")})
+    steps: int = field(default=1000, metadata={"help": "optimiser steps (default 1000)"})
+    seed: int = field(default=0, metadata={"help": "seeds weights, crops and augmentation"})
+    val_every: int = field(default=100, metadata={"help": "validate on held-out scenes every N steps (0: at the end)"})
+    val_frames: int = field(default=8, metadata={"help": "validation frames (from the --val-split split; 0: all)"})
+    val_crop: int = field(default=128, metadata={"help": "crop of validation frames in pixels (0: whole frames)"})
+    val_split: str = field(default="val", metadata={"help": (
+        "split to validate on (default val; a store without it trains without validation)")})
+    log_every: int = field(default=10, metadata={"help": (
+        "write the training loss to metrics.csv, and read it from the device and check it for NaN/Inf, every N "
+        "steps (default 10; between reads no step waits for the device)")})
+    checkpoint_every: int = field(default=100, metadata={"help": "write checkpoint.pt every N steps"})
+    device: str = field(default="auto", metadata={"help": (
+        "auto, cpu, cuda, cuda:1, ... (default auto: CUDA where PyTorch sees a GPU, else the CPU)")})
+    precision: str = field(default="auto", metadata={"choices": ("auto", "bf16", "fp16", "fp32"), "help": (
+        "autocast precision of the forward pass, weights kept in fp32; fp16 scales the loss (default auto: bf16 "
+        "on a GPU that has it, else fp32)")})
+    workers: int = field(default=1, metadata={"help": (
+        "DataLoader worker processes (default 1; 0 loads in the training process)")})
+    skip_bad_frames: bool = field(default=False, metadata={"help": (
+        "leave out frames validate flags (incomplete, NaN the renderer replaced, negative or all-zero "
+        "references), naming them in one line and in the run's record; default: refuse them")})
     train_clips: list | None = None  # train only on these clip ids of the train split (None: all of it)
-    compile: bool = False       # the forward pass and loss through torch.compile (training.loop.forward_loss_fn)
+    compile: bool = field(default=False, metadata={"help": (
+        "run the forward pass and loss through torch.compile (the first step compiles: tens of seconds on a "
+        "CPU, a minute or more on a GPU)")})
 
     def __post_init__(self):
         self._resolve_defaults()

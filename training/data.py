@@ -27,12 +27,14 @@ ORDER_SALT = 0x0DE7
 
 
 def open_store(store):
-    """A :class:`stores.reader.Store` from a path (or the store itself); a folder of Noisebase sequences
-    gives a :class:`stores.noisebase.NoisebaseStore`, which the per-sample kinds read alike."""
+    """The :class:`stores.protocol.TrainingStore` at a path (or the store itself): a
+    :class:`stores.reader.Store`, or for a folder of Noisebase sequences a
+    :class:`stores.noisebase.NoisebaseStore`, which every kind reads alike."""
     from stores import noisebase
     from stores.errors import StoreError
-    from stores.reader import Store, open_store as _open
-    if isinstance(store, (Store, noisebase.NoisebaseStore)):
+    from stores.protocol import TrainingStore
+    from stores.reader import open_store as _open
+    if isinstance(store, TrainingStore):
         return store
     try:
         return noisebase.NoisebaseStore(store) if noisebase.is_noisebase(store) else _open(store)
@@ -94,14 +96,11 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
     so any incomplete frame counts). Returns the frames left out, frame -> problems, also kept as
     ``ds.left_out``. The store datasets list their frames in ``frames`` (one per item) or ``windows``
     (tuples)."""
-    from stores.fitness import check_frames, describe
+    from stores.fitness import describe
     attr = "frames" if hasattr(ds, "frames") else "windows"
     items = list(getattr(ds, attr))
     used = sorted({int(i) for it in items for i in (it if isinstance(it, tuple) else (it,))})
-    # a source other than our stores (a Noisebase folder) brings its own check of what it holds
-    check = getattr(store, "check_frames", None) or (lambda frames, progress: check_frames(store, frames,
-                                                                                           progress=progress))
-    bad = check(sorted(set(used) | set(store.incomplete_frames())), progress=progress)
+    bad = store.check_frames(sorted(set(used) | set(store.incomplete_frames())), progress=progress)
     ds.left_out = bad
     if not bad:
         return bad

@@ -40,7 +40,8 @@ import torch
 
 from stores.contract import FEATURE_GROUPS
 from stores.errors import CropSizeError, SampleCountError, SplitError
-from stores.reader import Store, open_store
+from stores.protocol import TrainingStore
+from stores.reader import open_store
 
 _MOTION = FEATURE_GROUPS["motion"]
 _LENS = FEATURE_GROUPS["lens"]
@@ -112,7 +113,7 @@ class StoreDataset(torch.utils.data.Dataset):
 
     def __init__(self, store, split: str | None, crop: int | tuple[int, int] | None, augment: bool, seed: int,
                  crop_align: int = 1):
-        self.store: Store = store if hasattr(store, "read_array") else open_store(store)   # ours or a NoisebaseStore
+        self.store: TrainingStore = store if isinstance(store, TrainingStore) else open_store(store)
         if int(crop_align) < 1:
             raise CropSizeError(f"crop_align must be >= 1, got {crop_align}")
         self.crop_align = int(crop_align)

@@ -83,7 +83,7 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
 
 
 def _read_image(path: str, name: str, channels: int) -> np.ndarray:
-    from stores.imageio import read_exr
+    from core.images import read_exr
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"--{name} {path}: no such file")
@@ -259,7 +259,7 @@ def denoise(model, items: list[dict], tile: int = 0, device: str = "cpu", progre
 
 
 def denoise_cli(a) -> int:
-    from stores.imageio import write_exr
+    from core.images import write_exr
     from .models.common import flush_denormals
     flush_denormals()
     if (a.input is None) == (a.store is None):

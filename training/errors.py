@@ -1,11 +1,13 @@
-"""Errors raised by the training package. Only ``training.__main__.main`` turns them into exit codes."""
+"""Errors raised by the training package (on :mod:`core.errors`). Only ``training.__main__.main`` turns them
+into exit codes."""
+from core.errors import ProjectError, SettingError
 
 
-class TrainingError(Exception):
+class TrainingError(ProjectError):
     """Base class of every training error."""
 
 
-class ConfigError(TrainingError, ValueError):
+class ConfigError(TrainingError, SettingError):
     """A model or training setting is invalid; the message names the setting and its allowed range."""
 
 

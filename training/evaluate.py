@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -63,19 +62,21 @@ def firefly_share(radiance: torch.Tensor, reference: torch.Tensor) -> float:
 HARD_PARTS = ("defocus", "motion", "fireflies", "plain")
 
 
-@lru_cache(maxsize=1)
-def scene_families() -> tuple[str, ...]:
-    """The registered scene families (``scene_gen``), the first kind of a frame."""
-    from scene_gen.families import family_names
-    return tuple(family_names())
+def scene_families(store) -> tuple[str, ...]:
+    """The scene families the store's frames were made of: the ``kind`` of each scene group of the config
+    it records (``scenes: [{kind: indoor, ...}]``), in that order; none for a store made otherwise (a
+    synthetic or Noisebase one). Training knows the store, not the scene generator."""
+    cfg = store.config if isinstance(store.config, dict) else {}
+    kinds = [g.get("kind") for g in cfg.get("scenes", []) if isinstance(g, dict)]
+    return tuple(dict.fromkeys(k for k in kinds if isinstance(k, str) and k))
 
 
 def frame_kinds(row: dict) -> list[str]:
-    """The kinds of an evaluated frame (``row`` from ``evaluate``): its scene family (one of
-    :func:`scene_families`) and any of defocus, motion, fireflies, else plain."""
+    """The kinds of an evaluated frame (``row`` from ``evaluate``): its scene family (``scene_kind``:
+    :func:`frame_tags`) and any of defocus, motion, fireflies, else plain."""
     kinds = [k for k, key in (("defocus", "has_defocus"), ("motion", "has_motion"),
                               ("fireflies", "has_fireflies")) if row.get(key)]
-    scene = [row["scene_kind"]] if row.get("scene_kind") in scene_families() else []
+    scene = [row["scene_kind"]] if row.get("scene_kind") else []
     return scene + (kinds or ["plain"])
 
 
@@ -120,6 +121,8 @@ def frame_tags(store, idx: int) -> dict:
     try:
         scene_kind = str(json.loads(str(store.meta_column("scene_json")[idx]) or "{}").get("kind", ""))
     except ValueError:                       # a synthetic store's placeholder: no family
+        scene_kind = ""
+    if scene_kind not in scene_families(store):
         scene_kind = ""
     return {"scene_kind": scene_kind, "has_defocus": bool(store.meta_column("has_defocus")[idx]),
             "has_motion": bool(store.meta_column("has_motion")[idx]),
@@ -298,9 +301,9 @@ def summarize(frames: list[dict], runs: list) -> dict:
 
 def by_kind(frames: list[dict], keys: list[str]) -> dict:
     """Means over the frames of each kind (:func:`frame_kinds`; a frame may have several): the scene
-    families first, then the hard parts."""
+    families first (in the order the frames show them), then the hard parts."""
     tags = [frame_kinds(f) for f in frames]
-    order = [k for k in scene_families() if any(k in t for t in tags)] + list(HARD_PARTS)
+    order = list(dict.fromkeys(f["scene_kind"] for f in frames if f.get("scene_kind"))) + list(HARD_PARTS)
     out = {}
     for kind in order:
         sel = [f for f, t in zip(frames, tags) if kind in t]

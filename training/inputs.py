@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from core.checks import need, need_int
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
 from .datasets import LayerFrames, PixelFrames, SampleFrames, pixel_item_from_samples
@@ -54,8 +55,8 @@ ALL_FEATURES = tuple(FEATURE_GROUPS)
 
 def check_feature_groups(groups, what: str = '"features"') -> tuple[str, ...]:
     """``groups`` as a tuple in ``FEATURE_GROUPS`` order, or ConfigError naming the unknown ones."""
-    if isinstance(groups, str) or not all(isinstance(g, str) for g in groups):
-        raise ConfigError(f"{what} must be a list of feature groups {list(ALL_FEATURES)}, got {groups!r}")
+    need(not isinstance(groups, str) and all(isinstance(g, str) for g in groups), what,
+         f"a list of feature groups {list(ALL_FEATURES)}", groups, ConfigError)
     unknown = [g for g in groups if g not in FEATURE_GROUPS]
     if unknown:
         raise ConfigError(f"{what}: unknown feature groups {unknown}; the groups are {list(ALL_FEATURES)}")
@@ -75,10 +76,8 @@ class InputSpec:
     features: tuple[str, ...] = ALL_FEATURES
 
     def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ConfigError(f'input kind must be one of {sorted(KINDS)}, got {self.kind!r}')
-        if not isinstance(self.frames, int) or self.frames < 1:
-            raise ConfigError(f'"frames" must be an integer >= 1, got {self.frames!r}')
+        need(self.kind in KINDS, "input kind", f"one of {sorted(KINDS)}", self.kind, ConfigError)
+        need_int('"frames"', self.frames, 1, None, ConfigError)
         object.__setattr__(self, "features", check_feature_groups(self.features))
 
     @property
@@ -117,28 +116,28 @@ class InputKind:
     """One kind of model input. Subclasses set ``name``, ``arrays`` (what a store must hold),
     ``baseline_input`` (the kind whose items the ``input`` and ``oidn`` baselines read beside this kind's
     models; ``baseline_tag`` marks those baselines' labels beside others), ``holds`` (what an item is
-    made of, for messages), ``stepwise`` (models of the kind are
-    recurrent: evaluated frame by frame in clip order with ``step``) and ``reads_images`` (an item can
-    be made of per-pixel images, e.g. EXR files: :meth:`item_from_images`), and implement ``dataset``,
-    ``example_batch`` and ``item_from_render``; ``forward``, ``target`` and ``noisy_image`` where the
-    defaults do not fit."""
+    made of, for messages), ``window_key`` (the key whose second axis is time in a window of frames,
+    ``frame_dims`` its dimensions in a single frame; ``per_batch`` the keys of a window without the time
+    axis) and ``reads_images`` (an item can be made of per-pixel images, e.g. EXR files:
+    :meth:`item_from_images`), and implement ``dataset``, ``example_batch`` and ``item_from_render``;
+    ``forward``, ``target`` and ``noisy_image`` where the defaults do not fit.
+
+    Time is handled here, once (:meth:`unroll`): a recurrent model (one that defines ``step``) of any
+    kind is stepped through a window's frames by its kind, carrying its state."""
 
     name = "?"
     arrays: tuple[str, ...] = GUIDE_ARRAYS
     baseline_input = "pixels"
     holds = "per-sample inputs"
-    stepwise = False
+    window_key: str | None = None
+    frame_dims = 5
+    per_batch: tuple[str, ...] = ("origin",)
     reads_images = False
     baseline_tag = ""
 
     def check_store(self, store) -> None:
         """Raise :class:`DataError` naming every array this kind needs that the store lacks."""
-        missing = []
-        for path in self.arrays:
-            try:
-                store.root[path]
-            except KeyError:
-                missing.append(path)
+        missing = [path for path in self.arrays if not store.has_array(path)]
         if missing:
             raise DataError(f"input kind {self.name!r} needs the arrays {missing}, which the store "
                             f"{store.path!s} does not have")
@@ -162,8 +161,35 @@ class InputKind:
         raise NotImplementedError
 
     def forward(self, model, batch: dict) -> torch.Tensor:
-        """The model's output for ``batch`` (what ``Denoiser.forward`` runs unless a model defines its own)."""
-        raise ConfigError(f"model {model.name!r} reads input kind {self.name!r} and must define forward(batch)")
+        """The model's output for ``batch`` (what ``Denoiser.forward`` runs unless a model defines its own):
+        a recurrent model unrolled over time (:meth:`unroll`)."""
+        if model.stepwise and self.window_key is not None:
+            return self.unroll(model, batch)
+        raise ConfigError(f"model {model.name!r} reads input kind {self.name!r} and must define forward(batch)"
+                          + (" or step(frame, state)" if self.window_key is not None else ""))
+
+    def unroll(self, model, batch: dict) -> torch.Tensor:
+        """A recurrent model over time, the one place it is done: a single frame (``batch[window_key]`` of
+        ``frame_dims`` dimensions) gives its first step's output ``(B,3,h,w)``; a window (one more, the
+        time axis second) gives ``(B,T,3,h,w)``: the model's ``first_frame`` output, then its ``step``
+        through the other frames carrying its state (a one-frame window: its first step)."""
+        x = batch[self.window_key]
+        if x.dim() == self.frame_dims:
+            return model.step(batch, None)[0]
+        if x.dim() != self.frame_dims + 1:
+            raise ConfigError(f"{self.window_key} must have {self.frame_dims} dimensions (a frame) or "
+                              f"{self.frame_dims + 1} (a window), got {tuple(x.shape)}")
+
+        def frame(t):
+            return {k: (v if k in self.per_batch else v[:, t]) for k, v in batch.items()}
+        if x.shape[1] == 1:
+            return model.step(frame(0), None)[0].unsqueeze(1)
+        out, state = model.first_frame(frame(0))
+        outs = [out]
+        for t in range(1, x.shape[1]):
+            out, state, _ = model.step(frame(t), state)
+            outs.append(out)
+        return torch.stack(outs, dim=1)
 
     def target(self, batch: dict) -> torch.Tensor:
         """The reference the model's output is compared with (the same shape)."""
@@ -293,30 +319,20 @@ class PixelsKind(InputKind):
                 "motion": _rand(*lead, 2, h, w, generator=g, scale=2.0) - 1.0}
 
 
-def frame_at(batch: dict, t: int) -> dict:
-    """Frame ``t`` of a batch of windows (every key but ``origin`` has the T axis second)."""
-    return {k: (v if k == "origin" else v[:, t]) for k, v in batch.items()}
-
-
 class ClipsKind(InputKind):
+    """Windows of per-sample frames for recurrent models (``step``): a window ``radiance
+    (B,T,S,3,h,w)`` is unrolled over its frames (:meth:`InputKind.unroll`), a single frame
+    ``(B,S,3,h,w)`` is a first step."""
     name = "clips"
     arrays = SAMPLE_ARRAYS + GUIDE_ARRAYS
-    stepwise = True
+    window_key = "radiance"
 
     def dataset(self, store, split, spp, crop, augment, seed, frames=1, full_windows=True):
         return SampleFrames(store, split, spp=spp, crop=crop, augment=augment, seed=seed, frames=frames,
                             full_windows=full_windows)
 
     def forward(self, model, batch):
-        """A window ``radiance (B,T,S,3,h,w)``: the model stepped through its frames, carrying its state,
-        ``(B,T,3,h,w)``; a single frame ``(B,S,3,h,w)``: its first step, ``(B,3,h,w)``."""
-        if batch["radiance"].dim() == 5:
-            return model.step(batch, None)[0]
-        outs, state = [], None
-        for t in range(batch["radiance"].shape[1]):
-            out, state, _ = model.step(frame_at(batch, t), state)
-            outs.append(out)
-        return torch.stack(outs, dim=1)
+        return self.unroll(model, batch)
 
     def item_from_render(self, arrays, spp):
         return SamplesKind.item_from_render(self, arrays, spp)
@@ -334,6 +350,8 @@ class SampledLayersKind(InputKind):
     baseline_input = "sampled-layers"
     baseline_tag = " layers"             # "input layers": the baseline composed from the layers
     holds = "sample layers"
+    window_key = "layers"                # (B,L,3,h,w) a frame, (B,T,L,3,h,w) a window
+    per_batch = ("origin", "layer_spp", "spp")
 
     def feature_groups(self, spec):
         return ()                        # the layers and the per-pixel guides only

@@ -10,7 +10,7 @@ from typing import Callable
 import torch
 
 from .errors import ConfigError
-from .tonemap import tonemap
+from core.images import tonemap
 
 SMAPE_EPS = 0.01   # eq. 9 of the layer paper
 

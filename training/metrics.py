@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import correlate1d
 
-from .tonemap import tonemap
+from core.images import tonemap
 
 RELMSE_EPS = 0.01
 SMAPE_EPS = 0.01

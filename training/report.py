@@ -26,7 +26,7 @@ from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, f
 from .fma import figure10, figure10_markdown
 from .hardcases import hard_case_report
 from .jsonio import write as write_strict
-from .tonemap import tonemap
+from core.images import tonemap
 
 # Inference is timed on one BENCH_SIZE x BENCH_SIZE frame, the size of `python -m training bench`: on a
 # store's own small frames (32x32 for the default dataset) fixed costs per call dominate (nbg read 9,090
@@ -78,7 +78,7 @@ def reference_note(results: list[dict]) -> list[str]:
             "stored standard error. Differences near or beyond these limits are not resolved by this data.", ""]
 
 
-def _pyplot():
+def pyplot():
     import matplotlib
     matplotlib.use("Agg")                       # files only, no display
     import matplotlib.pyplot as plt
@@ -105,7 +105,7 @@ def plot_speed_vs_error(results: list[dict], path, decades: float = 4.0) -> None
     ``decades`` of the lowest relMSE: one far above (a model early in training) is drawn on the top edge
     as an upward triangle, and one that cannot be drawn on a log axis (NaN, infinite, 0) is named in the
     legend, each with its value."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.lines import Line2D
     vals = [float(r["mean"].get("relmse", math.nan)) for r in results]
     ok = [v for v in vals if math.isfinite(v) and v > 0]
@@ -166,7 +166,7 @@ def time_at_bench_size(results: list[dict], size: int = BENCH_SIZE, repeats: int
 
 def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64) -> None:
     """Side-by-side tone-mapped centre crops (``crop`` px, nearest-neighbour) with labels."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(1.9 * len(panels), 2.1), dpi=100, squeeze=False)
     for ax, (label, im) in zip(axes[0], panels):
         h, w = im.shape[:2]
@@ -183,7 +183,7 @@ def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64) -> N
 def sample_map_image(counts: np.ndarray, reference: np.ndarray, path, title: str = "") -> None:
     """The per-pixel sample counts of an adaptive sampler (heat map, with a colour bar) next to the
     tone-mapped reference of the same frame."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(7.0, 3.2), dpi=100)
     a.imshow(np.clip(tonemap(reference), 0, 1), interpolation="nearest")
     a.set_title("reference", fontsize=9)
@@ -316,7 +316,7 @@ def comparisons_markdown(comp: dict) -> str:
     lines = ["| method | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
              "|---|" + "---|" * len(keys)]
     for row in comp["rows"]:
-        cells = [_difference_cell(row.get(key), f, better) for key, _, f, better in keys]
+        cells = [difference_cell(row.get(key), f, better) for key, _, f, better in keys]
         lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -342,7 +342,7 @@ def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: s
     return {"baseline": comp["baseline"], "kinds": [(k, base["by_kind"][k]["frames"]) for k in kinds], "rows": rows}
 
 
-def _difference_cell(d, f: str, better: int) -> str:
+def difference_cell(d, f: str, better: int) -> str:
     if d is None:
         return "–"
     if d["ci95"] is None:               # the frames are of one clip: no spread between clips to see
@@ -361,7 +361,7 @@ def comparisons_section(results: list[dict], baseline: str | None) -> list[str]:
     table = ["| method | " + " | ".join(f"{k} ({n})" for k, n in kinds["kinds"]) + " |",
              "|---|" + "---|" * len(kinds["kinds"])]
     for row in kinds["rows"]:
-        table.append(f"| {row['label']} | " + " | ".join(_difference_cell(row[k], "{:+.4f}", -1)
+        table.append(f"| {row['label']} | " + " | ".join(difference_cell(row[k], "{:+.4f}", -1)
                                                           for k, _ in kinds["kinds"]) + " |")
     return [f"Each method against **{comp['baseline']}**, frame by frame on the same frames: the mean difference "
             "(method minus baseline) with its 95% interval, a bootstrap over the held-out clips (a still is a "

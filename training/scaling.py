@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scene_gen.checks import is_int, is_number, known_keys, need, need_int
+from core.checks import is_int, is_number, known_keys, need, need_int
 
 from .config import TrainConfig
 from .errors import ConfigError, DataError, UnknownModelError

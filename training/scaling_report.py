@@ -18,7 +18,7 @@ import numpy as np
 from . import stats
 from .errors import DataError, TargetBelowFloorError
 from .jsonio import write as write_json
-from .report import _difference_cell
+from .report import difference_cell
 from .scaling_fit import (bootstrap_fit, by_size, frames_for_target, limit_name, paired, power_law, sign_of,
                           size_table, support)
 
@@ -88,7 +88,7 @@ def verdict(label: str, metric: str, curve: dict) -> str:
     tail = ""
     if last and last.get("ci95") is not None:
         gain = last["shown"] and last["mean"] * sign_of(metric) < 0
-        tail = (f"; from {last['from']} to {last['to']} frames {_difference_cell(last, '{:+.4g}', -sign_of(metric))}"
+        tail = (f"; from {last['from']} to {last['to']} frames {difference_cell(last, '{:+.4g}', -sign_of(metric))}"
                 + (", so more of this data still helps at this size" if gain else
                    ", so at this size more of this data shows no further gain"))
     if not sup["supported"]:
@@ -144,10 +144,17 @@ def target_answer(label: str, metric: str, target: float, curve: dict) -> dict:
     return out
 
 
+def cost_of(frames: float, costs: dict) -> dict:
+    """Core-hours, store bytes and wall hours on the costs' workers of rendering ``frames`` frames."""
+    core = frames * costs["core_hours_per_frame"]
+    return {"frames": frames, "core_hours": core,
+            "store_bytes": costs["store_fixed_bytes"] + frames * costs["bytes_per_frame"],
+            "wall_hours": core / (costs["workers"] * costs["threads"])}
+
+
 def price(answers: list[dict], costs: dict) -> None:
     """Add to every answered target what rendering its frames (and its interval's ends) costs (``costs``:
     ``training.scaling_run.rendering_costs``)."""
-    from .scaling_run import cost_of
     for a in answers:
         if "frames" in a:
             a["cost"] = cost_of(a["frames"], costs)
@@ -219,7 +226,7 @@ def sizes_markdown(model: dict, metrics) -> list[str]:
             step = c["steps"][i - 1] if i else None
             cells += [_fmt(r["mean"], f), f"{_fmt(r['seed_min'], f)}–{_fmt(r['seed_max'], f)}",
                       _interval(r["ci95"], f),
-                      _difference_cell(step, "{:+.4g}", -sign_of(m)) if step and "mean" in step else "–"]
+                      difference_cell(step, "{:+.4g}", -sign_of(m)) if step and "mean" in step else "–"]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -253,7 +260,7 @@ def variety_markdown(mat: dict) -> list[str]:
             cell = row["cells"][ev]
             text = f"{_fmt(cell['mean'], f)} {_interval(cell['ci95'], f)}"
             if cell.get("vs_both"):
-                text += f"; vs both {_difference_cell(cell['vs_both'], '{:+.4g}', -sign_of(m))}"
+                text += f"; vs both {difference_cell(cell['vs_both'], '{:+.4g}', -sign_of(m))}"
             cells.append(text)
         lines.append(f"| {row['trained_on']} | {', '.join(map(str, row['frames']))} | " + " | ".join(cells) + " |")
     return lines + [""]
@@ -350,8 +357,8 @@ def plot_scaling(result: dict, path) -> None:
     """Error against training frames (log x), one panel a metric, one line a model: the mean over seeds
     with the seeds' range as a band, the fit dashed where the points support one, its floor (ceiling)
     dotted. relMSE on a log axis."""
-    from .report import _pyplot
-    plt = _pyplot()
+    from .report import pyplot
+    plt = pyplot()
     metrics = result["metrics"]
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4.2), dpi=100, squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]

@@ -196,14 +196,6 @@ def rendering_costs(dcfg, out: Path, workers: int | None, store=None, log=print)
     return costs
 
 
-def cost_of(frames: float, costs: dict) -> dict:
-    """Core-hours, store bytes and wall hours on the costs' workers of rendering ``frames`` frames."""
-    core = frames * costs["core_hours_per_frame"]
-    return {"frames": frames, "core_hours": core,
-            "store_bytes": costs["store_fixed_bytes"] + frames * costs["bytes_per_frame"],
-            "wall_hours": core / (costs["workers"] * costs["threads"])}
-
-
 def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, workers: int | None = None,
               progress: bool = True, log=print) -> dict:
     """The whole study (``training.scaling``): the stores, every run, the analysis and the three files in

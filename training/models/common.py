@@ -413,9 +413,9 @@ class Denoiser(nn.Module):
 
     @property
     def stepwise(self) -> bool:
-        """Recurrent: evaluated frame by frame in clip order with ``step(frame, state) -> (output, state,
-        extra)``, carrying its state (every model of the ``clips`` kind; a model may say so itself)."""
-        return self.input_spec().input_kind.stepwise
+        """Recurrent: the model defines ``step(frame, state) -> (output, state, extra)``; its input kind
+        unrolls it over a window's frames, and evaluation steps it frame by frame in clip order."""
+        return type(self).step is not Denoiser.step
 
     def forward(self, batch: dict) -> torch.Tensor:
         """The kind's way of running the model (:meth:`training.inputs.InputKind.forward`): ``denoise``
@@ -427,6 +427,12 @@ class Denoiser(nn.Module):
 
     def step(self, frame: dict, state: dict | None):
         raise NotImplementedError(f"model {self.name!r} is not recurrent (it has no step)")
+
+    def first_frame(self, frame: dict):
+        """``(output, state)`` of a window's first frame when the input kind unrolls the model over a
+        window (:meth:`training.inputs.InputKind.unroll`): its first step, unless a model starts otherwise."""
+        out, state, _ = self.step(frame, None)
+        return out, state
 
     def fmas_per_pixel(self, spp: int) -> float:
         """Analytic FMAs per output pixel at ``spp`` samples per pixel (conv layers + kernel taps)."""

@@ -27,6 +27,8 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from core.checks import need
+
 from ..errors import ConfigError
 from ._pixel import PixelDenoiser
 from .common import conv_fmas
@@ -121,14 +123,13 @@ class NeuralBilateralGrid(PixelDenoiser):
                  temporal_frames: int = 1, temporal_alpha: float = 0.2):
         guide_hidden = tuple(int(c) for c in guide_hidden)
         rates = tuple(int(r) for r in rates)
-        if any(c < 1 for c in guide_hidden):
-            raise ConfigError(f'"guide_hidden" must be positive widths (one per hidden conv layer), got {guide_hidden}')
-        if guide_kernel < 1 or guide_kernel % 2 == 0:
-            raise ConfigError(f'"guide_kernel" must be an odd integer >= 1, got {guide_kernel}')
-        if not rates or any(r < 1 for r in rates):
-            raise ConfigError(f'"rates" must be one or more sampling rates >= 1 (one grid each), got {rates}')
-        if not guide_range > 0:
-            raise ConfigError(f'"guide_range" must be > 0, got {guide_range}')
+        need(all(c >= 1 for c in guide_hidden), '"guide_hidden"', "positive widths (one per hidden conv layer)",
+             guide_hidden, ConfigError)
+        need(guide_kernel >= 1 and guide_kernel % 2 == 1, '"guide_kernel"', "an odd integer >= 1", guide_kernel,
+             ConfigError)
+        need(bool(rates) and all(r >= 1 for r in rates), '"rates"', "one or more sampling rates >= 1 (one grid each)",
+             rates, ConfigError)
+        need(guide_range > 0, '"guide_range"', "> 0", guide_range, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, guide_hidden=guide_hidden,
                          guide_kernel=int(guide_kernel), rates=rates, guide_range=float(guide_range))
         self.rates, self.guide_range = rates, float(guide_range)

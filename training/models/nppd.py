@@ -46,6 +46,8 @@ import torch.nn.functional as F
 
 from stores.contract import FEATURE_GROUPS
 
+from core.checks import known_keys, need, need_int
+
 from ..errors import ConfigError
 from ..inputs import InputSpec, mask_features
 from ._pixel import warp
@@ -91,20 +93,13 @@ class NPPD(Denoiser):
     train_defaults = dict(loss="smape-temporal", lr=1e-4, grad_clip_norm=0.0, grad_clip_value=0.0, warmup=0)
     tiny = dict(levels=3, embed=4, unet_encoder=((4,), (4,), (4,)), unet_bottleneck=(4,),
                 unet_decoder=((4,), (4,), (4,)), frames=2)
-    stepwise = True
 
     def __init__(self, size: str = "paper", levels: int = 5, embed: int = 32, frames: int = 4, **widths):
-        if size not in SIZES:
-            raise ConfigError(f'"size" must be one of {sorted(SIZES)}, got {size!r}')
-        if not isinstance(levels, int) or not 1 <= levels <= 8:
-            raise ConfigError(f'"levels" (of the pyramid) must be an integer in 1..8, got {levels!r}')
-        if not isinstance(embed, int) or embed < 1:
-            raise ConfigError(f'"embed" must be a positive integer, got {embed!r}')
-        if not isinstance(frames, int) or frames < 1:
-            raise ConfigError(f'"frames" (the training unroll) must be an integer >= 1, got {frames!r}')
-        unknown = set(widths) - set(SIZES["paper"])
-        if unknown:
-            raise ConfigError(f"unknown settings {sorted(unknown)}; widths are {sorted(SIZES['paper'])}")
+        need(size in SIZES, '"size"', f"one of {sorted(SIZES)}", size, ConfigError)
+        need_int('"levels" (of the pyramid)', levels, 1, 8, ConfigError)
+        need_int('"embed"', embed, 1, None, ConfigError)
+        need_int('"frames" (the training unroll)', frames, 1, None, ConfigError)
+        known_keys(widths, SIZES["paper"], "nppd", ConfigError, noun="settings")
         super().__init__(size=size, levels=levels, embed=embed, frames=frames, **widths)
         w = {**SIZES[size], **widths}
         self.levels, self.embed, self.frames = levels, embed, frames

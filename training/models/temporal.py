@@ -111,7 +111,6 @@ class TemporalDenoiser(Denoiser):
     tiny = dict(size="small", sampler_encoder=((4,), (4,), (4,)), sampler_bottleneck=(4,),
                 sampler_decoder=((4,), (4,), (4,)), denoiser_encoder=((6,), (6,), (6,)),
                 denoiser_bottleneck=(6,), denoiser_decoder=((6,), (6,), (6,)), frames=3)
-    stepwise = True                       # evaluate frame by frame, carrying the state (``step``)
     realtime = True
     size_default = "large"
     adaptive_default = True
@@ -223,36 +222,13 @@ class TemporalDenoiser(Denoiser):
         out = self.denoise(rad, counts, history, guides)
         return unsqueeze(out), {"history": out}, {"counts": counts}
 
-    def forward(self, batch: dict) -> torch.Tensor:
-        """A single frame (``layers (B L 3 H W)``): its first-frame output. A window (``layers
-        (B T L 3 H W)``): ``(B T 3 H W)``, frame 0 the noisy uniform image that starts the history,
-        frames 1.. the unrolled steps (a window of one frame: the first-frame output)."""
-        layers = batch["layers"]
-        if layers.dim() == 5:
-            return self.step(batch, None)[0]
-        if layers.dim() != 6:
-            raise ConfigError(f"layers must be (B, L, 3, H, W) or (B, T, L, 3, H, W), got {tuple(layers.shape)}")
-        per_frame = ("layers", "albedo", "normal", "depth", "motion")
-
-        def frame(t):
-            f = {k: batch[k][:, t] for k in per_frame}
-            for k in ("layer_spp", "spp"):
-                if k in batch:
-                    f[k] = batch[k]
-            return f
-
-        f0 = frame(0)
-        if layers.shape[1] == 1:                 # a one-frame window (a clip's first frame): as in evaluation
-            return self.step(f0, None)[0].unsqueeze(1)
-        n = self.budget(f0)
-        noisy = squeeze(adaptive.compose(adaptive.clean_layers(f0["layers"]),
-                                         adaptive.uniform_counts(f0["layers"][:, 0], n), checked=False))
-        outs = [unsqueeze(noisy)]
-        state = {"history": noisy}
-        for t in range(1, layers.shape[1]):
-            out, state, _ = self.step(frame(t), state)
-            outs.append(out)
-        return torch.stack(outs, dim=1)
+    def first_frame(self, frame: dict):
+        """A window's first frame (training over windows, :meth:`training.inputs.InputKind.unroll`): the
+        noisy uniform image at the budget, which starts the history, frames 1.. being the steps."""
+        n = self.budget(frame)
+        noisy = squeeze(adaptive.compose(adaptive.clean_layers(frame["layers"]),
+                                         adaptive.uniform_counts(frame["layers"][:, 0], n), checked=False))
+        return unsqueeze(noisy), {"history": noisy}
 
     # ------------------------------------------------------------------ costs
     def fmas_per_pixel(self, spp: int) -> float:

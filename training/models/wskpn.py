@@ -29,6 +29,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from core.checks import need
+
 from ..errors import ConfigError
 from ._pixel import PixelDenoiser
 from .common import conv_fmas
@@ -125,10 +127,9 @@ class WSKPN(PixelDenoiser):
                  temporal_frames: int = 1, temporal_alpha: float = 0.2):
         widths = tuple(int(c) for c in widths)
         kernel_sizes = tuple(int(k) for k in kernel_sizes)
-        if any(c < 1 for c in widths):
-            raise ConfigError(f'"widths" must be positive block widths, got {widths}')
-        if not kernel_sizes or any(k < 1 or k % 2 == 0 for k in kernel_sizes):
-            raise ConfigError(f'"kernel_sizes" must be one or more odd sizes >= 1, got {kernel_sizes}')
+        need(all(c >= 1 for c in widths), '"widths"', "positive block widths", widths, ConfigError)
+        need(bool(kernel_sizes) and all(k >= 1 and k % 2 for k in kernel_sizes), '"kernel_sizes"',
+             "one or more odd sizes >= 1", kernel_sizes, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, widths=widths,
                          kernel_sizes=kernel_sizes, fused=bool(fused))
         self.kernel_sizes = kernel_sizes

@@ -1,5 +1,5 @@
-"""Choose and start the Mitsuba variant in one place (a leaf: it imports nothing else of the project,
-so ``scene_gen`` and ``pipeline`` both use it; ``pipeline.variant`` is the same module's API).
+"""Choose and start the Mitsuba variant in one place (in ``core``: ``scene_gen``'s previews and
+``pipeline``'s renderer both use it).
 
 ``cuda_ad_rgb`` when a CUDA device works, else ``llvm_ad_rgb``. drjit's LLVM backend needs a
 shared libLLVM >= 16 (the Debian libLLVM-15 aborts inside LLVM on some CPUs), so the library is
@@ -15,7 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from scene_gen.errors import VariantError  # noqa: F401  (re-exported)
+from core.errors import VariantError
 
 _LLVM_CANDIDATES = [
     f"{d}/{pat}"

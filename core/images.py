@@ -5,9 +5,7 @@ The tone map is the layer-embedding paper's (Munkberg & Hasselgren 2020, eqs. 7-
 (losses, PSNR/SSIM), the scene previews and the store exports all use it, so a preview shows the
 values a model is scored on. It is element-wise on numpy arrays of any layout, and on torch tensors
 (differentiable) when the caller passes one; this module imports numpy only (torch is never imported
-here). It lives in ``scene_gen``, the package the others build on, and imports nothing of the
-project: ``stores.imageio`` (stores, exports, training), ``scene_gen.imageio`` (previews) and
-``training.tonemap`` re-export it.
+here). It lives in ``core``, the package the others build on, and imports nothing of the project.
 
 :func:`display` is the tone map for a screen: an ``exposure`` scale, non-finite values made finite
 (NaN -> 0, +Inf -> 1), then ``mode`` ``"log"`` (the tone map), ``"clamp"`` (the sRGB curve of the value

@@ -1,6 +1,7 @@
-"""Camera geometry for the renderer's per-sample features (numpy only).
+"""A camera's matrices and projections, in one place (numpy only): the look-at frame the Mitsuba sensor is
+built from (``scene_gen.to_mitsuba``), and the projections the renderer's features and guides use.
 
-Conventions (the same as ``scene_gen.to_mitsuba``, i.e. Mitsuba's):
+Conventions (Mitsuba's):
 
 - Camera space: +z forward (view axis), +y up, +x *left*. ``camera_to_world`` is the look-at matrix.
 - ``fov`` is the full horizontal field of view in degrees; pixels are square, so
@@ -26,13 +27,24 @@ import math
 import numpy as np
 
 from scene_gen.spec import CameraSpec
-from scene_gen.to_mitsuba import FAR_CLIP as FAR, NEAR_CLIP as NEAR  # the sensor's clip planes
+
+NEAR = 1e-2   # the sensor's clip planes (world units); Mitsuba starts camera rays on the near plane
+FAR = 1e4
 
 
 def camera_to_world(cam: CameraSpec) -> np.ndarray:
-    """4x4 camera-to-world (float64), Mitsuba's look-at convention (+z forward, +y up, +x left)."""
-    from scene_gen.to_mitsuba import camera_to_world as c2w  # one definition of the convention
-    return np.asarray(c2w(cam), np.float64)
+    """4x4 camera-to-world (float64) with Mitsuba's look-at convention (+z forward, +y up, +x left)."""
+    o, t, up = (np.asarray(x, np.float64) for x in (cam.origin, cam.target, cam.up))
+    d = t - o
+    d /= np.linalg.norm(d)
+    left = np.cross(up, d)
+    if np.linalg.norm(left) < 1e-9:  # up parallel to the view direction: pick another up
+        left = np.cross(np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 0.0, 1.0]), d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
 
 
 def tan_half_fov_x(cam: CameraSpec) -> float:

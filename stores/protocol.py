@@ -1,0 +1,67 @@
+"""What a training store offers, written down once: :class:`TrainingStore`.
+
+Two formats implement it: our Zarr stores (:class:`stores.reader.Store`) and folders of Noisebase
+sequences (:class:`stores.noisebase.NoisebaseStore`); ``tests/store_contract.py`` is the one contract
+suite both pass. Everything downstream of the store (``training``: datasets, input kinds, the fitness
+screen, evaluation) reads through these members only, so a third format is one class that passes the
+suite.
+
+Layouts, as the datasets consume them (no transpose on read): ``read_array("inputs/radiance", i)``
+float32 ``(S, 3, h, w)``, ``"inputs/features"`` ``(S, 17, h, w)``, images ``(C, h, w)``
+(``reference/*``, ``guides/albedo|normal|motion``), ``"guides/depth"`` ``(h, w)``, ``"layers/radiance"``
+``(L, 3, h, w)``; a crop is ``(y, x, h, w)``.
+"""
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@runtime_checkable
+class TrainingStore(Protocol):
+    """A store that training, evaluation and the fitness screen read (module docstring)."""
+
+    path: str                            # where it is (for messages and records)
+    layout: object                       # stores.schema.StoreLayout: frames, H, W, spp, layer_spp
+    missing_features: tuple[str, ...]    # feature groups it does not hold (read as 0; models reading them are refused)
+
+    @property
+    def num_frames(self) -> int: ...
+
+    @property
+    def schema_version(self) -> int | str: ...
+
+    @property
+    def config(self) -> dict: ...
+
+    @property
+    def split_fractions(self) -> dict: ...
+
+    def has_array(self, path: str) -> bool:
+        """Whether ``read_array(path, ...)`` can read it (``inputs/radiance``, ``layers/radiance``, ...)."""
+
+    def read_array(self, path: str, i: int, crop=None, *, samples: int | None = None,
+                   check_complete: bool = True) -> np.ndarray:
+        """Frame ``i`` of array ``path`` in the layout above, float32, cropped, the first ``samples``."""
+
+    def complete_frames(self) -> list[int]: ...
+
+    def incomplete_frames(self) -> list[int]: ...
+
+    def frames_in_split(self, split: str | None, *, complete_only: bool = True) -> list[int]: ...
+
+    def clips(self, split: str | None = None, *, complete_only: bool = True) -> dict[int, list[int]]:
+        """clip id -> its frames in clip order."""
+
+    def split_of_frame(self, i: int) -> str: ...
+
+    def meta_column(self, key: str) -> np.ndarray:
+        """A per-frame column: ``clip_id``, ``frame`` (index in the clip), ``num_frames``, ``has_motion``,
+        ``has_defocus``, ``scene_json``, ``case``."""
+
+    def check_frames(self, frames, *, progress: bool = False) -> dict[int, list[str]]:
+        """The frames of ``frames`` that are unfit to use, frame -> problems (``stores.fitness``)."""
+
+
+__all__ = ["TrainingStore"]

@@ -1,0 +1,57 @@
+"""Every registered model's output for a seeded forward is pinned (its tiny settings, seed 0, an example
+batch of its input kind: windows of frames for the recurrent ones): a refactor changes no result. The pins
+are the sum, the mean magnitude and four values of the output; tolerances allow another CPU's rounding in
+oneDNN's convolutions, not a changed computation. Regenerate (only for an intended change, said in its
+commit): ``python tests/test_pinned_outputs.py``."""
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+import torch
+
+PINS = {
+    'layer': [3055.6274548768997, 1.9893407909354817, 1.985929012298584, 2.0771965980529785, 1.9853485822677612, 2.144122362136841],
+    'layer-optimized': [3054.018666744232, 1.9882934028282762, 1.9716761112213135, 2.0989203453063965, 2.0566885471343994, 2.1298463344573975],
+    'layer-w': [3055.6143971681595, 1.9893322898230206, 1.9859483242034912, 2.077199697494507, 1.9853625297546387, 2.14412260055542],
+    'nbg': [6734.802949942648, 4.384637337202245, 9.968177795410156, 5.450927734375, 2.544203519821167, 3.793278694152832],
+    'nppd': [1253.367180235684, 0.40799712898297, 0.073585145175457, 0.17619222402572632, 0.07722093909978867, 0.14297489821910858],
+    'pixelgather': [3055.667741537094, 1.989367019229879, 1.9780327081680298, 2.0866408348083496, 1.9864070415496826, 2.1315183639526367],
+    'samplesplat': [3055.1751930713654, 1.9890463496558368, 1.9729459285736084, 2.0677599906921387, 2.0010969638824463, 2.1266515254974365],
+    'temporal': [4452.423373345286, 0.9662377112294457, 1.7944633960723877, 0.928595781326294, 0.08833847939968109, 1.0638452768325806],
+    'temporal-perframe': [1193.288323521614, 0.7768804189593842, 0.8090972900390625, 1.0370103120803833, 0.49537530541419983, 1.191559076309204],
+    'temporal-small': [4452.423373345286, 0.9662377112294457, 1.7944633960723877, 0.928595781326294, 0.08833847939968109, 1.0638452768325806],
+    'temporal-uniform': [4096.361260119826, 0.8889672873523927, 1.7944633960723877, 0.928595781326294, 0.08833847939968109, 0.9757730960845947],
+    'wskpn': [6868.542007297277, 4.471707036000832, 11.831297874450684, 2.533243417739868, 4.193853855133057, 3.0455596446990967],
+}
+
+
+def outputs() -> dict[str, list[float]]:
+    from training.models import build, get, names
+    out = {}
+    for name in names():
+        cls = get(name)
+        if not cls.__module__.startswith("training.models."):
+            continue                                  # a test's own probe model
+        torch.manual_seed(0)
+        m = build(name, **cls.tiny).eval()
+        spec = m.input_spec()
+        spp = spec.default_spp if spec.kind != "sampled-layers" else 4
+        batch = spec.input_kind.example_batch(2, spp, 16, 16, spec.frames, torch.Generator().manual_seed(1))
+        with torch.no_grad():
+            y = m(batch).double()
+        flat = y.flatten()
+        out[name] = [float(y.sum()), float(y.abs().mean()), *[float(flat[i]) for i in (0, 7, flat.numel() // 2, -1)]]
+    return out
+
+
+def test_every_models_seeded_output_is_pinned():
+    got = outputs()
+    assert set(got) == set(PINS), "a model was added or removed: regenerate the pins"
+    for name, want in PINS.items():
+        assert got[name] == pytest.approx(want, rel=1e-4, abs=1e-6), name
+
+
+if __name__ == "__main__":
+    json.dump(outputs(), sys.stdout, indent=1)
