@@ -769,6 +769,12 @@ def part_e2e(state: dict, left, out: dict, save) -> None:
         except Exception:  # noqa: BLE001 - the run failed: say how
             row["error"] = " | ".join(r["tail"])
         save()
+    _e2e_evaluate(work, store, models, env, py, left, out, save)
+    shutil.rmtree(work, ignore_errors=True)
+
+
+def _e2e_evaluate(work: Path, store: Path, models: dict, env: dict, py: str, left, out: dict, save) -> None:
+    """The e2e part's evaluations: the input and each trained model on the store's test split."""
     for method in ("input", *models):
         ck = "input" if method == "input" else work / "runs" / method / "checkpoint.pt"
         if method != "input" and not Path(ck).is_file():
@@ -787,7 +793,6 @@ def part_e2e(state: dict, left, out: dict, save) -> None:
         except Exception:  # noqa: BLE001
             row["error"] = " | ".join(r["tail"])
         save()
-    shutil.rmtree(work, ignore_errors=True)
 
 
 PART_FNS = {"realtime": part_realtime, "training": part_training, "e2e": part_e2e, "render": part_render,
