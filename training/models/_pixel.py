@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from ..errors import ConfigError
 from ..inputs import InputSpec
-from ..tonemap import tonemap
+from core.images import tonemap
 from .common import Denoiser, clean_radiance
 
 DEMOD_EPS = 1e-2          # albedo offset of the demodulation (OIDN and KPCN use 0.00316-0.01)
