@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from scene_gen import meshes, projection
+from scene_gen.cases import scene_hook
 from scene_gen.errors import SpecError
 from scene_gen.probes import make_probe
 from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
@@ -385,7 +386,6 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge
     SceneSpec into what a renderer needs (:class:`LoadedScene`). ``merge``: see :func:`scene_dict`. A
     hard case that edits the loaded scene (``scene_gen.cases.scene_hook``: the ``nan`` case) is applied,
     then ``on_loaded(scene)`` (tests inject values with it), before anything renders."""
-    from scene_gen.cases import scene_hook
     res = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
     scene = load(spec, frame, res, merge=merge)
     hook = scene_hook(spec) if spec.case else None
