@@ -329,6 +329,7 @@ class LoadedScene:
     moving: tuple[ObjectSpec, ...]
     _params: Any = None
     _base: dict = field(default_factory=dict)
+    _normals: dict = field(default_factory=dict)
     _time: float = 0.0
 
     @property
@@ -361,6 +362,9 @@ class LoadedScene:
                 if key not in self._params:
                     raise SpecError(f"moving object {o.name!r} has no {key!r} parameter in the Mitsuba scene")
                 self._base[o.name] = np.array(self._params[key], np.float64).reshape(-1, 3)
+                normals = f"{o.name}.vertex_normals"
+                if normals in self._params:
+                    self._normals[o.name] = np.array(self._params[normals], np.float32)
         return self
 
     def tau(self, t) -> np.ndarray | float:
@@ -376,6 +380,11 @@ class LoadedScene:
         for o in self.moving:
             v = self._base[o.name] + np.asarray(o.velocity, np.float64) * dtau
             self._params[f"{o.name}.vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+            if o.name in self._normals:
+                # A translation keeps the normals. Given with the positions, Mitsuba keeps them as they are;
+                # otherwise it recomputes them with atomic float adds, whose order (and so the last bits of
+                # the normals, and of every sample that hits the object) varies from run to run.
+                self._params[f"{o.name}.vertex_normals"] = mi.Float(self._normals[o.name])
         self._params.update()
         self._time = float(t)
 
