@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -135,6 +136,29 @@ def test_bench_runs_small():
     res = run(size=32, spp=2, repeats=1, models=("pixelgather", "layer-optimized"), print_table=False)
     assert set(res) == {"pixelgather", "layer-optimized", "oidn"}
     assert all(v["ms_per_mp"] > 0 and v["ms_per_720p"] > 0 for v in res.values())
+
+
+def test_timings_on_a_busy_machine_say_so():
+    """A process spinning on a core shows in ``others_busy`` (the cores other processes kept busy while this
+    one slept), and the report and the bench warn from half a core on."""
+    import subprocess
+    import sys
+
+    from training.bench import busy_note, others_busy
+    from training.report import _busy_lines
+    spin = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 5: pass"])
+    try:
+        time.sleep(0.3)
+        assert others_busy(0.5) >= 0.5
+    finally:
+        spin.kill()
+        spin.wait()
+    assert busy_note(None) is None and busy_note(0.2) is None
+    assert "1.5 of its" in busy_note(1.5) and "idle machine" in busy_note(1.5)
+    quiet = [{"speed": {"ms_per_mp": 1.0, "others_busy_cores": 0.1}}, {"speed": None}]
+    assert _busy_lines(quiet) == []
+    busy = quiet + [{"speed": {"ms_per_mp": 2.0, "others_busy_cores": 1.7}}]
+    assert _busy_lines(busy)[0].startswith("**The machine was busy while timing") and "1.7" in _busy_lines(busy)[0]
 
 
 def test_bench_times_the_training_step_that_train_runs(monkeypatch):

@@ -56,6 +56,29 @@ def _best(fn, repeats: int) -> tuple[float, float]:
     return wall, cpu
 
 
+def others_busy(seconds: float = 0.5) -> float:
+    """The cores other processes kept busy over ``seconds`` while this one slept (0 to the CPU count). On a
+    shared CPU the timings mean little when this is high: a model of many small operations then ran up to
+    35x slower here (nbg at 128x128, 2 threads, with two other busy processes on 2 cores: 870 ms a call
+    for several seconds against 24 ms; its threads spin at each operation's barrier for a core another
+    process holds), beyond what a best of three outlasts."""
+    import os
+
+    import psutil
+    return psutil.cpu_percent(interval=seconds) / 100.0 * (os.cpu_count() or 1)
+
+
+def busy_note(busy: float | None) -> str | None:
+    """One line that says the CPU timings were taken on a busy machine (``others_busy`` of at least half a
+    core), or None."""
+    import os
+    if busy is None or busy < 0.5:
+        return None
+    return (f"The machine was busy while timing: other processes kept {busy:.1f} of its {os.cpu_count()} cores "
+            "busy, so these CPU times can be many times the quiet figure (nbg: up to 35x); compare them only "
+            "with times taken on an idle machine.")
+
+
 def _row(wall: float, cpu: float, mp: float, **extra) -> dict:
     ms = wall * 1e3 / mp
     return {"ms_per_mp": ms, "cpu_ms_per_mp": cpu * 1e3 / mp, "ms_per_720p": ms * MP_720P, **extra}
@@ -257,6 +280,7 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
     dev = pick_device(device)
     precision = precision_for(precision, dev)
     models = list(models) if models else names()
+    busy = others_busy() if dev.type == "cpu" else None
     res = {}
     for name in models:
         torch.manual_seed(0)
@@ -285,6 +309,9 @@ def run(size: int = 128, spp: int | None = None, repeats: int = 3, models=None, 
             f = res["layer"]["fmas_per_pixel"] / res["layer-optimized"]["fmas_per_pixel"]
             print(f"layer / layer-optimized: wall {r['ms_per_mp']:.1f}x, cpu {r['cpu_ms_per_mp']:.1f}x "
                   f"(FMAs {f:.1f}x: the bound where convolutions are compute-bound, as on a CPU)")
+        note = busy_note(busy)
+        if note:
+            print(note)
     return res
 
 

@@ -149,8 +149,9 @@ def time_at_bench_size(results: list[dict], size: int = BENCH_SIZE, repeats: int
     input has none. The per-frame times on the store's own frames stay in each result's frames."""
     import torch
 
-    from .bench import time_model, time_oidn
+    from .bench import others_busy, time_model, time_oidn
     oidn_row = {}
+    busy = others_busy() if any(torch.device(r.get("device", "cpu")).type == "cpu" for r in results) else None
     for r in results:
         dev = torch.device(r.get("device", "cpu"))
         if r.get("checkpoint"):
@@ -162,6 +163,8 @@ def time_at_bench_size(results: list[dict], size: int = BENCH_SIZE, repeats: int
             r["speed"] = oidn_row[str(dev)]
         else:
             r["speed"] = None
+        if r["speed"] is not None and dev.type == "cpu":
+            r["speed"]["others_busy_cores"] = busy
 
 
 def crops_image(panels: list[tuple[str, np.ndarray]], path, crop: int = 64) -> None:
@@ -502,6 +505,14 @@ def write_figures(results: list[dict], models: list[dict], store, out: Path) -> 
     return maps
 
 
+def _busy_lines(results: list[dict]) -> list[str]:
+    """The busy-machine warning of the timings (:func:`training.bench.busy_note`), as report lines."""
+    from .bench import busy_note
+    busy = max([(r.get("speed") or {}).get("others_busy_cores") or 0.0 for r in results], default=0.0)
+    note = busy_note(busy)
+    return [f"**{note}**", ""] if note else []
+
+
 def main_section(results: list[dict], store, split: str, spps, maps, baseline: str | None) -> list[str]:
     at = ", ".join(f"{n}" for n in spps)
     lines = [f"# Denoiser report: {split} split of `{store}` at {at} spp", "",
@@ -512,7 +523,7 @@ def main_section(results: list[dict], store, split: str, spps, maps, baseline: s
              f"({results[0]['torch_threads']} torch threads), a model with its trained weights at its spp; on the "
              "store's own small frames fixed costs per call dominate, and those per-frame times are in each "
              "eval-*.json (`ms_per_megapixel`). Each model is evaluated at the samples per pixel it was trained at; "
-             "the noisy input and OIDN at each of those counts.", "", *reference_note(results),
+             "the noisy input and OIDN at each of those counts.", "", *_busy_lines(results), *reference_note(results),
              table_markdown(results), "", *comparisons_section(results, baseline), *seed_spread_section(results),
              "![speed against error](speed_vs_error.png)", "",
              f"relMSE by kind of frame (frame counts in brackets; the scene family, defocus and motion from the "
