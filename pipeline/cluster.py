@@ -63,9 +63,12 @@ class Connection:
     client: Any
     cluster: Any | None
     kind: str
+    has_dashboard: bool = True        # False where cluster.dashboard_address is null (a cluster we start)
 
     @property
     def dashboard(self) -> str | None:
+        if not self.has_dashboard:
+            return None
         try:
             return self.client.dashboard_link
         except Exception:  # noqa: BLE001 - no dashboard (bokeh missing, disabled)
@@ -89,6 +92,10 @@ class Connection:
 
 
 LOCALHOST = "127.0.0.1"
+# A scheduler always serves its HTTP routes (/health, /metrics), dashboard or not, and distributed puts
+# them on 8787 unless told otherwise: with ``dashboard_address: null`` they go to a free local port, so a
+# run without a dashboard never takes the port of another run's dashboard.
+NO_DASHBOARD = {"dashboard": False, "dashboard_address": f"{LOCALHOST}:0"}
 
 
 def dashboard_bind(address: str | None) -> str | None:
@@ -257,8 +264,9 @@ def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
     worker_init.prepare_environment()
     gpus = render_gpus(cfg)
     n = len(gpus) or workers or cfg.workers or max(1, machine_cores() // cfg.threads_per_worker)
-    kw = dict(threads_per_worker=cfg.threads_per_worker, processes=True,
-              memory_limit=cfg.memory_limit, dashboard_address=dashboard_bind(cfg.dashboard_address),
+    dash = ({"dashboard_address": NO_DASHBOARD["dashboard_address"], "scheduler_kwargs": {"dashboard": False}}
+            if cfg.dashboard_address is None else {"dashboard_address": dashboard_bind(cfg.dashboard_address)})
+    kw = dict(threads_per_worker=cfg.threads_per_worker, processes=True, memory_limit=cfg.memory_limit, **dash,
               host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD], security=make_security(cfg.security),
               env={worker_init.LOCAL_WORKER_ENV: "1"})    # its workers leave Ctrl-C to us
     try:
@@ -338,7 +346,7 @@ def job_settings(cfg: ClusterConfig) -> dict:
     opts = dict(opts)
     if "dashboard_address" not in opts and "dashboard" not in opts:
         if cfg.dashboard_address is None:
-            opts["dashboard"] = False
+            opts.update(NO_DASHBOARD)
         else:
             opts["dashboard_address"] = dashboard_bind(cfg.dashboard_address)
     kw["scheduler_options"] = opts
@@ -724,7 +732,7 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
         except BaseException:
             cluster.close()
             raise
-        conn = _prepared(Connection(client, cluster, cfg.kind))
+        conn = _prepared(Connection(client, cluster, cfg.kind, has_dashboard=_shows_dashboard(cfg)))
         try:
             wait_for_jobs(conn, jobs)          # jobqueue workers come late: the first one, or a clear error
         except BaseException:
@@ -736,7 +744,15 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
     except (OSError, TimeoutError) as e:
         raise ClusterError(f"cannot start a LocalCluster: {e}") from e
     client = Client(cluster, set_as_default=False)
-    return _prepared(Connection(client, cluster, "local"))
+    return _prepared(Connection(client, cluster, "local", has_dashboard=cfg.dashboard_address is not None))
+
+
+def _shows_dashboard(cfg: ClusterConfig) -> bool:
+    """Whether a batch cluster's scheduler serves a dashboard (``scheduler_options`` may say either way)."""
+    opts = (cfg.jobqueue or {}).get("scheduler_options") or {}
+    if "dashboard" in opts:
+        return bool(opts["dashboard"])
+    return opts.get("dashboard_address") is not None or cfg.dashboard_address is not None
 
 
 def _prepared(conn: Connection) -> Connection:

@@ -35,11 +35,18 @@ def test_local_cluster_is_sized_to_the_machine_and_drjit_to_the_worker():
         conn.close()
 
 
+def _http_port(dask_scheduler):
+    return dask_scheduler.http_server.port
+
+
 def test_workers_override_and_threads_per_worker():
     conn = cl.connect(ClusterConfig(dashboard_address=None, threads_per_worker=2), workers=1)
     try:
         info = conn.client.scheduler_info(n_workers=-1)["workers"]
         assert [w["nthreads"] for w in info.values()] == [2]
+        # null: no dashboard, and the scheduler's own HTTP routes stay off the dashboard's port
+        assert conn.dashboard is None
+        assert conn.client.run_on_scheduler(_http_port) not in (0, 8787)
     finally:
         conn.close()
 
@@ -61,6 +68,19 @@ def test_jobqueue_examples_make_job_scripts(name, needles):
         c.close()
     for n in needles:
         assert n in script, (n, script)
+
+
+def test_a_batch_cluster_without_a_dashboard_leaves_its_port_alone():
+    pytest.importorskip("dask_jobqueue")
+    cfg = load_config(ROOT / "configs" / "cluster-slurm.yaml")
+    jq = {**cfg.cluster.jobqueue, "scheduler_options": {"host": "127.0.0.1"}}    # no sbatch is called
+    c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue=jq, dashboard_address=None).cluster)
+    try:
+        assert c.scheduler.http_server.port not in (0, 8787)
+    finally:
+        c.close()
+    assert cl._shows_dashboard(cfg.with_cluster(dashboard_address=None).cluster) is False
+    assert cl._shows_dashboard(cfg.cluster) is True
 
 
 def test_missing_jobqueue_is_a_clear_error(monkeypatch):
