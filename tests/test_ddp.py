@@ -228,5 +228,42 @@ def test_the_environment_chooses_single_or_distributed():
         rank_device("cuda:0", d)
 
 
+def _one_rank_group():
+    import torch.distributed as td
+    td.init_process_group("gloo", rank=0, world_size=1, store=td.HashStore())
+    return td
+
+
+def test_at_exit_the_ranks_meet_before_the_group_is_destroyed(monkeypatch, capsys):
+    """Two gloo ranks that destroyed their groups at exit without meeting first aborted after a
+    finished run ("terminate called without an active exception", 9 of 40 two-rank runs): the exit
+    hook meets the others (a monitored barrier) and only then destroys; if the others never come it
+    says so and leaves the group alone. A real one-rank gloo group, the calls spied on."""
+    from training import distributed as D
+    td = _one_rank_group()
+    calls = []
+    for name in ("monitored_barrier", "destroy_process_group"):
+        real = getattr(td, name)
+        monkeypatch.setattr(td, name, lambda *a, _n=name, _f=real, **k: (calls.append(_n), _f(*a, **k))[1])
+    monkeypatch.setattr(D, "_FAILED", [])
+    D._destroy()
+    assert calls == ["monitored_barrier", "destroy_process_group"] and not td.is_initialized()
+
+    td = _one_rank_group()
+    calls.clear()
+
+    def never(*a, **k):
+        calls.append("monitored_barrier")
+        raise RuntimeError("Rank 1 failed to pass monitoredBarrier in 60000 ms")
+    monkeypatch.setattr(td, "monitored_barrier", never)
+    try:
+        D._destroy()
+        assert calls == ["monitored_barrier"] and td.is_initialized()
+        assert "did not reach the end of training" in capsys.readouterr().err
+    finally:
+        monkeypatch.undo()
+        td.destroy_process_group()
+
+
 if __name__ == "__main__":
     _worker(sys.argv[1])
