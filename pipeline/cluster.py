@@ -732,7 +732,8 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
         except BaseException:
             cluster.close()
             raise
-        conn = _prepared(Connection(client, cluster, cfg.kind, has_dashboard=_shows_dashboard(cfg)))
+        conn = _prepared(Connection(client, cluster, cfg.kind,
+                                    has_dashboard=_shows_dashboard(cluster.scheduler_spec["options"])))
         try:
             wait_for_jobs(conn, jobs)          # jobqueue workers come late: the first one, or a clear error
         except BaseException:
@@ -747,12 +748,10 @@ def connect(cfg: ClusterConfig, *, scheduler: str | None = None, workers: int | 
     return _prepared(Connection(client, cluster, "local", has_dashboard=cfg.dashboard_address is not None))
 
 
-def _shows_dashboard(cfg: ClusterConfig) -> bool:
-    """Whether a batch cluster's scheduler serves a dashboard (``scheduler_options`` may say either way)."""
-    opts = (cfg.jobqueue or {}).get("scheduler_options") or {}
-    if "dashboard" in opts:
-        return bool(opts["dashboard"])
-    return opts.get("dashboard_address") is not None or cfg.dashboard_address is not None
+def _shows_dashboard(opts: dict) -> bool:
+    """Whether a scheduler started with ``opts`` serves a dashboard (``Scheduler``'s own rule)."""
+    dashboard = opts.get("dashboard")
+    return bool(dashboard or (dashboard is None and opts.get("dashboard_address")))
 
 
 def _prepared(conn: Connection) -> Connection:

@@ -77,10 +77,15 @@ def test_a_batch_cluster_without_a_dashboard_leaves_its_port_alone():
     c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue=jq, dashboard_address=None).cluster)
     try:
         assert c.scheduler.http_server.port not in (0, 8787)
+        assert cl._shows_dashboard(c.scheduler_spec["options"]) is False
     finally:
         c.close()
-    assert cl._shows_dashboard(cfg.with_cluster(dashboard_address=None).cluster) is False
-    assert cl._shows_dashboard(cfg.cluster) is True
+    c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue={**jq, "scheduler_options": {
+        "host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"}}).cluster)
+    try:
+        assert cl._shows_dashboard(c.scheduler_spec["options"]) is True
+    finally:
+        c.close()
 
 
 def test_missing_jobqueue_is_a_clear_error(monkeypatch):
