@@ -110,8 +110,9 @@ def unregister_probes() -> None:
 if __name__ == "__main__":          # torchrun's script: the probes, then the CLI
     import json
     register_probes()
+    from training import distributed
     from training.__main__ import main
     if sys.argv[1:2] == ["--each"]:
         with open(sys.argv[2]) as f:
-            sys.exit(max(main(argv) for argv in json.load(f)))
-    sys.exit(main(sys.argv[1:]))
+            distributed.end_process(max(main(argv) for argv in json.load(f)))
+    distributed.end_process(main(sys.argv[1:]))

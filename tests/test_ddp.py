@@ -109,7 +109,7 @@ def ddp_runs(stores, tmp_path_factory):
     train(layer_cfg(), stores[0], out / "from-one", progress=False, stop_after=2)   # resumed under 2 ranks
     spec = out / "spec.json"
     spec.write_text(json.dumps({"store": stores[0], "clip_store": stores[1], "out": str(out)}))
-    env = {**os.environ, "OMP_NUM_THREADS": "1",
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1",   # an abort shows its stacks
            "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
         env.pop(k, None)
@@ -265,5 +265,29 @@ def test_at_exit_the_ranks_meet_before_the_group_is_destroyed(monkeypatch, capsy
         td.destroy_process_group()
 
 
+def test_a_rank_ends_with_its_code_and_its_output_without_the_interpreters_teardown(tmp_path):
+    """A rank with a live gloo group ends through ``end_process``: the group is met and destroyed,
+    unflushed output still arrives, the exit status is the command's, and nothing of the
+    interpreter's teardown runs (gloo's threads outlive the destroyed group, and a rank aborted in
+    that teardown after a finished run). A real one-rank group in a child process."""
+    script = tmp_path / "rank.py"
+    script.write_text(
+        "import atexit, sys\n"
+        "import torch.distributed as td\n"
+        "from training import distributed\n"
+        "td.init_process_group('gloo', rank=0, world_size=1, store=td.HashStore())\n"
+        "atexit.register(lambda: print('teardown ran', flush=True))\n"
+        "print('results written')            # block-buffered into the pipe, not flushed\n"
+        "distributed.end_process(int(sys.argv[1]) if len(sys.argv) > 1 else None)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    for code, want in (("3", 3), (None, 0)):
+        p = subprocess.run([sys.executable, str(script)] + ([code] if code else []), env=env, cwd=ROOT,
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == want, p.stderr[-3000:]
+        assert p.stdout == "results written\n", p.stdout + p.stderr[-3000:]
+
+
 if __name__ == "__main__":
+    from training import distributed
     _worker(sys.argv[1])
+    distributed.end_process(0)

@@ -164,7 +164,7 @@ def test_two_ranks_train_every_kind_to_the_one_process_weights(probes, clip_stor
     argvs = {kind: train_argv(probes[kind], clip_store, tmp_path / "ddp" / kind) for kind in KINDS}
     spec = tmp_path / "argvs.json"
     spec.write_text(json.dumps(list(argvs.values())))
-    env = {**os.environ, "OMP_NUM_THREADS": "1",
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1",   # an abort shows its stacks
            "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
         env.pop(k, None)

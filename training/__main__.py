@@ -308,4 +308,5 @@ def _message(err: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from . import distributed
+    distributed.end_process(main())
