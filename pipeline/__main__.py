@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     retry_defaults()
     quiet_abandoned_requests()
     from pipeline.errors import PipelineError
-    from stores.errors import StoreCorruptionError, StoreError
+    from stores.errors import StoreCorruptionError, StoreError, exit_status, store_unreachable, unreachable_cause
     from scene_gen.errors import SceneGenError
     try:
         return int(args._run(args) or 0)
@@ -57,10 +57,16 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     except (PipelineError, StoreError, SceneGenError) as e:
         print(f"error: {e}", file=sys.stderr)
-        return int(getattr(e, "exit_code", 2))
+        return exit_status(e)                 # 2, or the error's own: 4 a full disk, 5 an unreachable endpoint
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as e:
+        if unreachable_cause(e) is None:
+            raise
+        store = getattr(args, "store", None) or getattr(args, "out", None) or "the store"
+        print(f"error: {store_unreachable(store, e)}", file=sys.stderr)   # an s3:// store's endpoint is gone
+        return exit_status(e)
 
 
 if __name__ == "__main__":

@@ -69,7 +69,8 @@ class UnfitFrameError(StoreError, ValueError):
 class StoreCorruptionError(StoreError):
     """The store's files on disk are damaged: a lost shard, a truncated or garbage chunk, a checksum
     mismatch, or array metadata (``zarr.json``) that disagrees with the schema. ``array``, ``frame``
-    and ``path`` (the file) name the damage where known. The validate command exits 3 on these."""
+    and ``path`` (the file) name the damage where known. Every command exits 3 on these."""
+    exit_code = 3
 
     def __init__(self, message: str, *, array: str | None = None, frame: int | None = None,
                  path: str | None = None):
@@ -174,6 +175,30 @@ def unreachable_cause(e: BaseException) -> BaseException | None:
             return e
         e = e.__cause__ or e.__context__
     return None
+
+
+def raise_if_unreachable(e: BaseException, store=None, doing: str = "") -> None:
+    """Raise the :class:`StoreUnreachableError` of ``store`` from ``e`` when ``e`` is a failed connection to
+    an object store. For the handlers that read any other failure as damage (a chunk that does not
+    decode, a flag that reads False): an endpoint that is gone is not a damaged store."""
+    if unreachable_cause(e) is not None:
+        raise store_unreachable(store if store is not None else "the store", e, doing) from e
+
+
+def exit_status(e: BaseException, default: int = 2) -> int:
+    """The exit code a command ends with for the error ``e``: 5 when an object store could not be reached
+    (anywhere in its chain), else the ``exit_code`` of ``e`` or of the error it was raised from (3 damage,
+    4 a full disk), else ``default``."""
+    if unreachable_cause(e) is not None:
+        return StoreUnreachableError.exit_code
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        code = getattr(e, "exit_code", None)
+        if isinstance(code, int):
+            return code
+        e = e.__cause__
+    return default
 
 
 def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreachableError:

@@ -23,7 +23,7 @@ from stores.contract import FRAME_ARRAYS, FRAME_META
 from stores.codecs import crc32c
 from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
                            MissingShardError, SampleCountError, SplitError, StoreCorruptionError, StoreError,
-                           StoreLayoutError)
+                           StoreLayoutError, raise_if_unreachable)
 from stores.schema import ARRAY_BY_PATH, ARRAY_BY_SOURCE, StoreLayout
 
 DEFAULT_SPLIT = {"train": 0.8, "val": 0.1, "test": 0.1}
@@ -304,6 +304,7 @@ class Store:
         except StoreError:
             raise
         except Exception as e:    # noqa: BLE001 - zarr/numcodecs raise ValueError, RuntimeError, ... on bad bytes
+            raise_if_unreachable(e, self.path, f"reading {path}")          # a lost endpoint is not damage
             if frame is None:     # a whole column: find the frame whose chunk is bad
                 for i in range(self.root[path].shape[0]):
                     try:

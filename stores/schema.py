@@ -34,7 +34,7 @@ from core.checks import need, need_int
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
 from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
-                           StoreExistsError, StoreLayoutError, StoreNotFoundError)
+                           StoreExistsError, StoreLayoutError, StoreNotFoundError, raise_if_unreachable)
 from stores.procinfo import holder_record
 
 SCHEMA_VERSION = 3                 # what create_store writes
@@ -490,6 +490,7 @@ def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: boo
                 out.append(f"{spec.path}: missing")
             continue
         except Exception as e:    # noqa: BLE001 - zarr raises many types for an unparsable zarr.json
+            raise_if_unreachable(e, doing=f"reading {spec.path}/zarr.json")
             out.append(f"{spec.path}: unreadable zarr.json ({type(e).__name__}: {e})")
             continue
         if meta.get("node_type") != "array":
@@ -898,6 +899,7 @@ def open_group(path_or_url, mode: str = "r", *, check: bool = True):
     try:
         root = zarr.open_group(_zarr_store(path_or_url), mode=mode, use_consolidated=False)
     except Exception as e:  # noqa: BLE001
+        raise_if_unreachable(e, path_or_url, "opening it")
         raise ForeignStoreError(f"{path_or_url!s} is not a readable Zarr group: {e}") from e
     attrs = dict(root.attrs)
     if attrs.get("kind") != STORE_KIND:

@@ -345,10 +345,15 @@ def mark_damaged(path, rep: StoreReport) -> list[int]:
 
 def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
     """A stand-alone command (``python -m stores PROG``): parse, run, StoreCorruptionError -> message and
-    exit 3, other StoreError -> message and exit 2."""
+    exit 3, other StoreError -> message and exit 2 (or its own: 4 a full disk, 5 an unreachable S3
+    endpoint), Ctrl-C -> 130."""
+    from stores.errors import exit_status, store_unreachable, unreachable_cause
+    from stores.objectstore import quiet_abandoned_requests, retry_defaults
     ap = argparse.ArgumentParser(prog=prog, description=description)
     add_args(ap)
     args = ap.parse_args(argv)
+    retry_defaults()
+    quiet_abandoned_requests()
     try:
         return run_fn(args)
     except StoreCorruptionError as e:
@@ -356,7 +361,15 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
         return EXIT_DAMAGED
     except StoreError as e:
         print(f"error: {e}", file=sys.stderr)
-        return EXIT_UNREADABLE
+        return exit_status(e, EXIT_UNREADABLE)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        if unreachable_cause(e) is None:
+            raise
+        print(f"error: {store_unreachable(getattr(args, 'store', None) or 'the store', e)}", file=sys.stderr)
+        return exit_status(e)
 
 
 def main(argv=None) -> int:

@@ -33,7 +33,7 @@ import numpy as np
 
 from stores import schema
 from stores.contract import FEATURE_NAMES, FRAME_ARRAYS, FRAME_META
-from stores.errors import FrameIndexError, StoreLayoutError, StoreValueError
+from stores.errors import FrameIndexError, StoreLayoutError, StoreValueError, raise_if_unreachable
 from stores.procinfo import pid_alive
 from stores.schema import ARRAY_BY_SOURCE, StoreLayout
 
@@ -160,8 +160,8 @@ class StoreWriter:
         try:
             if str(arr[first]) == str(scene_json):
                 return
-        except Exception:  # noqa: BLE001 - zarr/numcodecs raise many kinds for a damaged chunk: write it again
-            pass
+        except Exception as e:  # noqa: BLE001 - zarr/numcodecs raise many kinds for a damaged chunk: write it again
+            raise_if_unreachable(e, self.path, "reading frames/scene_json")
         arr[first] = str(scene_json)
 
     def _write_meta_v2(self, index: int, record: dict) -> None:
@@ -286,7 +286,8 @@ def _set_many(arr, values) -> set[int]:
         lo, hi = c * n, min((c + 1) * n, arr.shape[0])
         try:
             block = np.asarray(arr[lo:hi])
-        except Exception:  # noqa: BLE001 - zarr raises many types for a damaged chunk
+        except Exception as e:  # noqa: BLE001 - zarr raises many types for a damaged chunk
+            raise_if_unreachable(e, doing=f"reading {arr.path}")   # not damage: never overwrite it with fills
             block = np.full((hi - lo,) + tuple(arr.shape[1:]), arr.fill_value,
                             dtype=object if arr.dtype.kind in "OTU" else arr.dtype)
             lost |= set(range(lo, hi)) - {i for i, _ in items}
@@ -307,12 +308,14 @@ def complete_flags(root, frames=None) -> np.ndarray:
         if frames is None:
             return np.asarray(arr[:], bool)
         return np.array([bool(arr[int(i)]) for i in idx], bool)
-    except Exception:      # noqa: BLE001 - zarr raises ValueError/RuntimeError/... on bad bytes
+    except Exception as e:      # noqa: BLE001 - zarr raises ValueError/RuntimeError/... on bad bytes
+        raise_if_unreachable(e, doing="reading status/complete")   # not all frames to render again
         out = []
         for i in idx:
             try:
                 out.append(bool(arr[int(i)]))
-            except Exception:  # noqa: BLE001
+            except Exception as e:  # noqa: BLE001
+                raise_if_unreachable(e, doing="reading status/complete")
                 out.append(False)
         return np.array(out, bool)
 

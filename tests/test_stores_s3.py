@@ -311,6 +311,44 @@ def test_a_missing_or_corrupted_object_is_named_never_zeros(s3, capsys):
     assert "layers/radiance: frame 2" in capsys.readouterr().out
 
 
+def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, synthetic_s3, monkeypatch, tmp_path):
+    """The endpoint goes away after the store was opened (mid-training, mid-validate): a read ends in
+    StoreUnreachableError naming the endpoint (exit 5), never CorruptChunkError (damage, exit 3, which
+    `validate --mark-damaged` would write into the store). validate, train and evaluate on a store whose
+    endpoint is gone exit 5 with one line and no traceback."""
+    import s3fs
+
+    from stores.errors import StoreUnreachableError, exit_status
+    from stores.reader import open_store
+    from stores.writer import complete_flags
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    s3fs.S3FileSystem.clear_instance_cache()                         # a client with the short retry window
+    st = open_store(synthetic_s3)
+    st.read_frame(0)                                                  # its metadata read: mid-run
+    s3.stop()
+    try:
+        with pytest.raises(StoreUnreachableError, match="could not be reached") as e:
+            st.read_frame(1)
+        assert exit_status(e.value) == 5 and s3.endpoint in str(e.value)
+        with pytest.raises(Exception) as e:                          # not "every frame incomplete"
+            complete_flags(st.root)
+        assert exit_status(e.value) == 5
+        runs = {"validate": ["pipeline", "validate", synthetic_s3],
+                "train": ["training", "train", "--model", "nbg", "--store", synthetic_s3, "--steps", "1", "--crop",
+                          "8", "--batch", "1", "--out", str(tmp_path / "run"), "--no-progress"],
+                "evaluate": ["training", "evaluate", "--checkpoint", "input", "--store", synthetic_s3, "--out",
+                             str(tmp_path / "e.json"), "--no-flip"]}
+        for name, argv in runs.items():
+            r = subprocess.run([sys.executable, "-m", *argv], env=_env(AWS_MAX_ATTEMPTS="1"), cwd=ROOT,
+                               capture_output=True, text=True, timeout=300)
+            errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+            assert r.returncode == 5 and len(errors) == 1 and "Traceback" not in r.stderr, (name, r.stderr[-3000:])
+            assert s3.endpoint in errors[0] and "could not be reached" in errors[0], (name, errors)
+    finally:
+        s3.start()
+        s3fs.S3FileSystem.clear_instance_cache()
+
+
 # ---- export and training from S3 ------------------------------------------------------------------------
 def test_export_and_training_read_from_s3_what_a_local_copy_holds(synthetic_s3, tmp_path):
     from pipeline.__main__ import main

@@ -252,7 +252,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
-    from stores.errors import StoreCorruptionError, StoreError, store_unreachable, unreachable_cause
+    from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
 
     from .accel import tune_allocator
@@ -266,10 +266,12 @@ def main(argv=None) -> int:
     except NonFiniteError as err:               # the run itself failed: not a bad setting
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return EXIT_FAILED
-    except (TrainingError, StoreError) as err:
-        damaged = isinstance(err, StoreCorruptionError) or isinstance(err.__cause__, StoreCorruptionError)
+    except (TrainingError, StoreError) as err:      # 3 damage, 4 a full disk, 5 an unreachable S3 endpoint
+        code = exit_status(err, EXIT_ERROR)
+        if unreachable_cause(err) is not None and not isinstance(err, TrainingError):
+            err = store_unreachable(getattr(a, "store", None) or "the store", err)
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
-        return EXIT_DAMAGED if damaged else EXIT_ERROR
+        return code
     except KeyboardInterrupt:
         if a.cmd == "scaling":
             print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
@@ -288,13 +290,14 @@ def main(argv=None) -> int:
 EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values
 EXIT_ERROR = 2      # bad settings, a store that cannot be used as asked, a bad checkpoint
 EXIT_DAMAGED = 3    # the store is damaged (missing, truncated or corrupt files): see `python -m pipeline validate`
+EXIT_FULL = 4       # the disk of the run's output or store is full
 EXIT_UNREACHABLE = 5   # the object store of an s3:// store could not be reached (botocore's retries spent)
 EXIT_INTERRUPTED = 130
 EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/Inf) or hard-cases found problems "
                    "(non-finite outputs or stored values); 2 bad settings, or a store, split or checkpoint that "
                    "cannot be used as asked (frames validate flags included: --skip-bad-frames leaves them out); "
-                   "3 the store is damaged (see python -m pipeline validate); 5 the S3 endpoint of an s3:// store "
-                   "could not be reached (run again once it is back); 130 interrupted")
+                   "3 the store is damaged (see python -m pipeline validate); 4 the store's disk is full; 5 the S3 "
+                   "endpoint of an s3:// store could not be reached (run again once it is back); 130 interrupted")
 
 
 def _message(err: BaseException) -> str:
