@@ -53,6 +53,7 @@ def describe(holder: dict) -> str:
 LEASE_SECONDS = 60.0        # an S3 lease not renewed for this long (by the object store's clock) is dead
 RENEW_EVERY = 1 / 3         # the holder renews every third of its lease...
 GIVE_UP_AFTER = 1 / 2       # ...and stops writing when it has not managed to for half of it
+RELEASE_WAIT = 10.0         # seconds a release waits for a renewal in flight
 
 
 def _code(e) -> str:
@@ -158,7 +159,8 @@ class S3Lease:
             raise StoreLockedError(f"could not take the lease {self.url}: it kept changing under this run")
         import threading
         self._stop = threading.Event()
-        threading.Thread(target=self._renew, name="store-lease", daemon=True).start()
+        self._renewer = threading.Thread(target=self._renew, name="store-lease", daemon=True)
+        self._renewer.start()
         return self
 
     def _renew(self) -> None:
@@ -195,6 +197,10 @@ class S3Lease:
         takes over one whose process is dead at once."""
         if self._stop is not None:
             self._stop.set()
+            # a renewal in flight may change the ETag (where it is not the body's MD5: SSE-KMS, SSE-C): wait
+            # for it, or the conditional delete misses this run's own lease (bounded: with the endpoint gone
+            # nothing can be deleted anyway)
+            self._renewer.join(timeout=RELEASE_WAIT)
         etag, self.etag = self.etag, None
         if self.taken or etag is None:
             return

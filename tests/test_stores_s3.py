@@ -253,6 +253,31 @@ def test_a_run_whose_lease_is_taken_over_stops_writing_and_leaves_the_new_lease(
     assert len(_objects(mine.store)) == 1
 
 
+def test_a_release_during_a_renewal_deletes_the_renewed_lease(s3):
+    """The renewal's PUT has reached the server (a new ETag there) but its answer has not come back when
+    the run releases: the release waits for it and deletes the lease by the new ETag, rather than miss
+    with the old one and leave a live-looking lease for a minute. Each renewal's ETag differs here, as a
+    server's does where the ETag is not the body's MD5 (SSE-KMS, SSE-C)."""
+    import itertools
+    import threading
+    url = s3("released")
+    lock = _short_lock(url, 0.6)                                      # renewed every 0.2 s
+    lease, put, in_flight, n = lock._lease, lock._lease._put, threading.Event(), itertools.count()
+
+    def slow_answer(**cond):
+        lease.record = {**lease.record, "renewal": next(n)}          # another body: another ETag
+        etag = put(**cond)
+        if threading.current_thread().name == "store-lease":
+            in_flight.set()
+            time.sleep(0.5)                                           # written there, the answer still on its way
+        return etag
+
+    lease._put = slow_answer
+    assert in_flight.wait(10)
+    lock.release()
+    assert _lease_key(url) not in _objects(url)
+
+
 def test_a_run_that_cannot_renew_its_lease_stops_writing_before_it_expires(s3):
     """The endpoint goes away: renewals fail for real, and once the lease has gone unrenewed for half its
     length the run's check raises StoreUnreachableError (exit 5), before another run could take it."""
