@@ -218,3 +218,38 @@ def test_evaluate_times_only_warm_calls_of_each_shape(probes, clip_store, monkey
     assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
     assert res["timing"]["frames_timed"] == len(res["frames"]) == TEST_FRAMES
     assert res["timing"]["untimed_warmups"] == 2
+
+
+def test_evaluate_leaves_two_calls_a_signature_untimed_where_cuda_graphs_record(probes, clip_store, monkeypatch):
+    """With CUDA graphs (a real-time model compiled on a GPU) a call signature's first call compiles and
+    its second records the graph; only the third replays. Pretended here: ``compile_model`` marks the
+    model as the CUDA-graph path does, and each signature's first two calls are slow. No timed frame
+    holds either, and the JSON counts both."""
+    import time as _time
+
+    from training import accel
+    from training import evaluate as ev
+    from training.models import build
+    calls, real = {}, ev.runner
+
+    def as_if_graphed(model):
+        model.warmup_calls = 2
+        return model
+
+    def recording_runner(m, dev, precision):
+        run = real(m, dev, precision)
+
+        def slow_twice(item, state=None):
+            sig = (tuple(tuple(v.shape) for v in item.values()), state is None)
+            calls[sig] = calls.get(sig, 0) + 1
+            if calls[sig] <= 2:
+                _time.sleep(0.3)
+            return run(item, state)
+        return slow_twice
+    monkeypatch.setattr(accel, "compile_model", as_if_graphed)
+    monkeypatch.setattr(ev, "runner", recording_runner)
+    res = ev.evaluate(build(probes["clips"]), clip_store, split="test", with_flip=False, device="cpu",
+                      compile=True)
+    assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
+    assert {k: res["timing"][k] for k in ("frames_timed", "untimed_warmups", "call_signatures")} == \
+        {"frames_timed": TEST_FRAMES, "untimed_warmups": 4, "call_signatures": 2}

@@ -180,8 +180,10 @@ def compile_model(model: torch.nn.Module) -> torch.nn.Module:
     forward pass, and a recurrent model's ``step``, compiled by ``torch.compile`` (Inductor: C++/OpenMP
     kernels on the CPU, Triton on CUDA; :func:`compile_options`: CUDA graphs for the real-time models on
     a GPU). The first call of each input shape compiles (tens of seconds on a CPU); later calls run the
-    compiled code."""
+    compiled code. With CUDA graphs the second call of a shape records its graph, and only the third
+    replays it: ``model.warmup_calls`` says how many calls of a shape to leave untimed (1, or 2)."""
     opts = compile_options(model)
+    model.warmup_calls = 2 if opts.get("triton.cudagraphs") else 1
     if not opts.get("triton.cudagraphs"):
         model.compile(options=opts)
         if getattr(model, "stepwise", False):
