@@ -207,14 +207,11 @@ def run_sequence(model, items: list[dict], device: str = "cpu", precision: str =
     if model is None:
         return _run_oidn(items[-1])
     from .accel import autocast
-    state = None
+    kind, state = model.input_spec().input_kind, None
     with torch.no_grad(), autocast(torch.device(device), precision):
         for item in items:
             batch = {k: v.unsqueeze(0).to(device) for k, v in item.items() if torch.is_tensor(v)}
-            if getattr(model, "stepwise", False):
-                out, state, _ = model.step(batch, state)
-            else:
-                out = model(batch)
+            out, state, _ = kind.stream(model, batch, state)
     out = out[0]
     if out.dim() == 4:                       # a window's outputs: the last frame's
         out = out[-1]

@@ -188,12 +188,8 @@ def runner(m: Method, dev: torch.device, precision: str):
             return out, None, float(m.spp), None
         with torch.no_grad(), accel.autocast(dev, precision):
             batch = {k: v.unsqueeze(0).to(dev) for k, v in item.items()}
-            counts = None
-            if m.stepwise:
-                out, state, extra = m.model.step(batch, state)
-                counts = extra.get("counts")
-            else:
-                out = m.model(batch)
+            out, state, extra = kind.stream(m.model, batch, state)
+            counts = extra.get("counts")
             if out.is_cuda:
                 torch.cuda.synchronize()
         if counts is None:

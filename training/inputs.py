@@ -191,6 +191,15 @@ class InputKind:
             outs.append(out)
         return torch.stack(outs, dim=1)
 
+    def stream(self, model, frame: dict, state=None):
+        """One frame of a stream at inference (evaluation's clips, ``denoise`` of a sequence), the one
+        place both kinds of model are told apart there: a recurrent model's ``step`` carrying ``state``
+        (None starts a clip), another's ``forward`` (its ``state`` stays None). ``(output, state, extra)``:
+        ``extra`` is what a step returns besides (an adaptive sampler's ``counts``), ``{}`` otherwise."""
+        if model.stepwise:
+            return model.step(frame, state)
+        return model(frame), None, {}
+
     def target(self, batch: dict) -> torch.Tensor:
         """The reference the model's output is compared with (the same shape)."""
         return batch["reference"]
