@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from core.checks import is_number, need, need_int
 from ..errors import ConfigError
 from ..inputs import InputSpec
 from core.images import tonemap
@@ -99,11 +100,9 @@ class PixelDenoiser(Denoiser):
     realtime = True
 
     def __init__(self, temporal_frames: int = 1, temporal_alpha: float = 0.2, **config):
-        if not isinstance(temporal_frames, int) or temporal_frames < 1:
-            raise ConfigError(f'"temporal_frames" must be an integer >= 1 (1: no temporal accumulation), '
-                              f"got {temporal_frames!r}")
-        if not 0.0 <= float(temporal_alpha) < 1.0:
-            raise ConfigError(f'"temporal_alpha" must be in [0, 1), got {temporal_alpha!r}')
+        need_int('"temporal_frames" (1: no temporal accumulation)', temporal_frames, 1, None, ConfigError)
+        need(is_number(temporal_alpha) and 0.0 <= temporal_alpha < 1.0, '"temporal_alpha"', "a number in [0, 1)",
+             temporal_alpha, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=float(temporal_alpha), **config)
         self.temporal_frames, self.temporal_alpha = temporal_frames, float(temporal_alpha)
 

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
+from core.checks import need
 from ..errors import ConfigError
 from ..inputs import ALL_FEATURES, InputSpec, check_feature_groups, mask_features
 
@@ -147,16 +148,15 @@ def gaussian_kernel_bias(conv: nn.Conv2d, kernel_size: int, sigma: float) -> Non
 
 def check_sigma(sigma) -> float:
     sigma = float(sigma)
-    if not sigma >= 0:
-        raise ConfigError(f'"kernel_sigma" must be >= 0 pixels (0: box start), got {sigma}')
+    need(sigma >= 0, '"kernel_sigma"', ">= 0 pixels (0: box start)", sigma, ConfigError)
     return sigma
 
 
 def _check_widths(name: str, widths) -> tuple:
     widths = tuple(tuple(int(f) for f in w) if isinstance(w, (list, tuple)) else int(w) for w in widths)
     flat = [f for w in widths for f in (w if isinstance(w, tuple) else (w,))]
-    if not flat or any(f < 1 for f in flat):
-        raise ConfigError(f'"{name}" must be non-empty positive feature counts, got {widths}')
+    need(bool(flat) and all(f >= 1 for f in flat), f'"{name}"', "non-empty positive feature counts", widths,
+         ConfigError)
     return widths
 
 
@@ -347,8 +347,7 @@ def splat(x: torch.Tensor, kernels: torch.Tensor, kernel_size: int) -> torch.Ten
 
 def check_kernel_size(k: int) -> int:
     k = int(k)
-    if k < 1 or k % 2 == 0:
-        raise ConfigError(f'"kernel_size" must be an odd integer >= 1, got {k}')
+    need(k >= 1 and k % 2 == 1, '"kernel_size"', "an odd integer >= 1", k, ConfigError)
     return k
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import torch
 
+from core.checks import need_int
 from ..errors import ConfigError
 from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
                      clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat,
@@ -34,9 +35,8 @@ class LayerDenoiser(Denoiser):
                  context: int = 128, partition_hidden=(32, 16), kernel_hidden=(128, 128),
                  unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
                  unet_decoder=PAPER_UNET["unet_decoder"]):
+        need_int('"layers"', layers, 1, MAX_LAYERS, ConfigError, numpy=True)
         layers = int(layers)
-        if not 1 <= layers <= MAX_LAYERS:
-            raise ConfigError(f'"layers" must be in 1..{MAX_LAYERS}, got {layers}')
         kernel_size = check_kernel_size(kernel_size)
         kernel_sigma = check_sigma(kernel_sigma)
         super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed,

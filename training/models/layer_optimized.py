@@ -19,6 +19,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from core.checks import need_int
 from ..errors import ConfigError
 from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
                      exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, replicate_pad, splat, xavier_init)
@@ -40,11 +41,9 @@ class LayerOptimizedDenoiser(Denoiser):
                  embed: int = 32, context: int = 64,
                  partition_hidden=(32, 16), kernel_hidden=(32, 32), unet_encoder=OPT_UNET["unet_encoder"],
                  unet_bottleneck=OPT_UNET["unet_bottleneck"], unet_decoder=OPT_UNET["unet_decoder"]):
+        need_int('"layers"', layers, 1, MAX_LAYERS, ConfigError, numpy=True)
+        need_int('"levels" (at most the U-net\'s depth)', levels, 1, len(unet_decoder), ConfigError, numpy=True)
         layers, levels = int(layers), int(levels)
-        if not 1 <= layers <= MAX_LAYERS:
-            raise ConfigError(f'"layers" must be in 1..{MAX_LAYERS}, got {layers}')
-        if not 1 <= levels <= len(unet_decoder):
-            raise ConfigError(f'"levels" must be in 1..{len(unet_decoder)} (U-net depth), got {levels}')
         kernel_size = check_kernel_size(kernel_size)
         kernel_sigma = check_sigma(kernel_sigma)
         super().__init__(layers=layers, kernel_size=kernel_size, kernel_sigma=kernel_sigma, levels=levels,

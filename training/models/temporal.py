@@ -43,6 +43,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from core.checks import known_keys, need, need_int
+
 from .. import adaptive
 from ..errors import ConfigError
 from ..inputs import InputSpec
@@ -119,17 +121,13 @@ class TemporalDenoiser(Denoiser):
     def __init__(self, size: str | None = None, adaptive: bool | None = None, recurrent: bool | None = None,
                  frames: int = 5, **widths):
         size = self.size_default if size is None else size
-        if size not in SIZES:
-            raise ConfigError(f'"size" must be one of {sorted(SIZES)}, got {size!r}')
+        need(size in SIZES, '"size"', f"one of {sorted(SIZES)}", size, ConfigError)
         adaptive = self.adaptive_default if adaptive is None else adaptive
         recurrent = self.recurrent_default if recurrent is None else recurrent
-        if not isinstance(adaptive, bool) or not isinstance(recurrent, bool):
-            raise ConfigError(f'"adaptive" and "recurrent" must be true or false, got {adaptive!r}, {recurrent!r}')
-        if not isinstance(frames, int) or frames < 2:
-            raise ConfigError(f'"frames" (the training unroll) must be an integer >= 2, got {frames!r}')
-        unknown = set(widths) - set(SIZES["large"])
-        if unknown:
-            raise ConfigError(f"unknown settings {sorted(unknown)}; widths are {sorted(SIZES['large'])}")
+        need(isinstance(adaptive, bool), '"adaptive"', "true or false", adaptive, ConfigError)
+        need(isinstance(recurrent, bool), '"recurrent"', "true or false", recurrent, ConfigError)
+        need_int('"frames" (the training unroll)', frames, 2, None, ConfigError)
+        known_keys(widths, SIZES["large"], f"{type(self).__name__} widths", ConfigError, noun="setting(s)")
         w = {**SIZES[size], **widths}
         super().__init__(size=size, adaptive=adaptive, recurrent=recurrent, frames=frames, **widths)
         self.adaptive, self.recurrent, self.frames = adaptive, recurrent, frames
@@ -137,8 +135,8 @@ class TemporalDenoiser(Denoiser):
             if adaptive else None
         self.denoiser = UNet(DENOISER_IN, 2 * K2 + 1, w["denoiser_encoder"], w["denoiser_bottleneck"],
                              w["denoiser_decoder"])
-        if self.denoiser.depth < 3:
-            raise ConfigError("the denoiser U-net needs at least 3 levels (kernels at 1, 1/2 and 1/4 resolution)")
+        need(self.denoiser.depth >= 3, "the denoiser U-net's depth (levels)",
+             "at least 3 (kernels at 1, 1/2 and 1/4 resolution)", self.denoiser.depth, ConfigError)
         self.head1 = nn.Conv2d(self.denoiser.decoder_channels(1), K2 + 1, 3, padding=1)
         self.head2 = nn.Conv2d(self.denoiser.decoder_channels(2), K2 + 1, 3, padding=1)
         xavier_init(self)
