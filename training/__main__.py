@@ -109,52 +109,42 @@ def _model_names() -> str:
 INFER_COMPILE = ("run the model through torch.compile (the first frame of each size compiles: tens of seconds "
                  "on a CPU)")
 INFER_PRECISION = "autocast precision of the forward pass (default auto: bf16 on a GPU that has it, else fp32)"
-SPLIT_HELP = "train, val or test (default test: held-out scenes)"
 
 
 def _train_parser(sub) -> None:
-    from .cli import add_config_options
+    from .cli import add_config_options, add_eval
     t = sub.add_parser("train", help="train a denoiser; writes OUT/checkpoint.pt and OUT/metrics.csv (resumes)")
-    t.add_argument("--store", required=True, help="a Zarr store made by `python -m pipeline dataset`, or a "
-                                                  "folder of Noisebase sequences")
-    t.add_argument("--out", help="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
+    add_eval(t, ("store", "out"), required=("store",),
+             out="run folder for checkpoint.pt and metrics.csv (default: data/runs/MODEL)")
     t.add_argument("--seconds", type=float, default=None,
                    help="stop after this many seconds of training (the checkpoint is written; the same command "
                         "resumes toward --steps)")
     add_config_options(t, skip=("model_cfg",), model="a registered model: " + _model_names())
     t.add_argument("--model-cfg", default="{}", help='JSON model settings, e.g. \'{"layers": 3}\'')
-    t.add_argument("--no-progress", action="store_true")
+    add_eval(t, ("no_progress",))
     t.set_defaults(fn=_train)
 
 
 def _evaluate_parser(sub) -> None:
-    from .cli import add_shared
+    from .cli import add_eval, add_shared
     e = sub.add_parser("evaluate", help="per-frame and mean metrics with ms per megapixel, as JSON")
     e.add_argument("--checkpoint", required=True, help="a checkpoint.pt, or 'input' / 'oidn' for a baseline")
-    e.add_argument("--store", required=True, help="the Zarr store to evaluate on")
-    e.add_argument("--split", default="test", help=SPLIT_HELP)
-    e.add_argument("--spp", type=int, default=None,
-                   help="input samples per pixel (default: what the checkpoint was trained at; for a baseline "
-                        "all the store holds); a count the store does not hold is refused")
-    e.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
-    e.add_argument("--out", required=True, help="JSON file for per-frame and mean metrics")
-    e.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
+    add_eval(e, ("store", "split", "spp", "frames", "out", "no_flip"), required=("store", "out"),
+             spp="input samples per pixel (default: what the checkpoint was trained at; for a baseline all the "
+                 "store holds); a count the store does not hold is refused",
+             out="JSON file for per-frame and mean metrics")
     add_shared(e, precision=INFER_PRECISION, compile=INFER_COMPILE)
     e.set_defaults(fn=_evaluate)
 
 
 def _report_parser(sub) -> None:
-    from .cli import add_shared
+    from .cli import add_eval, add_shared
     r = sub.add_parser("report", help="evaluate runs and baselines; Markdown table, plot and crops")
     r.add_argument("--runs", nargs="+", required=True, help="run folders (each with checkpoint.pt)")
-    r.add_argument("--store", required=True, help="the Zarr store to evaluate on")
-    r.add_argument("--out", required=True, help="report folder: report.md, speed_vs_error.png, crops.png")
-    r.add_argument("--split", default="test", help=SPLIT_HELP)
-    r.add_argument("--spp", type=int, default=None,
-                   help="input samples per pixel for every run (default: each run at its training spp, with the "
-                        "baselines at each of those spp)")
-    r.add_argument("--frames", type=int, default=0, help="at most this many frames (0: all)")
-    r.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
+    add_eval(r, ("store", "out", "split", "spp", "frames", "no_flip"), required=("store", "out"),
+             out="report folder: report.md, speed_vs_error.png, crops.png",
+             spp="input samples per pixel for every run (default: each run at its training spp, with the "
+                 "baselines at each of those spp)")
     add_shared(r, names=("skip_bad_frames",))
     r.add_argument("--clips-store", help="also evaluate everything on the test split of this store of moving "
                                          "clips (a section with tPSNR; recurrent models carry their state)")
@@ -167,26 +157,25 @@ def _report_parser(sub) -> None:
 
 
 def _hard_cases_parser(sub) -> None:
+    from .cli import add_eval
     h = sub.add_parser("hard-cases", help="every run, OIDN and the noisy input on each case of a hard-case store "
                                           "(configs/hard-cases.yaml): DIR/hard-cases.md and .json")
-    h.add_argument("--store", required=True, help="a store of configs/hard-cases.yaml (every split is evaluated)")
     h.add_argument("--runs", nargs="*", default=[], help="run folders (each with checkpoint.pt; others are skipped)")
-    h.add_argument("--out", required=True, help="folder for hard-cases.md and hard-cases.json")
-    h.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
-    h.add_argument("--frames", type=int, default=0, help="at most this many frames per split (0: all)")
+    add_eval(h, ("store", "out", "no_oidn", "frames"), required=("store", "out"),
+             store="a store of configs/hard-cases.yaml (every split is evaluated)",
+             out="folder for hard-cases.md and hard-cases.json", frames="at most this many frames per split (0: all)")
     h.set_defaults(fn=_hard_cases)
 
 
 def _bench_parser(sub) -> None:
-    from .cli import add_shared
+    from .cli import add_eval, add_shared
     b = sub.add_parser("bench", help="inference ms per megapixel of every model and OIDN, in one run")
     b.add_argument("--models", nargs="*", help="registered models to time (default: all)")
     b.add_argument("--size", type=int, default=128, help="square frame size in pixels (default 128)")
-    b.add_argument("--spp", type=int, default=None,
-                   help="samples per pixel fed to every model (default: each model's own, 8 or 1)")
+    add_eval(b, ("spp",), spp="samples per pixel fed to every model (default: each model's own, 8 or 1)")
     b.add_argument("--repeats", type=int, default=3, help="timed forward passes; the best counts (default 3)")
     b.add_argument("--json", help='write {name: {"ms_per_mp": ...}} (with "oidn") to this file')
-    b.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
+    add_eval(b, ("no_oidn",))
     add_shared(b, names=("device", "precision", "compile"), precision=INFER_PRECISION,
                compile="also time every model through torch.compile, with its speed-up and its largest "
                        "difference from the eager output (with --train: the compiled training step)")
@@ -203,7 +192,7 @@ def _bench_parser(sub) -> None:
 
 
 def _denoise_parser(sub) -> None:
-    from .cli import add_shared
+    from .cli import add_eval, add_shared
     d = sub.add_parser("denoise", help="apply a trained checkpoint to your own render (EXR images, a store "
                                        "frame or a render-frame .npz), like OIDN's oidnDenoise")
     d.add_argument("--checkpoint", required=True, help="a checkpoint.pt written by `train` (or 'oidn')")
@@ -212,31 +201,31 @@ def _denoise_parser(sub) -> None:
     d.add_argument("--albedo", help="albedo guide (EXR), when the model uses it")
     d.add_argument("--normal", help="world-space normal guide (EXR), when the model uses it")
     d.add_argument("--depth", help="depth guide (EXR, first channel), when the model uses it")
-    d.add_argument("--store", help="a Zarr store: denoise its frame --frame (instead of --input)")
+    add_eval(d, ("store",), store="a Zarr store: denoise its frame --frame (instead of --input)")
     d.add_argument("--frame", type=int, help="frame index in --store")
-    d.add_argument("--spp", type=int, default=None,
-                   help="input samples per pixel from a store or .npz (default: the checkpoint's)")
+    add_eval(d, ("spp",), spp="input samples per pixel from a store or .npz (default: the checkpoint's)")
     d.add_argument("--tile", type=int, default=0,
                    help="denoise in square tiles of this many pixels (with overlap) to bound memory; "
                         "0: automatic (whole image when it fits)")
     add_shared(d, names=("device", "precision", "compile"), precision=INFER_PRECISION, compile=INFER_COMPILE)
-    d.add_argument("--out", required=True, help="denoised radiance, written as OpenEXR")
+    add_eval(d, ("out",), required=("out",), out="denoised radiance, written as OpenEXR")
     d.set_defaults(fn=_denoise)
 
 
 def _scaling_parser(sub) -> None:
+    from .cli import add_eval
     s = sub.add_parser("scaling", help="quality against the number of training frames and their scene variety, "
                                        "with a fit and intervals: OUT/scaling.md, scaling.png, scaling.json (resumes)")
     s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
-    s.add_argument("--out", help="folder for the stores, runs and the three files (default: the config's out, "
-                                 "else data/NAME)")
+    add_eval(s, ("out",), out="folder for the stores, runs and the three files (default: the config's out, else "
+                              "data/NAME)")
     s.add_argument("--target-relmse", type=float, default=None,
                    help="the smallest number of training frames the fit predicts reaches this relMSE, with its "
                         "interval and rendering cost (pipeline estimate); refused below the fitted floor")
     s.add_argument("--target-psnr", type=float, default=None, help="the same for a PSNR (dB); refused above the "
                                                                    "fitted ceiling")
     s.add_argument("--workers", type=int, default=None, help="render workers (default: the config's, else one a core)")
-    s.add_argument("--no-progress", action="store_true")
+    add_eval(s, ("no_progress",))
     s.set_defaults(fn=_scaling)
 
 

@@ -3,14 +3,16 @@
 ``train``'s options are :class:`training.config.TrainConfig`'s fields (``val_every`` -> ``--val-every``),
 their types, defaults and ``help`` taken from the dataclass, so a setting added there is an option here
 without a second definition. The options every command that runs a model shares (``--device``,
-``--precision``, ``--compile``, ``--skip-bad-frames``) are those same fields, added by :func:`add_shared`.
+``--precision``, ``--compile``, ``--skip-bad-frames``) are those same fields, added by :func:`add_shared`;
+those of the commands that evaluate (``--store``, ``--split``, ``--spp``, ``--frames``, ``--no-flip``,
+``--no-oidn``, ``--out``, ``--no-progress``) are :class:`EvalOptions`' fields, added the same way.
 """
 from __future__ import annotations
 
 import argparse
 import types
 import typing
-from dataclasses import MISSING, fields
+from dataclasses import MISSING, dataclass, field, fields
 
 from .config import TrainConfig
 
@@ -52,6 +54,33 @@ def add_shared(p: argparse.ArgumentParser, names=SHARED, **helps: str) -> None:
     """The options a command that runs a model shares with ``train`` (``helps``: a command's own wording)."""
     for name in names:
         add_field(p, TrainConfig, name, help=helps.get(name))
+
+
+def _opt(default, text: str):
+    return field(default=default, metadata={"help": text})
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """The options of the commands that evaluate models on a store (``evaluate``, ``report``,
+    ``hard-cases``, ``bench``, ``denoise``, ``scaling``), defined once; each command takes those it needs
+    (:func:`add_eval`), in its own words where it means more."""
+    store: str | None = _opt(None, "a Zarr store made by `python -m pipeline dataset`, or a folder of Noisebase "
+                                   "sequences")
+    split: str = _opt("test", "train, val or test (default test: held-out scenes)")
+    spp: int | None = _opt(None, "input samples per pixel; a count the store does not hold is refused")
+    frames: int = _opt(0, "at most this many frames (0: all)")
+    no_flip: bool = _opt(False, "skip FLIP (the slowest metric)")
+    no_oidn: bool = _opt(False, "leave OIDN out")
+    out: str | None = _opt(None, "where the command writes")
+    no_progress: bool = _opt(False, "no progress bars")
+
+
+def add_eval(p: argparse.ArgumentParser, names, *, required=(), **helps: str) -> None:
+    """The :class:`EvalOptions` fields ``names`` as options (``required``: those a command cannot do
+    without; ``helps``: a field's help as this command words it)."""
+    for name in names:
+        add_field(p, EvalOptions, name, help=helps.get(name), **({"required": True} if name in required else {}))
 
 
 def config_from(a: argparse.Namespace, model_cfg: dict) -> TrainConfig:
