@@ -320,8 +320,10 @@ def job_settings(cfg: ClusterConfig) -> dict:
     - ``resources: {GPU: 1}`` (our key, not dask-jobqueue's) becomes ``--resources GPU=1`` on the worker
       command line: what ``tasks.reference_resources`` asks for; and ``--preload pipeline.worker_init``;
     - ``gpus_per_job: G`` (ours too; G must equal ``processes``): SLURM's ``--gres=gpu:G`` (unless the
-      directives ask for GPUs already; PBS: ask in ``resource_spec``), ``GPU: 1`` for every worker, and
-      each of a job's workers keeps one of the job's GPUs (``worker_init.gpu_for_worker``);
+      directives ask for GPUs already, and refused where they ask for fewer; PBS: ask in ``resource_spec``),
+      ``GPU: 1`` for every worker, and each of a job's workers keeps one of the job's GPUs
+      (``worker_init.gpu_for_worker``); ``resources: {GPU: ...}`` for several workers of a job without it
+      is refused (they would share a GPU);
     - the job script's prologue (``job_script_prologue``): ``cd`` to this directory (PBS starts jobs
       in $HOME; a relative ``--out`` must name the same store for the workers), BLAS/OpenMP pools of one
       thread, drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
@@ -407,12 +409,20 @@ def _job_workers(kw: dict, kind: str) -> list[str]:
             raise ConfigError(f"{JOBQUEUE}.gpus_per_job must be an integer >= 1 equal to the job's workers "
                               f"(processes: {kw['processes']}; one worker per GPU), got {gpus!r}; set processes "
                               "and cores to match")
+        asked = _gpus_asked(kw, kind)
+        if asked is not None and asked < gpus:
+            raise ConfigError(f"{JOBQUEUE}: the job asks the batch system for {asked} GPU(s) but gpus_per_job is "
+                              f"{gpus}: its {gpus} workers would share them (one worker per GPU); ask for {gpus}")
         if kind == "slurm":
             dirs = [str(d) for d in kw.get("job_extra_directives") or []]
             if not any(d.startswith(("--gres=gpu", "--gpus")) for d in dirs):
                 kw["job_extra_directives"] = dirs + [f"--gres=gpu:{gpus}"]
         res = {**(res or {}), "GPU": 1}
-        extra_env = [f"export {worker_init.GPU_SPLIT_ENV}=1"]
+        extra_env = [f"export {worker_init.GPU_SPLIT_ENV}={gpus}"]
+    elif isinstance(res, dict) and "GPU" in res and kw["processes"] > 1:
+        raise ConfigError(f"{JOBQUEUE}.resources gives each of a job's {kw['processes']} workers a GPU, but nothing "
+                          f"gives each its own: they would share one. Set gpus_per_job: {kw['processes']} (a GPU a "
+                          "worker), or processes: 1")
     if res is not None:
         need(isinstance(res, dict) and res and all(
             isinstance(k, str) and k.strip() and "=" not in k and "," not in k and " " not in k
@@ -426,6 +436,21 @@ def _job_workers(kw: dict, kind: str) -> list[str]:
         extra += ["--preload", PRELOAD]
     kw["worker_extra_args"] = extra
     return extra_env
+
+
+def _gpus_asked(kw: dict, kind: str) -> int | None:
+    """The GPUs a job asks its batch system for in the config's own words: SLURM's ``--gres=gpu[:type]:N``,
+    ``--gpus[-per-node]=[type:]N`` directives, PBS's ``ngpus=N`` in ``resource_spec``; None where it names
+    none (or in words this cannot read)."""
+    import re
+    if kind == "slurm":
+        text = " ".join(str(d) for d in kw.get("job_extra_directives") or [])
+        m = re.search(r"--gres=gpu(?::[\w.-]+)*?(?::(\d+))?(?:[,\s]|$)|--gpus(?:-per-node)?=(?:[\w.-]+:)?(\d+)", text)
+        if m is None:
+            return None
+        return int(m.group(1) or m.group(2) or 1)
+    m = re.search(r"\bngpus=(\d+)", str(kw.get("resource_spec") or ""))
+    return int(m.group(1)) if m else None
 
 
 def _job_prologue(kw: dict, extra_env: list[str]) -> list[str]:

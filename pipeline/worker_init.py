@@ -23,20 +23,40 @@ import os
 import signal
 
 LOCAL_WORKER_ENV = "DENOISE_LOCAL_WORKER"
-GPU_SPLIT_ENV = "DENOISE_GPU_PER_WORKER"    # set by job scripts of jobqueue.gpus_per_job
+GPU_SPLIT_ENV = "DENOISE_GPU_PER_WORKER"    # job scripts of jobqueue.gpus_per_job: the job's workers (= GPUs)
 
 
-def gpu_for_worker(name: str, visible: str | None) -> str | None:
+class GPUShortageError(RuntimeError):
+    """A GPU job's worker would share a GPU with another worker of its job: the job sees fewer GPUs than it
+    has workers. The worker does not start; the message names the job's GPUs and workers."""
+
+
+def gpu_for_worker(name: str, visible: str | None, workers: int | None = None) -> str | None:
     """The ``CUDA_VISIBLE_DEVICES`` of worker ``name`` of a job whose GPUs are ``visible``: a job of N
     workers names them ``<job>-0`` .. ``<job>-(N-1)`` (``dask worker --nworkers N``), and worker i keeps
-    the job's GPU i (mod the GPUs); None where there is nothing to split (one GPU, or none)."""
-    devices = [d for d in (visible or "").split(",") if d.strip()]
-    if len(devices) < 2:
+    the job's GPU i; None where there is nothing to split (one worker; or, without ``workers``, one GPU or
+    none). ``workers``: the job's workers (``$DENOISE_GPU_PER_WORKER``), so that no two share a GPU: a job
+    that sees fewer GPUs raises :class:`GPUShortageError`, and one whose batch system sets no
+    ``CUDA_VISIBLE_DEVICES`` keeps GPU i of the node."""
+    devices = [d.strip() for d in (visible or "").split(",") if d.strip()]
+    if workers is not None and workers > 1:
+        devices = devices or [str(i) for i in range(workers)]
+        if len(devices) < workers:
+            raise GPUShortageError(f"worker {name}: its job has {workers} workers but sees {len(devices)} GPU(s) "
+                                   f"(CUDA_VISIBLE_DEVICES={visible}); two would share one. Ask the batch system "
+                                   f"for {workers} GPUs a job (jobqueue.gpus_per_job, and its directives)")
+    elif len(devices) < 2:
         return None
     tail = str(name).rsplit("-", 1)[-1]
     if not tail.isdigit():
+        if workers is not None and workers > 1:
+            raise GPUShortageError(f"worker {name}: not named <job>-<i> as `dask worker --nworkers "
+                                   f"{workers}` names them, so which of the job's GPUs is its own is unknown")
         return None
-    return devices[int(tail) % len(devices)].strip()
+    if workers is not None and workers > 1 and int(tail) >= workers:
+        raise GPUShortageError(f"worker {name} is not one of its job's {workers} workers (<job>-0 .. "
+                               f"<job>-{workers - 1})")
+    return devices[int(tail) % len(devices)]
 
 
 def prepare_environment() -> None:
@@ -94,7 +114,8 @@ except ImportError:   # a machine without it (scene_gen.pymeshlab: false); a mes
 def dask_setup(worker) -> None:  # noqa: D401 - Dask's preload hook
     """In the workers of a GPU job (``$DENOISE_GPU_PER_WORKER``): keep this worker's GPU only, before
     anything initialises CUDA (:func:`gpu_for_worker`). Otherwise importing this module did the work."""
-    if os.environ.get(GPU_SPLIT_ENV) == "1":
-        gpu = gpu_for_worker(worker.name, os.environ.get("CUDA_VISIBLE_DEVICES"))
+    split = os.environ.get(GPU_SPLIT_ENV, "")
+    if split.isdigit() and int(split) >= 1:
+        gpu = gpu_for_worker(worker.name, os.environ.get("CUDA_VISIBLE_DEVICES"), int(split))
         if gpu is not None:
             os.environ["CUDA_VISIBLE_DEVICES"] = gpu

@@ -94,7 +94,7 @@ def test_threads_memory_resources_python_and_prologue_reach_the_job_script(monke
     pytest.importorskip("dask_jobqueue")
     monkeypatch.setenv("MI_VARIANT", "llvm_ad_rgb")
     c = _cluster(threads_per_worker=2, jobqueue={
-        "cores": 4, "memory": "8GiB", "resources": {"GPU": 1}, "python": ".venv/bin/python", "queue": "gpu",
+        "cores": 4, "memory": "8GiB", "resources": {"SCRATCH": 1}, "python": ".venv/bin/python", "queue": "gpu",
         "job_script_prologue": ["module load llvm", "export OMP_NUM_THREADS=2"]})
     script = _script_of(c)
     lines = script.splitlines()
@@ -103,18 +103,46 @@ def test_threads_memory_resources_python_and_prologue_reach_the_job_script(monke
         assert needle in lines, (needle, script)
     worker = lines[-1]
     assert worker.startswith(f"{ROOT}/.venv/bin/python -m distributed.cli.dask_worker ")   # from the checkout
-    for needle in ["--nthreads 2", "--nworkers 2", "--memory-limit 4.00GiB", "--resources GPU=1",
+    for needle in ["--nthreads 2", "--nworkers 2", "--memory-limit 4.00GiB", "--resources SCRATCH=1",
                    "--preload pipeline.worker_init"]:
         assert needle in worker, (needle, worker)
     # the config's own lines come after ours, so they may override them
     assert lines.index("export OMP_NUM_THREADS=1") < lines.index("module load llvm") \
         < lines.index("export OMP_NUM_THREADS=2") < lines.index(worker)
 
-    pbs = _script_of(_cluster(kind="pbs", jobqueue={"cores": 2, "memory": "4GiB", "resources": {"GPU": 1, "MEM": 2.5},
-                                                    "resource_spec": "select=1:ncpus=2:ngpus=1"}))
-    assert "#PBS -l select=1:ncpus=2:ngpus=1" in pbs and "--resources GPU=1,MEM=2.5" in pbs
+    pbs = _script_of(_cluster(kind="pbs", jobqueue={"cores": 2, "memory": "4GiB", "resources": {"MEM": 2.5},
+                                                    "gpus_per_job": 2, "resource_spec": "select=1:ncpus=2:ngpus=2"}))
+    assert "#PBS -l select=1:ncpus=2:ngpus=2" in pbs and "--resources MEM=2.5,GPU=1" in pbs
     assert "--nworkers 2" in pbs and "--nthreads 1" in pbs and "export OPENBLAS_NUM_THREADS=1" in pbs
     assert f"{PY} -m distributed.cli.dask_worker" in pbs              # python defaults to this venv's
+
+
+def test_no_two_workers_of_a_job_share_a_gpu():
+    """One worker per GPU in every case: a job whose workers each claim a GPU without gpus_per_job, or
+    whose own directives ask for fewer GPUs than its workers, is refused before anything is submitted;
+    a worker whose job sees fewer GPUs than it has workers does not start (pretended devices)."""
+    pytest.importorskip("dask_jobqueue")
+    from pipeline.errors import ConfigError
+    from pipeline.worker_init import GPUShortageError, gpu_for_worker
+    with pytest.raises(ConfigError, match="each of a job's 2 workers a GPU.*gpus_per_job: 2"):
+        _script_of(_cluster(jobqueue={"cores": 2, "memory": "4GiB", "resources": {"GPU": 1}}))
+    assert "--resources GPU=1" in _script_of(_cluster(jobqueue={"cores": 1, "memory": "4GiB", "resources": {"GPU": 1}}))
+    for directive in ("--gres=gpu:1", "--gres=gpu:a100:1", "--gpus=1", "--gpus-per-node=v100:1"):
+        with pytest.raises(ConfigError, match="asks the batch system for 1 GPU.*gpus_per_job is 2"):
+            _script_of(_cluster(jobqueue={"cores": 2, "memory": "4GiB", "gpus_per_job": 2,
+                                          "job_extra_directives": [directive]}))
+    with pytest.raises(ConfigError, match="asks the batch system for 1 GPU"):
+        _script_of(_cluster(kind="pbs", jobqueue={"cores": 2, "memory": "4GiB", "gpus_per_job": 2,
+                                                  "resource_spec": "select=1:ncpus=2:ngpus=1"}))
+    assert [gpu_for_worker(f"j-{i}", "4,5,6", 3) for i in range(3)] == ["4", "5", "6"]
+    assert [gpu_for_worker(f"j-{i}", None, 2) for i in range(2)] == ["0", "1"]     # no binding: the node's 0, 1
+    with pytest.raises(GPUShortageError, match="2 workers but sees 1 GPU"):
+        gpu_for_worker("j-1", "3", 2)
+    with pytest.raises(GPUShortageError, match="not one of its job's 2 workers"):
+        gpu_for_worker("j-2", "3,4", 2)
+    with pytest.raises(GPUShortageError, match="not named <job>-<i>"):
+        gpu_for_worker("tcp://worker", "3,4", 2)
+    assert gpu_for_worker("j-0", "3", 1) is None                                  # one worker: nothing to split
 
 
 def test_gpu_jobs_ask_for_their_gpus_and_each_worker_keeps_one(monkeypatch):
@@ -122,7 +150,7 @@ def test_gpu_jobs_ask_for_their_gpus_and_each_worker_keeps_one(monkeypatch):
     from pipeline.worker_init import GPU_SPLIT_ENV, gpu_for_worker
     c = _cluster(threads_per_worker=4, jobqueue={"cores": 8, "processes": 2, "memory": "32GiB", "gpus_per_job": 2})
     lines = _script_of(c).splitlines()
-    assert "#SBATCH --gres=gpu:2" in lines and f"export {GPU_SPLIT_ENV}=1" in lines, lines
+    assert "#SBATCH --gres=gpu:2" in lines and f"export {GPU_SPLIT_ENV}=2" in lines, lines
     assert "--nworkers 2" in lines[-1] and "--nthreads 4" in lines[-1] and "--resources GPU=1" in lines[-1]
     own = _script_of(_cluster(jobqueue={"cores": 1, "memory": "4GiB", "gpus_per_job": 1,
                                         "job_extra_directives": ["--gpus=1"]})).splitlines()
@@ -134,7 +162,7 @@ def test_gpu_jobs_ask_for_their_gpus_and_each_worker_keeps_one(monkeypatch):
     from types import SimpleNamespace
 
     from pipeline import worker_init
-    monkeypatch.setenv(GPU_SPLIT_ENV, "1")
+    monkeypatch.setenv(GPU_SPLIT_ENV, "2")
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
     worker_init.dask_setup(SimpleNamespace(name="SLURMCluster-3-1"))        # the preload hook, before CUDA
     assert os.environ["CUDA_VISIBLE_DEVICES"] == "5"
