@@ -419,7 +419,7 @@ def _job_workers(kw: dict, kind: str) -> list[str]:
                 kw["job_extra_directives"] = dirs + [f"--gres=gpu:{gpus}"]
         res = {**(res or {}), "GPU": 1}
         extra_env = [f"export {worker_init.GPU_SPLIT_ENV}={gpus}"]
-    elif isinstance(res, dict) and "GPU" in res and kw["processes"] > 1:
+    elif kw["processes"] > 1 and ((isinstance(res, dict) and "GPU" in res) or _extra_gpu(extra)):
         raise ConfigError(f"{JOBQUEUE}.resources gives each of a job's {kw['processes']} workers a GPU, but nothing "
                           f"gives each its own: they would share one. Set gpus_per_job: {kw['processes']} (a GPU a "
                           "worker), or processes: 1")
@@ -436,6 +436,12 @@ def _job_workers(kw: dict, kind: str) -> list[str]:
         extra += ["--preload", PRELOAD]
     kw["worker_extra_args"] = extra
     return extra_env
+
+
+def _extra_gpu(extra: list[str]) -> bool:
+    """Whether ``worker_extra_args`` give the workers a ``GPU`` resource (``--resources GPU=1,...``)."""
+    return any(a == "--resources" and i + 1 < len(extra) and any(
+        r.split("=", 1)[0].strip() == "GPU" for r in extra[i + 1].split(",")) for i, a in enumerate(extra))
 
 
 def _gpus_asked(kw: dict, kind: str) -> int | None:

@@ -54,7 +54,8 @@ def test_workers_override_and_threads_per_worker():
 @pytest.mark.parametrize("name, needles", [
     ("cluster-slurm.yaml", ["#SBATCH -p normal", "#SBATCH --cpus-per-task=16", "#SBATCH --exclusive",
                             "--nthreads 1", "--nworkers 16"]),
-    ("cluster-pbs.yaml", ["#PBS -q gpu", "ngpus=1", "--nthreads 1", "--nworkers 8", "--resources GPU=1"]),
+    ("cluster-pbs.yaml", ["#PBS -q gpu", "ngpus=1", "--nthreads 1", "--resources GPU=1",
+                          "export DENOISE_GPU_PER_WORKER=1"]),
 ])
 def test_jobqueue_examples_make_job_scripts(name, needles):
     pytest.importorskip("dask_jobqueue")

@@ -126,6 +126,8 @@ def test_no_two_workers_of_a_job_share_a_gpu():
     from pipeline.worker_init import GPUShortageError, gpu_for_worker
     with pytest.raises(ConfigError, match="each of a job's 2 workers a GPU.*gpus_per_job: 2"):
         _script_of(_cluster(jobqueue={"cores": 2, "memory": "4GiB", "resources": {"GPU": 1}}))
+    with pytest.raises(ConfigError, match="each of a job's 2 workers a GPU"):
+        _script_of(_cluster(jobqueue={"cores": 2, "memory": "4GiB", "worker_extra_args": ["--resources", "GPU=1"]}))
     assert "--resources GPU=1" in _script_of(_cluster(jobqueue={"cores": 1, "memory": "4GiB", "resources": {"GPU": 1}}))
     for directive in ("--gres=gpu:1", "--gres=gpu:a100:1", "--gpus=1", "--gpus-per-node=v100:1"):
         with pytest.raises(ConfigError, match="asks the batch system for 1 GPU.*gpus_per_job is 2"):
