@@ -89,7 +89,7 @@ def check_features(spec: InputSpec, store) -> None:
     """Refuse (DataError naming them) a model that reads feature groups the data does not hold (a store's
     ``missing_features``: e.g. a Noisebase folder has no specular, roughness, coc, lens or time)."""
     reads = spec.input_kind.feature_groups(spec)
-    lacking = [g for g in reads if g in getattr(store, "missing_features", ())]
+    lacking = [g for g in reads if g in store.missing_features]
     if lacking:
         have = [g for g in reads if g not in lacking]
         raise DataError(f"the model reads the feature groups {lacking}, which {store.path!s} does not hold; train "
