@@ -215,3 +215,28 @@ def test_a_run_is_trained_once_and_then_found_finished(stores, tmp_path):
     other = Job(**{**job.to_dict(), "clips": tuple(job.clips), "train_config": {**job.train_config, "steps": 3}})
     assert finished(other, tmp_path / "runs" / job.name, held) is None                       # more steps: not done
     assert json.loads((tmp_path / "runs" / job.name / RECORD).read_text())["heldout"] == held
+
+
+@pytest.mark.slow
+def test_the_smoke_study_runs_end_to_end_and_resumes(tmp_path):
+    """`python -m training scaling --config configs/scaling-smoke.yaml --out DIR` as a user runs it (about a
+    minute): it renders its stores, trains and evaluates every run and writes the three files, with every
+    run's mean in the JSON; run again, it trains nothing and reads every run as finished."""
+    import subprocess
+    import sys
+
+    from test_pipeline_safety import _env
+    root = Path(__file__).resolve().parent.parent
+    argv = [sys.executable, "-m", "training", "scaling", "--config", str(root / "configs" / "scaling-smoke.yaml"),
+            "--out", str(tmp_path), "--no-progress"]
+    first = subprocess.run(argv, env=_env(), cwd=root, capture_output=True, text=True, timeout=900)
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    for name in ("scaling.md", "scaling.png", "scaling.json"):
+        assert (tmp_path / name).is_file() and (tmp_path / name).stat().st_size > 0, name
+    res = json.loads((tmp_path / "scaling.json").read_text())
+    assert res["runs"] and all(np.isfinite(r["mean"]["relmse"]) for r in res["runs"])
+    assert "| " in (tmp_path / "scaling.md").read_text()
+    again = subprocess.run(argv, env=_env(), cwd=root, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0, again.stderr[-3000:]
+    n = len(res["runs"])
+    assert f"{n} finished, 0 to run" in again.stdout + again.stderr, again.stdout[-2000:]
