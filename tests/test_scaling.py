@@ -178,11 +178,13 @@ def test_config_checks_and_the_shipped_configs():
         train, held = scfg.dataset_configs()
         assert set(held.scene_splits()) == {"test"} and set(train.scene_splits()) == {"train"}
         assert not {s.seed for s in [train]} & {s.seed for s in [held]}      # other seeds, other scenes
-    # the steps study reuses the stores of scaling-cpu.yaml: the same datasets where they are written
-    base, steps = (load_scaling_config(ROOT / "configs" / n) for n in ("scaling-cpu.yaml", "scaling-cpu-steps.yaml"))
-    for a, b in zip(base.dataset_configs(), steps.dataset_configs()):
-        assert dataclasses.replace(a, out=None) == dataclasses.replace(b, out=None)
-        assert b.store_path(b.out) == a.store_path(f"{Path(base.out) / 'stores'}/")
+    # the steps and variety studies reuse the stores of scaling-cpu.yaml: the same datasets where they are written
+    base = load_scaling_config(ROOT / "configs" / "scaling-cpu.yaml")
+    for name in ("scaling-cpu-steps.yaml", "scaling-cpu-variety.yaml"):
+        other = load_scaling_config(ROOT / "configs" / name)
+        for a, b in zip(base.dataset_configs(), other.dataset_configs()):
+            assert dataclasses.replace(a, out=None) == dataclasses.replace(b, out=None), name
+            assert b.store_path(b.out) == a.store_path(f"{Path(base.out) / 'stores'}/"), name
     with pytest.raises(ConfigError, match="scaling.subsets"):
         _config(subsets=[0.5, 1.5])
     with pytest.raises(ConfigError, match="scaling.variety.models"):
