@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     retry_defaults()
     quiet_abandoned_requests()
     from pipeline.errors import PipelineError
-    from stores.errors import StoreCorruptionError, StoreError, exit_status, store_unreachable, unreachable_cause
+    from stores.errors import StoreCorruptionError, StoreError, exit_status, unreachable_exit
     from scene_gen.errors import SceneGenError
     try:
         return int(args._run(args) or 0)
@@ -61,12 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except Exception as e:
-        if unreachable_cause(e) is None:
-            raise
-        store = getattr(args, "store", None) or getattr(args, "out", None) or "the store"
-        print(f"error: {store_unreachable(store, e)}", file=sys.stderr)   # an s3:// store's endpoint is gone
-        return exit_status(e)
+    except Exception as e:                    # an s3:// store's endpoint is gone: 5; anything else is raised
+        return unreachable_exit(e, getattr(args, "store", None) or getattr(args, "out", None))
 
 
 if __name__ == "__main__":

@@ -185,6 +185,17 @@ def raise_if_unreachable(e: BaseException, store=None, doing: str = "") -> None:
         raise store_unreachable(store if store is not None else "the store", e, doing) from e
 
 
+def unreachable_exit(e: BaseException, store=None) -> int:
+    """A command's last handler: for a failed connection to the object store of ``store`` (anywhere in
+    ``e``'s chain), one line on stderr naming the endpoint and the last error, and exit code 5; any other
+    error is raised again, traceback and all."""
+    import sys
+    if unreachable_cause(e) is None:
+        raise e
+    print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
+    return StoreUnreachableError.exit_code
+
+
 def exit_status(e: BaseException, default: int = 2) -> int:
     """The exit code a command ends with for the error ``e``: 5 when an object store could not be reached
     (anywhere in its chain), else the ``exit_code`` of ``e`` or of the error it was raised from (3 damage,

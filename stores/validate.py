@@ -347,7 +347,7 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
     """A stand-alone command (``python -m stores PROG``): parse, run, StoreCorruptionError -> message and
     exit 3, other StoreError -> message and exit 2 (or its own: 4 a full disk, 5 an unreachable S3
     endpoint), Ctrl-C -> 130."""
-    from stores.errors import exit_status, store_unreachable, unreachable_cause
+    from stores.errors import exit_status, unreachable_exit
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
     ap = argparse.ArgumentParser(prog=prog, description=description)
     add_args(ap)
@@ -366,10 +366,7 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as e:
-        if unreachable_cause(e) is None:
-            raise
-        print(f"error: {store_unreachable(getattr(args, 'store', None) or 'the store', e)}", file=sys.stderr)
-        return exit_status(e)
+        return unreachable_exit(e, getattr(args, "store", None))
 
 
 def main(argv=None) -> int:

@@ -241,7 +241,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
-    from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause
+    from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause, unreachable_exit
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
 
     from .accel import tune_allocator
@@ -268,12 +268,8 @@ def main(argv=None) -> int:
         else:
             print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception as err:
-        if unreachable_cause(err) is None:
-            raise
-        where = getattr(a, "store", None) or "the store"          # an s3:// store whose endpoint is gone
-        print(f"error: {store_unreachable(where, err)}", file=sys.stderr)
-        return EXIT_UNREACHABLE
+    except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
+        return unreachable_exit(err, getattr(a, "store", None))
 
 
 EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values
