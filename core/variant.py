@@ -6,6 +6,10 @@ shared libLLVM >= 16 (the Debian libLLVM-15 aborts inside LLVM on some CPUs), so
 located *before* mitsuba is imported and ``DRJIT_LIBLLVM_PATH`` is set for drjit.
 
 Every module that renders calls :func:`mitsuba` instead of ``import mitsuba`` directly.
+
+``DENOISE_LLVM_TARGET=CPU:FEATURES:WIDTH`` (e.g. ``haswell:-avx512f,+avx2,+fma:8``) makes drjit's LLVM
+backend generate code for another CPU (``jit_llvm_set_target``): how a machine with AVX-512 checks what
+an AVX2-only machine computes (the pinned tests' tolerances, docs/throughput.md).
 """
 from __future__ import annotations
 
@@ -122,9 +126,30 @@ def mitsuba(variant: str | None = None, threads: int | None = None):
         raise VariantError(f"Mitsuba variant {variant!r} cannot start: {e}. "
                            f"Available: {', '.join(mi.variants())}") from e
     _state.update(variant=variant, mi=mi)
+    if variant.startswith("llvm") and os.environ.get("DENOISE_LLVM_TARGET"):
+        _set_llvm_target(os.environ["DENOISE_LLVM_TARGET"])
     if threads is not None:
         _set_threads(threads)
     return mi
+
+
+def _set_llvm_target(spec: str) -> None:
+    """``CPU:FEATURES:WIDTH`` to drjit-core's ``jit_llvm_set_target`` (no Python binding: ctypes, by its
+    C++ symbol); VariantError naming the setting when it does not parse or the library lacks it."""
+    import ctypes
+
+    import drjit as dr
+    parts = spec.split(":")
+    if len(parts) != 3 or not parts[2].isdigit() or int(parts[2]) not in (1, 2, 4, 8, 16, 32):
+        raise VariantError(f"DENOISE_LLVM_TARGET must be CPU:FEATURES:WIDTH (a width of 1-32 lanes, a power of "
+                           f"2), e.g. 'haswell:-avx512f,+avx2,+fma:8', got {spec!r}")
+    try:
+        fn = getattr(ctypes.CDLL(str(Path(dr.__file__).parent / "libdrjit-core.so")),
+                     "_Z19jit_llvm_set_targetPKcS0_j")
+    except (OSError, AttributeError) as e:
+        raise VariantError(f"DENOISE_LLVM_TARGET is set but this drjit has no jit_llvm_set_target ({e})") from e
+    fn.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    fn(parts[0].encode(), parts[1].encode(), int(parts[2]))
 
 
 def _check_known(variant: str) -> None:

@@ -214,9 +214,19 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
 
 
 # configs/smoke.yaml's store, pinned: a refactor changes no byte of what the pipeline makes. Floating arrays
-# by their sum and their sum of magnitudes (to 1e-6: another CPU's LLVM code may round a last bit
-# differently), the others by a digest of their bytes (strings: of their text). Regenerate only for an
-# intended change of the data, said in its commit: ``python tests/test_dask_dataset.py STORE``.
+# by their sum and their sum of magnitudes, the others by a digest of their bytes (strings: of their text).
+# Regenerate only for an intended change of the data, said in its commit: ``python tests/test_dask_dataset.py
+# STORE``. Each float is pinned to what its arithmetic can promise on another instruction set
+# (PIN_TOLERANCE): drjit's LLVM code for AVX2 (8 lanes) rounds some last bits differently from AVX-512's
+# (16), and a path tracer is chaotic in them: one bounce's last bit can send a path elsewhere. Measured
+# with DENOISE_LLVM_TARGET (core.variant) set to haswell and to znver3 without AVX-512, 8 lanes, against
+# these pins: geometry (guides, features, cameras) within 2e-6; radiance means (inputs, layers,
+# reference) within 2.4e-4; the standard errors, a second moment over few passes, within 1.1e-3; an AVX2
+# EPYC gave 8.6e-6 on reference_rel_stderr. The tolerances are about 5x those; any change of sampling,
+# seeds or scenes moves these sums by percents.
+PIN_TOLERANCE = {"frames/reference_rel_stderr": 5e-3, "reference/stderr": 5e-3, "reference/radiance": 1e-3,
+                 "inputs/radiance": 1e-3, "layers/radiance": 1e-3}
+GEOMETRY_TOLERANCE = 1e-5           # every other float array
 SMOKE_PINS = {
     'frames/camera_to_world': [9.912317113934503, 31.134297160363264],
     'frames/case': '6a3cf5192354f716',
@@ -286,7 +296,7 @@ def test_the_smoke_store_is_pinned(local_store):
     assert set(got) == set(SMOKE_PINS)
     for key, want in SMOKE_PINS.items():
         if isinstance(want, list):
-            assert got[key] == pytest.approx(want, rel=1e-6, abs=1e-9), key
+            assert got[key] == pytest.approx(want, rel=PIN_TOLERANCE.get(key, GEOMETRY_TOLERANCE), abs=1e-9), key
         else:
             assert got[key] == want, key
 
