@@ -20,6 +20,7 @@ YAML layout (every key optional except ``scenes``; see ``configs/default.yaml``)
     store: {}                    # passed to the store writer (compression, chunks)
     split: null                  # scene split fractions (default train 0.8 / val 0.1 / test 0.1)
     clip_ids: balanced           # how scenes get their clip ids, hence their split (see below)
+    held_out: false              # true: scene seeds from the held-out space, split {test: 1} (see below)
     tasks: {retries: 2, split_streams: null, reference_resources: null}
     cluster: {kind: local, workers: null, threads_per_worker: 1, ...}
 
@@ -33,6 +34,16 @@ scenes) scenes each, at least one in every split with a positive fraction once t
 scenes as such splits, the scenes shuffled by ``SeedSequence([seed, 0x5b17])``. ``clip_ids:
 scene_seed`` uses the scene seed as clip id (stores made before ``clip_ids`` existed; their split is
 the bare hash, which leaves small stores without val or test scenes). Resuming such a store keeps it.
+
+**Hard cases** (``scene_gen.cases``): a scene group takes ``case: NAME`` (every scene of the group) or
+``cases: {sun: 0.1, fireflies: 0.1, zero-albedo: 0.1, thin: 0.05}`` (each scene draws at most one key
+from its own seed at those rates, :func:`draw_case`; a key may join several names with commas, a
+combination; the rest of the scenes are ordinary). ``frames/case`` records every frame's.
+
+**Held-out datasets** (``held_out: true``, e.g. the hard-case suite ``configs/hard-cases.yaml``) take
+their scene seeds from [2**31, 2**32) and every other dataset from [0, 2**31) (:func:`scene_seed`), so
+no training config, whatever its root seed, draws a held-out scene; a held-out dataset's split is
+``{test: 1}``, and ``python -m training train`` refuses a store that records ``held_out``.
 
 Before anything runs, a frame must fit in a worker's memory: :func:`frame_bytes` (its arrays as
 rendered, twice: the parts and their store copy in the write task) against the memory of one
@@ -65,38 +76,95 @@ MAX_RES = 16384
 STORE_KEYS = frozenset(StoreLayout.encoding_fields())   # what `dataset.store` may set
 
 
-def scene_seed(root_seed: int, index: int) -> int:
-    """Seed of scene ``index`` (an int in [0, 2**31)): ``SeedSequence([root_seed, index])``."""
+HELD_OUT_SEEDS = 2 ** 31         # held-out datasets' scene seeds lie in [2**31, 2**32), every other's below
+CASE_DRAW = 0xCA5E               # SeedSequence([scene seed, CASE_DRAW]) draws a scene's hard case (``cases``)
+
+
+def scene_seed(root_seed: int, index: int, held_out: bool = False) -> int:
+    """Seed of scene ``index``: ``SeedSequence([root_seed, index])``'s first word halved, an int in
+    [0, 2**31); for a held-out dataset (``held_out: true``) the same plus 2**31, in [2**31, 2**32). No
+    dataset that is not held out can draw a held-out scene, whatever its root seed (``held_out``'s
+    docstring in :class:`DatasetConfig`)."""
     ss = np.random.SeedSequence([int(root_seed), int(index)])
-    return int(ss.generate_state(1, np.uint32)[0] >> 1)
+    return int(ss.generate_state(1, np.uint32)[0] >> 1) + (HELD_OUT_SEEDS if held_out else 0)
+
+
+def draw_case(seed: int, cases: dict) -> str:
+    """The hard case of the scene of ``seed`` under the rates ``cases`` (case tag -> probability, summing
+    to at most 1): one uniform number from the scene's own stream ``SeedSequence([seed, CASE_DRAW])``
+    against the rates' cumulative sums in the order of the tags' names ('' when it falls past them), so
+    a scene's case depends on its seed and the rates alone, never on workers, task order or the order
+    the config lists the cases in."""
+    u = float(np.random.default_rng(np.random.SeedSequence([int(seed), CASE_DRAW])).random())
+    edge = 0.0
+    for tag in sorted(cases):
+        edge += float(cases[tag])
+        if u < edge:
+            return tag
+    return ""
 
 
 @dataclass(frozen=True)
 class SceneGroup:
     """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip), with the
-    hard case(s) ``case`` applied (``scene_gen.cases``: a name, or names joined by commas; None: none)."""
+    hard case(s) ``case`` applied to every scene (``scene_gen.cases``: a name, or names joined by commas;
+    None: none), or a case drawn for each scene at the rates ``cases`` (``{sun: 0.1, fireflies: 0.1}``:
+    each scene gets at most one key, a case or a combination of cases joined by commas, with that
+    probability, and none with the rest; :func:`draw_case`)."""
     kind: str
     count: int
     frames: int = 1
     case: str | None = None
+    cases: dict | None = None
 
     def validate(self, where: str) -> None:
         need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind, ConfigError)
         need_int(f"{where}.count", self.count, 1, 10_000_000, ConfigError, numpy=True)
         need_int(f"{where}.frames", self.frames, 1, 10_000, ConfigError, numpy=True)
+        if self.case is not None and self.cases is not None:
+            raise ConfigError(f"{where}: give case (every scene) or cases (drawn at rates), not both")
         if self.case is not None:
-            from scene_gen.cases import check_kind
-            from scene_gen.errors import SceneGenError
-            try:
-                check_kind(self.case, self.kind)
-            except SceneGenError as e:
-                raise ConfigError(f"{where}.case: {e}") from e
+            self._check_case(self.case, f"{where}.case")
+        if self.cases is not None:
+            object.__setattr__(self, "cases", self._check_rates(self.cases, f"{where}.cases"))
+
+    def _check_case(self, case, where: str) -> str:
+        from scene_gen.cases import case_tag, check_kind
+        from scene_gen.errors import SceneGenError
+        try:
+            check_kind(case, self.kind)
+            return case_tag(case)
+        except SceneGenError as e:
+            raise ConfigError(f"{where}: {e}") from e
+
+    def _check_rates(self, cases, where: str) -> dict:
+        """``cases`` as {case tag: rate}: known names, each rate in [0, 1], summing to at most 1."""
+        need(isinstance(cases, dict) and len(cases) > 0, where,
+             "a mapping of hard-case names (or names joined by commas) to rates in [0, 1]", cases, ConfigError)
+        out = {}
+        for name, rate in cases.items():
+            tag = self._check_case(name, f"{where}.{name}")
+            need(is_number(rate, finite=True) and 0.0 <= rate <= 1.0, f"{where}.{name}", "a rate in [0, 1]", rate,
+                 ConfigError)
+            if tag in out:
+                raise ConfigError(f"{where}: case {tag!r} is given twice")
+            out[tag] = float(rate)
+        total = sum(out.values())
+        if total > 1.0 + 1e-9:
+            raise ConfigError(f"{where}: the rates sum to {total:g}; a scene takes at most one case, so they must "
+                              "sum to at most 1")
+        return out
 
     @property
     def case_tag(self) -> str:
-        """The case names as ``SceneSpec.case`` records them ('' for none)."""
+        """The case names every scene of the group has, as ``SceneSpec.case`` records them ('' for none,
+        and for a group that draws its cases: :meth:`scene_case`)."""
         from scene_gen.cases import case_tag
         return case_tag(self.case)
+
+    def scene_case(self, seed: int) -> str:
+        """The case tag of this group's scene of ``seed``: ``case``, or the one drawn at ``cases``' rates."""
+        return draw_case(seed, self.cases) if self.cases else self.case_tag
 
 
 @dataclass(frozen=True)
@@ -323,6 +391,7 @@ class DatasetConfig:
     store: dict = field(default_factory=dict)
     split: dict | None = None     # scene split fractions, e.g. {train: 0.8, val: 0.1, test: 0.1} (the default)
     clip_ids: str = "balanced"    # CLIP_ID_SCHEMES: how clip ids (hence splits) are chosen (module docstring)
+    held_out: bool = False        # scene seeds in the held-out space (scene_seed): never trained on
     tasks: TaskConfig = TaskConfig()
     cluster: ClusterConfig = ClusterConfig()
 
@@ -357,6 +426,10 @@ class DatasetConfig:
                  "null or a mapping of train/val/test to fractions >= 0 with a positive sum", sp, ConfigError)
         need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids,
              ConfigError)
+        need(isinstance(self.held_out, bool), "dataset.held_out", "true or false", self.held_out, ConfigError)
+        if self.held_out and (self.split_fractions.get("train", 0) > 0 or self.split_fractions.get("val", 0) > 0):
+            raise ConfigError(f"dataset.held_out: a held-out dataset is for evaluation only: its split must be "
+                              f"{{test: 1}}, got {self.split_fractions}")
         self.tasks.validate()
         self.cluster.validate()
         lv = self.render.get("layer_levels", 6)     # a dataset's range (render-frame's starts at 0): one message
@@ -438,7 +511,7 @@ class DatasetConfig:
         cached = self.__dict__.get("_clip_ids")
         if cached is not None:
             return list(cached)
-        seeds = [scene_seed(self.seed, i) for i in range(self.num_scenes)]
+        seeds = [scene_seed(self.seed, i, self.held_out) for i in range(self.num_scenes)]
         if self.clip_ids == "scene_seed":
             ids = seeds
         else:
@@ -460,9 +533,10 @@ class DatasetConfig:
         s = 0
         for g in self.scenes:
             for _ in range(g.count):
-                seed = scene_seed(self.seed, s)
+                seed = scene_seed(self.seed, s, self.held_out)
+                case = g.scene_case(seed)
                 for f in range(g.frames):
-                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s], g.case_tag))
+                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s], case))
                 s += 1
         return out
 
@@ -496,8 +570,9 @@ class DatasetConfig:
     # -- (de)serialisation -------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """Plain data (lists, dicts, scalars) that :meth:`from_dict` turns back into an equal config."""
-        def group(g):   # `case` only when set, so stores made before it existed still resume
-            return {"kind": g.kind, "count": g.count, "frames": g.frames, **({"case": g.case} if g.case else {})}
+        def group(g):   # `case` and `cases` only when set, so stores made before they existed still resume
+            return {"kind": g.kind, "count": g.count, "frames": g.frames, **({"case": g.case} if g.case else {}),
+                    **({"cases": dict(g.cases)} if g.cases else {})}
         return {
             "name": self.name, "seed": int(self.seed), "out": self.out, "resolution": list(self.resolution),
             "scenes": [group(g) for g in self.scenes],
@@ -508,6 +583,7 @@ class DatasetConfig:
             **({"split": _plain(self.split)} if self.split is not None else {}),
             # "scene_seed" (the scheme of stores made before `clip_ids` existed) is written as no key
             **({"clip_ids": self.clip_ids} if self.clip_ids != "scene_seed" else {}),
+            **({"held_out": True} if self.held_out else {}),
         }
 
     def content_dict(self) -> dict:

@@ -340,6 +340,7 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
     precision = accel.precision_for(cfg.precision, device)
     flush_denormals()
     store = open_store(store)
+    refuse_held_out(store)
     if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
         cfg = cfg.replace(crop=min(DEFAULT_CROP, store.layout.height, store.layout.width))
     if dist.enabled and cfg.batch % dist.world:
@@ -357,6 +358,15 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
            "checkpoint": str(run.ck_path) if run.ck_path.exists() else None,
            "feed": feed.summary() if feed is not None and feed.total_n else None}
     return {**res, "rank": dist.rank, "world": dist.world} if dist.enabled else res
+
+
+def refuse_held_out(store) -> None:
+    """A store made from a held-out dataset config (``held_out: true``: the hard-case suite, whose scene
+    seeds no training config draws) is for evaluation only: DataError naming it."""
+    cfg = store.config if isinstance(store.config, dict) else {}
+    if cfg.get("held_out"):
+        raise DataError(f"{store.path} is a held-out store (its config {cfg.get('name', '')!r} says held_out: true): "
+                        "it is for evaluation only, never for training")
 
 
 class _Run:
