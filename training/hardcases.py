@@ -43,6 +43,7 @@ from .data import open_store
 from .errors import ConfigError, DataError
 from .evaluate import baseline_groups, evaluate
 from .jsonio import write
+from . import stats
 
 OUTLIER_FACTOR = 10.0
 SPLITS = ("train", "val", "test")
@@ -132,47 +133,73 @@ def _mean(vals) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def case_cell(rows: list[dict]) -> dict:
+    """One cell of the table from a method's rows on a case's frames: mean relMSE and PSNR with their 95%
+    intervals over the frames (a bootstrap with each clip's frames together, ``training.stats``; None
+    where a value is not finite, such as the PSNR of an exact output), finiteness and the worst frame."""
+    clips = [r.get("clip", r["index"]) for r in rows]
+    return {"relmse": _mean(r["relmse"] for r in rows), "psnr": _mean(r["psnr"] for r in rows),
+            "relmse_ci95": stats.mean_ci([r["relmse"] for r in rows], clips),
+            "psnr_ci95": stats.mean_ci([r["psnr"] for r in rows], clips),
+            "finite": all(r["finite"] and math.isfinite(r["relmse"]) for r in rows),
+            "frames": [int(r["index"]) for r in rows],
+            "worst_frame": int(max(rows, key=lambda r: r["relmse"] if math.isfinite(r["relmse"])
+                                   else math.inf)["index"])}
+
+
+def against_input(rows: list[dict], inputs: list[dict], label: str) -> dict:
+    """A method against its own noisy input (the ``input`` baseline at its spp and input kind) on the same
+    frames: the paired differences of relMSE (method minus input: below 0 is better) and PSNR (above 0 is
+    better) with their intervals (``training.stats.paired_difference``), and the verdict ``beats`` (both
+    intervals exclude 0 on the right side), ``exact`` (the input is exact on every frame, as on ``black``,
+    and so is the method), ``not exact`` (the input is, the method is not), ``worse`` (an interval excludes
+    0 on the wrong side) or ``not shown``."""
+    by = {int(r["index"]): r for r in inputs}
+    mine = [r for r in rows if int(r["index"]) in by]
+    groups = {int(r["index"]): r.get("clip", r["index"]) for r in mine}
+    out = {"input": label, "frames": len(mine)}
+    if mine and all(by[int(r["index"])]["relmse"] == 0.0 for r in mine):
+        out["verdict"] = "exact" if all(r["relmse"] == 0.0 for r in mine) else "not exact"
+        return out
+    for key, sign in (("relmse", -1.0), ("psnr", 1.0)):
+        d = stats.paired_difference({i: by[i][key] for i in groups}, {int(r["index"]): r[key] for r in mine}, groups)
+        out[key] = d
+    ds = [(out[k], sign) for k, sign in (("relmse", -1.0), ("psnr", 1.0))]
+    if all(d and d["shown"] and sign * d["mean"] > 0 for d, sign in ds):
+        out["verdict"] = "beats"
+    elif any(d and d["shown"] and sign * d["mean"] < 0 for d, sign in ds):
+        out["verdict"] = "worse"
+    else:
+        out["verdict"] = "not shown"
+    return out
+
+
 def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str = "",
               unfit: dict[int, list[str]] | None = None) -> dict:
-    """The hard-case results: per case and method the mean relMSE and PSNR over the case's frames and
-    finiteness, plus the flags (store flags given, model-output and outlier flags added). ``unfit``:
-    frame -> why validate flags it (``stores.fitness.check_frames``), named in "not evaluated" flags."""
+    """The hard-case results: per case and method a :func:`case_cell` (means with intervals over the case's
+    frames, finiteness) and, for every method that names its ``input_label`` (the label of the ``input``
+    evaluation at its spp and input kind), :func:`against_input` under ``vs_input``; plus the flags (store
+    flags given, model-output and outlier flags added). ``unfit``: frame -> why validate flags it
+    (``stores.fitness.check_frames``), named in "not evaluated" flags."""
     unfit = unfit or {}
-    case_names = []
-    for c in cases:
-        c = c or NO_CASE
-        if c not in case_names:
-            case_names.append(c)
+    case_names = list(dict.fromkeys(c or NO_CASE for c in cases))
     flags = list(flags)
     table: dict = {c: {} for c in case_names}
-    evaluated = set()
+    evaluated, rows_of = set(), {}
     for ev in evals:
-        m = ev["label"]
-        stage = "noisy input" if ev.get("method") == "input" else "model output"     # the input baseline has no model
         by_case: dict = {}
         for row in ev["frames"]:
-            i = int(row["index"])
-            evaluated.add(i)
-            c = cases[i] or NO_CASE
-            by_case.setdefault(c, []).append(row)
-            if not row["finite"] or not math.isfinite(row["relmse"]):
-                flags.append({"stage": stage, "method": m, "frame": i, "case": c, "kind": "non-finite",
-                              "detail": "the output holds NaN/Inf" if not row["finite"]
-                              else f"relMSE is {row['relmse']}"})
+            evaluated.add(int(row["index"]))
+            by_case.setdefault(cases[int(row["index"])] or NO_CASE, []).append(row)
+        rows_of[ev["label"]] = by_case
         for c, rows in by_case.items():
-            table[c][m] = {"relmse": _mean(r["relmse"] for r in rows), "psnr": _mean(r["psnr"] for r in rows),
-                           "finite": all(r["finite"] and math.isfinite(r["relmse"]) for r in rows),
-                           "frames": [int(r["index"]) for r in rows],
-                           "worst_frame": int(max(rows, key=lambda r: r["relmse"] if math.isfinite(r["relmse"])
-                                                  else math.inf)["index"])}
-        errs = [v["relmse"] for c, row in table.items() for k, v in row.items() if k == m and math.isfinite(v["relmse"])]
-        med = float(np.median(errs)) if errs else float("nan")
-        for c, row in table.items():
-            v = row.get(m)
-            if v and math.isfinite(v["relmse"]) and len(errs) >= 3 and v["relmse"] > OUTLIER_FACTOR * med:
-                flags.append({"stage": stage, "method": m, "frame": v["worst_frame"], "case": c,
-                              "kind": "error", "detail": f"relMSE {v['relmse']:.4g} is "
-                              f"{v['relmse'] / med:.0f}x the median {med:.4g} of {m} over the cases"})
+            table[c][ev["label"]] = case_cell(rows)
+        flags += output_flags(ev, table, cases)
+    for ev in evals:
+        base = ev.get("input_label")
+        for c, rows in rows_of[ev["label"]].items():
+            if base and base in rows_of and c in rows_of[base]:
+                table[c][ev["label"]]["vs_input"] = against_input(rows, rows_of[base][c], base)
     for i, c in enumerate(cases):
         if evals and i not in evaluated:
             flags.append({"stage": "evaluate", "method": "all", "frame": i, "case": c or NO_CASE,
@@ -180,7 +207,34 @@ def summarize(evals: list[dict], cases: list[str], flags: list[dict], store: str
                               unfit.get(i, ["refused by evaluate (validate flags the frame)"]))})
     return {"store": str(store), "methods": [e["label"] for e in evals], "cases": table, "flags": flags,
             "outlier_factor": OUTLIER_FACTOR,
-            "methods_info": {e["label"]: {k: e.get(k) for k in ("method", "spp", "input_kind", "params")} for e in evals}}
+            "methods_info": {e["label"]: {k: e.get(k) for k in ("method", "spp", "input_kind", "params", "input_label")}
+                             for e in evals}}
+
+
+def output_flags(ev: dict, table: dict, cases: list[str]) -> list[dict]:
+    """A method's non-finite outputs (per frame) and cases whose relMSE is more than OUTLIER_FACTOR times the
+    median of the method's relMSE over the cases."""
+    m = ev["label"]
+    stage = "noisy input" if ev.get("method") == "input" else "model output"     # the input baseline has no model
+    out = []
+    for row in ev["frames"]:
+        if not row["finite"] or not math.isfinite(row["relmse"]):
+            out.append({"stage": stage, "method": m, "frame": int(row["index"]),
+                        "case": cases[int(row["index"])] or NO_CASE, "kind": "non-finite",
+                        "detail": "the output holds NaN/Inf" if not row["finite"] else f"relMSE is {row['relmse']}"})
+    errs = [row[m]["relmse"] for row in table.values() if m in row and math.isfinite(row[m]["relmse"])]
+    med = float(np.median(errs)) if errs else float("nan")
+    for c, row in table.items():
+        v = row.get(m)
+        if v and math.isfinite(v["relmse"]) and len(errs) >= 3 and v["relmse"] > OUTLIER_FACTOR * med:
+            out.append({"stage": stage, "method": m, "frame": v["worst_frame"], "case": c, "kind": "error",
+                        "detail": f"relMSE {v['relmse']:.4g} is {v['relmse'] / med:.0f}x the median {med:.4g} of "
+                                  f"{m} over the cases"})
+    return out
+
+
+def _ci(ci, fmt: str) -> str:
+    return f" [{ci[0]:{fmt}}, {ci[1]:{fmt}}]" if ci else ""
 
 
 def _cell(v: dict | None) -> str:
@@ -189,30 +243,69 @@ def _cell(v: dict | None) -> str:
     if not v["finite"]:
         return "**non-finite**"
     p = v["psnr"]
-    ps = "inf" if math.isinf(p) else f"{p:.1f}"
-    return f"{v['relmse']:.3g} / {ps}"
+    ps = "inf" if math.isinf(p) else f"{p:.1f}{_ci(v.get('psnr_ci95'), '.1f')}"
+    return f"{v['relmse']:.3g}{_ci(v.get('relmse_ci95'), '.3g')} / {ps}"
+
+
+VERDICT_MARK = {"beats": "better", "exact": "exact", "not exact": "**not exact**", "worse": "**worse**",
+                "not shown": "no difference shown"}
+
+
+def _vs_cell(v: dict | None) -> str:
+    d = (v or {}).get("vs_input")
+    if not d:
+        return "–"
+    if d["verdict"] in ("exact", "not exact"):
+        return VERDICT_MARK[d["verdict"]]
+    r, p = d.get("relmse"), d.get("psnr")
+    rs = f"{r['mean']:+.3g}{_ci(r['ci95'], '+.3g')}" if r else "–"
+    ps = f"{p['mean']:+.2f}{_ci(p['ci95'], '+.2f')}" if p else "–"
+    return f"{rs} / {ps}: {VERDICT_MARK[d['verdict']]}"
 
 
 def hard_case_table(results: dict) -> str:
-    """Markdown: one row per case, one column per method (``relMSE / PSNR dB``, ``**non-finite**`` where an
-    output held NaN/Inf), a store column (``finite``, or the stages whose NaN/Inf the renderer gave or the
-    store holds), then the flags, each naming stage, method and frame."""
+    """Markdown: one row per case, one column per method (``relMSE [95%] / PSNR dB [95%]``,
+    ``**non-finite**`` where an output held NaN/Inf), a store column (``finite``, or the stages whose
+    NaN/Inf the renderer gave or the store holds); then each method against its own noisy input (paired
+    differences with their intervals and the verdict); then the flags, each naming stage, method and frame."""
     methods = results["methods"]
     flags = results["flags"]
-    head = "| case | store | " + " | ".join(methods) + " |"
-    lines = [head, "|---|---|" + "---|" * len(methods)]
+    lines = ["| case | store | " + " | ".join(methods) + " |", "|---|---|" + "---|" * len(methods)]
     for c, row in results["cases"].items():
         st = sorted({f["stage"] for f in flags if f["method"] == "store" and f["case"] == c})
         cells = [_cell(row.get(m)) for m in methods]
         lines.append(f"| {c} | {'NaN/Inf in ' + ', '.join(st) if st else 'finite'} | " + " | ".join(cells) + " |")
-    lines += ["", f"Cells: mean relMSE / PSNR (dB, tone-mapped) over the case's frames. Flags (error: relMSE "
-              f"> {results.get('outlier_factor', OUTLIER_FACTOR):g}x the method's median over the cases):", ""]
+    lines += ["", "Cells: mean relMSE / PSNR (dB, tone-mapped) over the case's frames, each with its 95% interval "
+              "(a bootstrap over the case's clips)."]
+    compared = [m for m in methods if results["methods_info"].get(m, {}).get("input_label")]
+    if compared:
+        lines += ["", "Against its own noisy input (the `input` at the method's spp and input kind, on the same "
+                  "frames): ΔrelMSE / ΔPSNR, method minus input, with 95% intervals; better: relMSE lower and PSNR "
+                  "higher, both intervals excluding 0.", "",
+                  "| case | " + " | ".join(compared) + " |", "|---|" + "---|" * len(compared)]
+        for c, row in results["cases"].items():
+            lines.append(f"| {c} | " + " | ".join(_vs_cell(row.get(m)) for m in compared) + " |")
+    lines += ["", f"Flags (error: relMSE > {results.get('outlier_factor', OUTLIER_FACTOR):g}x the method's median "
+              "over the cases):", ""]
     if not flags:
         lines.append("- none")
     for f in flags:
         lines.append(f"- **{f['case']}**, frame {f['frame']}: stage *{f['stage']}*, method `{f['method']}` "
                      f"({f['kind']}): {f['detail']}")
     return "\n".join(lines)
+
+
+def link_inputs(evals: list[dict]) -> None:
+    """Set each method's ``input_label``: the label of the ``input`` evaluation at its spp and the baseline
+    input of its kind (``training.inputs``), the noisy input it is judged against."""
+    from .inputs import KINDS
+
+    def key(e):
+        return int(e["spp"]), KINDS[e["input_kind"]].baseline_input
+    inputs = {key(e): e["label"] for e in evals if e.get("method") == "input"}
+    for e in evals:
+        if e.get("method") != "input":
+            e["input_label"] = inputs.get(key(e))
 
 
 def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: bool = True, oidn: bool = True,
@@ -231,6 +324,7 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
         for n, b, tag in baseline_groups(evals, st.layout.spp):
             evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
                                          with_flip=with_flip, progress=progress))
+    link_inputs(evals)
     from stores.fitness import check_frames
     res = summarize(evals, cases, store_flags(st), str(st.path), check_frames(st, st.complete_frames()))
     res["runs"] = [str(d) for d in run_dirs]
