@@ -29,8 +29,8 @@ import numpy as np
 
 from core.checks import is_int, is_number, known_keys, need, need_int
 
-from .config import TrainConfig
-from .errors import ConfigError, DataError, UnknownModelError
+from training.config import TrainConfig
+from training.errors import ConfigError, DataError, UnknownModelError
 from .scaling_fit import LOWER_IS_BETTER
 
 SUBSET_SALT = 0x5CA1E
@@ -278,8 +278,8 @@ def _train_job(label: str, cfg: TrainConfig, kind: str, seed: int, sub: dict, na
 
 def baseline_jobs(plans) -> list[Job]:
     """The noisy input and OIDN at each (spp, baseline input) of the models (``training.evaluate``)."""
-    from .inputs import KINDS
-    from .models import get
+    from training.inputs import KINDS
+    from training.models import get
     seen = sorted({(cfg.spp, KINDS[get(cfg.model).inputs.kind].baseline_input) for _, cfg in plans})
     return [Job(name=f"baselines/{m}-{spp}spp-{b}", label=f"{m} @{spp}spp", kind="baseline", method=m, spp=int(spp),
                 baseline_input=b) for spp, b in seen for m in ("input", "oidn")]

@@ -27,8 +27,8 @@ import math
 
 import numpy as np
 
-from . import stats
-from .errors import ConfigError, TargetBelowFloorError
+from training import stats
+from training.errors import ConfigError, TargetBelowFloorError
 
 B_MAX = 4.0
 B_GRID = np.linspace(0.0, B_MAX, 81)

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import stats
-from .errors import DataError, TargetBelowFloorError
-from .jsonio import write as write_json
-from .report import difference_cell
+from training import stats
+from training.errors import DataError, TargetBelowFloorError
+from training.jsonio import write as write_json
+from training.report import difference_cell
 from .scaling_fit import (bootstrap_fit, by_size, frames_for_target, limit_name, paired, power_law, sign_of,
                           size_table, support)
 
@@ -357,7 +357,7 @@ def plot_scaling(result: dict, path) -> None:
     """Error against training frames (log x), one panel a metric, one line a model: the mean over seeds
     with the seeds' range as a band, the fit dashed where the points support one, its floor (ceiling)
     dotted. relMSE on a log axis."""
-    from .report import pyplot
+    from training.report import pyplot
     plt = pyplot()
     metrics = result["metrics"]
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4.2), dpi=100, squeeze=False)
@@ -393,7 +393,7 @@ def _plain_log_axes(ax, log_y: bool, ticks) -> None:
     """Log x with the sizes as plain-number ticks (and log y, plain numbers, for relMSE)."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    from .report import plain_log_ticks
+    from training.report import plain_log_ticks
     ax.set_xscale("log")
     if ticks:
         ax.set_xticks(ticks)

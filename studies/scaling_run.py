@@ -19,8 +19,8 @@ import time
 import warnings
 from pathlib import Path
 
-from .errors import DataError
-from .jsonio import write as write_json
+from training.errors import DataError
+from training.jsonio import write as write_json
 from .scaling import Job, ScalingConfig, clip_table, plan
 
 RECORD = "scaling-run.json"
@@ -45,7 +45,7 @@ def ensure_store(dcfg, out: Path, workers: int | None, progress: bool) -> str:
 
 
 def heldout_identity(store) -> dict:
-    from .loop import store_identity
+    from training.loop import store_identity
     return store_identity(store)
 
 
@@ -66,7 +66,7 @@ def _trained(run_dir: Path, steps: int) -> bool:
     ck = run_dir / "checkpoint.pt"
     if not ck.is_file():
         return False
-    from . import checkpoint
+    from training import checkpoint
     return int(checkpoint.load(ck)["step"]) >= steps
 
 
@@ -76,9 +76,9 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
     record and returns ``{"name", "mean", "seconds"}``. Training's output goes to ``run_dir/run.log``."""
     import torch
 
-    from .accel import tune_allocator
-    from .evaluate import evaluate
-    from .loop import train
+    from training.accel import tune_allocator
+    from training.evaluate import evaluate
+    from training.loop import train
     tune_allocator()
     torch.set_num_threads(int(threads))
     job = Job(**{k: (tuple(v) if k == "clips" else v) for k, v in job.items()})
@@ -130,7 +130,7 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
     import multiprocessing
     import queue
 
-    from .data import open_store
+    from training.data import open_store
     heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
     runs = out / "runs"
     records, todo = {}, []
@@ -201,8 +201,8 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
     """The whole study (``training.scaling``): the stores, every run, the analysis and the three files in
     ``out`` (default: the config's ``out``, else ``data/<name>``). ``targets`` (``{metric: value}``) are
     added to the config's. Returns the result written to ``scaling.json``."""
-    from .data import open_store
-    from .report import provenance
+    from training.data import open_store
+    from training.report import provenance
     from .scaling_report import analyse, price, write_report
     t0 = time.perf_counter()
     out = Path(out or scfg.out or f"data/{scfg.name}")

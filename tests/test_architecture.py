@@ -1,7 +1,8 @@
 """The import graph reads in the data's order (docs/architecture.md): ``core`` at the ground, imported by
 every stage and importing none; ``scene_gen`` and ``stores`` on it; ``pipeline`` (renders scenes into
-stores) above those; ``training`` (reads stores; its scaling study has stores rendered) on top, never
-imported by the pipeline and never reaching into the scene generator; and no cycle between modules,
+stores) and ``training`` (reads stores) side by side above those, neither importing the other and training
+never reaching into the scene generator; ``studies`` (what both renders and trains: the scaling study) on
+top of both, imported by neither; and no cycle between modules,
 imports inside functions and modules named as strings (``importlib.import_module``) included."""
 from __future__ import annotations
 
@@ -9,13 +10,14 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("core", "scene_gen", "stores", "pipeline", "training")
+PACKAGES = ("core", "scene_gen", "stores", "pipeline", "training", "studies")
 ALLOWED = {                                 # package -> the packages it may import
     "core": set(),
     "scene_gen": {"core"},
     "stores": {"core"},
     "pipeline": {"core", "scene_gen", "stores"},
-    "training": {"core", "stores", "pipeline"},
+    "training": {"core", "stores"},         # a sibling of pipeline: neither imports the other
+    "studies": {"core", "stores", "pipeline", "training"},   # what both renders and trains
 }
 
 

@@ -1,4 +1,4 @@
-"""The scaling study (training.scaling*): nested subsets by clip on a tiny store, the fit on synthetic points
+"""The scaling study (studies.scaling*): nested subsets by clip on a tiny store, the fit on synthetic points
 with known a, b, c, the target inversion and its refusal below the floor, the report writer on synthetic
 results (no rendering, no training), and one tiny run that a second call finds finished."""
 from __future__ import annotations
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from training.errors import ConfigError, TargetBelowFloorError
-from training.scaling import (Job, ScalingConfig, clip_table, family_subsets, load_scaling_config, nested_subsets,
+from studies.scaling import (Job, ScalingConfig, clip_table, family_subsets, load_scaling_config, nested_subsets,
                               plan)
-from training.scaling_fit import bootstrap_fit, frames_for_target, power_law, support
+from studies.scaling_fit import bootstrap_fit, frames_for_target, power_law, support
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,7 +144,7 @@ def _synthetic_records(jobs, held=20):
 
 
 def test_report_writer_on_synthetic_results(tmp_path):
-    from training.scaling_report import analyse, write_report
+    from studies.scaling_report import analyse, write_report
     scfg = _config()
     table = {c: {"frames": [c], "family": ("indoor", "outdoor")[c % 2]} for c in range(64)}
     jobs, record = plan(scfg, table)
@@ -197,7 +197,7 @@ def test_a_run_is_trained_once_and_then_found_finished(stores, tmp_path):
     import torch
 
     from training.data import open_store
-    from training.scaling_run import RECORD, finished, heldout_identity, run_job, run_jobs
+    from studies.scaling_run import RECORD, finished, heldout_identity, run_job, run_jobs
     scfg = _config(subsets=[0.5, 1.0], seeds=[0], variety=None)
     jobs, _ = plan(scfg, clip_table(open_store(stores[0]), "train"))
     job = next(j for j in jobs if j.kind == "subset")

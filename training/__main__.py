@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from .jsonio import dumps
@@ -90,12 +91,10 @@ def _hard_cases(a) -> int:
     return hard_cases_cli(a)
 
 
-def _scaling(a) -> int:
-    from .scaling import load_scaling_config
-    from .scaling_run import run_study
-    targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
-    run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
-    return 0
+def run_study_command(argv: list[str]) -> None:
+    """``python -m training scaling ARGS``: the study lives above training and pipeline (``studies``, which
+    neither imports), so this command becomes ``python -m studies scaling ARGS`` in this process."""
+    os.execv(sys.executable, [sys.executable, "-m", "studies", "scaling", *argv])
 
 
 def _model_names() -> str:
@@ -213,20 +212,9 @@ def _denoise_parser(sub) -> None:
 
 
 def _scaling_parser(sub) -> None:
-    from .cli import add_eval
-    s = sub.add_parser("scaling", help="quality against the number of training frames and their scene variety, "
-                                       "with a fit and intervals: OUT/scaling.md, scaling.png, scaling.json (resumes)")
-    s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
-    add_eval(s, ("out",), out="folder for the stores, runs and the three files (default: the config's out, else "
-                              "data/NAME)")
-    s.add_argument("--target-relmse", type=float, default=None,
-                   help="the smallest number of training frames the fit predicts reaches this relMSE, with its "
-                        "interval and rendering cost (pipeline estimate); refused below the fitted floor")
-    s.add_argument("--target-psnr", type=float, default=None, help="the same for a PSNR (dB); refused above the "
-                                                                   "fitted ceiling")
-    s.add_argument("--workers", type=int, default=None, help="render workers (default: the config's, else one a core)")
-    add_eval(s, ("no_progress",))
-    s.set_defaults(fn=_scaling)
+    sub.add_parser("scaling", add_help=False,
+                   help="the scaling study (quality against training frames, scene variety and hard-case share): "
+                        "runs `python -m studies scaling` with the same options (see its --help)")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -240,6 +228,9 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["scaling"]:
+        run_study_command(argv[1:])
     a = parser().parse_args(argv)
     from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause, unreachable_exit
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
@@ -262,11 +253,7 @@ def main(argv=None) -> int:
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return code
     except KeyboardInterrupt:
-        if a.cmd == "scaling":
-            print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
-                  "command resumes", file=sys.stderr)
-        else:
-            print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
+        print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
         return unreachable_exit(err, getattr(a, "store", None))

@@ -32,7 +32,7 @@ class TrainConfig:
     loss at lr 1e-4 and WSKPN's SMAPE at lr 1e-3, without clamping or warm-up, and ``spp`` from its
     input declaration: 1 for the per-pixel models), else the layer family's values above; the
     resolved values are what a checkpoint records. ``train_clips`` restricts training to those clips
-    (scenes) of the train split, kept whole (``training.scaling``'s nested subsets); it is part of the
+    (scenes) of the train split, kept whole (``studies.scaling``'s nested subsets); it is part of the
     run's identity, so a run resumes only on the same frames. ``workers`` is the number of DataLoader worker
     processes (0: load in the training process); it does not change what is trained. ``log_every``:
     the training loss is logged, and read from the device and checked for NaN/Inf, every this many

@@ -1,0 +1,63 @@
+"""``python -m studies scaling`` (see ``--help``): the scaling study of :mod:`studies.scaling`."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+EXIT_CODES_HELP = ("exit codes: 0 done; 2 bad settings, or a store that cannot be used as asked; 3 a store is "
+                   "damaged (see python -m pipeline validate); 4 a disk is full; 5 the S3 endpoint of an s3:// "
+                   "store could not be reached; 130 interrupted (the same command resumes)")
+
+
+def scaling_options(s: argparse.ArgumentParser) -> None:
+    """The options of ``scaling`` (also those ``python -m training scaling`` takes and passes on)."""
+    s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
+    s.add_argument("--out", default=None, help="folder for the stores, runs and the three files (default: the "
+                                               "config's out, else data/NAME)")
+    s.add_argument("--target-relmse", type=float, default=None,
+                   help="the smallest number of training frames the fit predicts reaches this relMSE, with its "
+                        "interval and rendering cost (pipeline estimate); refused below the fitted floor")
+    s.add_argument("--target-psnr", type=float, default=None, help="the same for a PSNR (dB); refused above the "
+                                                                   "fitted ceiling")
+    s.add_argument("--workers", type=int, default=None, help="render workers (default: the config's, else one a core)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m studies", description=__doc__, epilog=EXIT_CODES_HELP)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("scaling", help="quality against the number of training frames, their scene variety and "
+                                       "their share of hard cases, with fits and intervals: OUT/scaling.md, "
+                                       "scaling.png, scaling.json (resumes)")
+    scaling_options(s)
+    return p
+
+
+def _scaling(a) -> int:
+    from .scaling import load_scaling_config
+    from .scaling_run import run_study
+    targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
+    run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
+    return 0
+
+
+def main(argv=None) -> int:
+    a = parser().parse_args(argv)
+    from pipeline.errors import PipelineError
+    from stores.errors import StoreError, exit_status, unreachable_exit
+    from training.errors import TrainingError
+    try:
+        return _scaling(a)
+    except (TrainingError, PipelineError, StoreError) as err:
+        print(f"error: {type(err).__name__}: {err}", file=sys.stderr)
+        return exit_status(err, 2)
+    except KeyboardInterrupt:
+        print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same command "
+              "resumes", file=sys.stderr)
+        return 130
+    except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
+        return unreachable_exit(err, None)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
