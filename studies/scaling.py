@@ -47,7 +47,14 @@ class ScalingConfig:
     ``variety``: ``{models: [labels], seeds: [...], frames: N or null}`` (null: the frames of the smaller
     family); ``metrics`` fitted; ``targets``: ``{relmse: X, psnr: Y}`` to invert; ``parallel`` runs at a
     time of ``threads`` torch threads each (0: cores / threads); ``workers``: render workers (null: one a
-    core), also the workers of the rendering cost's wall time."""
+    core), also the workers of the rendering cost's wall time.
+
+    The hard-case share axis: ``hard_data``, a held-out dataset config (``held_out: true``: the hard-case
+    suite, ``configs/hard-cases.yaml``), and ``hard_share: {models: [labels], seeds: [...], frames: N,
+    shares: [0, 0.1, 0.25]}``: each model trains on N training frames of which each share are hard-case
+    frames (``frames/case`` set; the rest ordinary), at the same steps; every such run and every baseline
+    is evaluated on the held-out ordinary frames and on the suite (:func:`hard_subsets`,
+    :mod:`studies.hard_share`). ``subsets`` may be empty when another axis is given."""
 
     train_data: dict | str
     heldout_data: dict | str
@@ -58,6 +65,8 @@ class ScalingConfig:
     seeds: tuple = (0, 1, 2)
     train: dict = field(default_factory=dict)
     variety: dict | None = None
+    hard_data: dict | str | None = None
+    hard_share: dict | None = None
     metrics: tuple = ("relmse", "psnr")
     targets: dict = field(default_factory=dict)
     parallel: int = 0
@@ -70,8 +79,9 @@ class ScalingConfig:
         for k in ("models", "subsets", "seeds", "metrics"):
             object.__setattr__(self, k, tuple(getattr(self, k) or ()))
         s = self.subsets
-        need(len(s) >= 1 and all(is_number(v, finite=True) and 0 < v <= 1 for v in s) and len(set(s)) == len(s),
-             "scaling.subsets", "a list of distinct shares of the training frames in (0, 1]", list(s), ConfigError)
+        need((len(s) >= 1 or self.variety or self.hard_share) and all(is_number(v, finite=True) and 0 < v <= 1 for v in s) and len(set(s)) == len(s),
+             "scaling.subsets", "a list of distinct shares of the training frames in (0, 1] (empty only beside another "
+             "axis: variety or hard_share)", list(s), ConfigError)
         object.__setattr__(self, "subsets", tuple(sorted(float(v) for v in s)))
         need(len(self.seeds) >= 1 and all(is_int(v) and v >= 0 for v in self.seeds) and
              len(set(self.seeds)) == len(self.seeds), "scaling.seeds", "a list of distinct integers >= 0",
@@ -91,6 +101,7 @@ class ScalingConfig:
              "a name without '/'", self.name, ConfigError)
         self.model_plans()
         self.variety_plan()
+        self.hard_share_plan()
 
     def model_plans(self) -> list[tuple[str, TrainConfig]]:
         """``(label, TrainConfig)`` of each model (seed 0, every clip: the template of its runs)."""
@@ -132,18 +143,50 @@ class ScalingConfig:
              frames, ConfigError)
         return {"models": models, "seeds": seeds, "frames": frames}
 
-    def dataset_configs(self) -> tuple:
-        """The training and held-out ``pipeline.config.DatasetConfig``."""
+    def hard_share_plan(self) -> dict | None:
+        """``{"models", "seeds", "frames", "shares"}`` of the hard-case share axis, or None without one."""
+        if not self.hard_share:
+            return None
+        v = known_keys(self.hard_share, ("models", "seeds", "frames", "shares"), "scaling.hard_share", ConfigError)
+        labels = [lab for lab, _ in self.model_plans()]
+        models = list(v.get("models") or labels)
+        need(all(m in labels for m in models), "scaling.hard_share.models", f"labels of scaling.models {labels}",
+             models, ConfigError)
+        seeds = list(v.get("seeds") or self.seeds)
+        need(all(is_int(x) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds), "scaling.hard_share.seeds",
+             "distinct integers >= 0", seeds, ConfigError)
+        need_int("scaling.hard_share.frames", v.get("frames"), 1, 10_000_000, ConfigError)
+        shares = v.get("shares") or [0.0, 0.1, 0.25]
+        need(isinstance(shares, list) and all(is_number(x, finite=True) and 0 <= x <= 1 for x in shares)
+             and len(set(shares)) == len(shares) and 0 in shares, "scaling.hard_share.shares",
+             "distinct shares of hard-case frames in [0, 1], 0 among them (the others are compared with it)", shares,
+             ConfigError)
+        need(self.hard_data is not None, "scaling.hard_data", "a held-out hard-case suite (e.g. "
+             "configs/hard-cases.yaml) when hard_share is set", self.hard_data, ConfigError)
+        return {"models": models, "seeds": seeds, "frames": int(v["frames"]), "shares": sorted(float(x) for x in shares)}
+
+    def hard_config(self):
+        """The held-out hard-case suite's ``pipeline.config.DatasetConfig``, or None; ConfigError unless it
+        is held out (``held_out: true``: seeds no training config draws)."""
+        if self.hard_data is None:
+            return None
+        cfg = self._dataset("hard_data")
+        need(cfg.held_out, "scaling.hard_data", "a held-out dataset (held_out: true), whose scenes no training "
+             "config draws", cfg.name, ConfigError)
+        return cfg
+
+    def _dataset(self, key: str):
         from pipeline.config import DatasetConfig, load_config
         from pipeline.errors import ConfigError as PipelineConfigError
-        out = []
-        for key in ("train_data", "heldout_data"):
-            d = getattr(self, key)
-            try:
-                out.append(load_config(d) if isinstance(d, str) else DatasetConfig.from_dict(d))
-            except PipelineConfigError as e:
-                raise ConfigError(f"scaling.{key}: {e}") from e
-        return tuple(out)
+        d = getattr(self, key)
+        try:
+            return load_config(d) if isinstance(d, str) else DatasetConfig.from_dict(d)
+        except PipelineConfigError as e:
+            raise ConfigError(f"scaling.{key}: {e}") from e
+
+    def dataset_configs(self) -> tuple:
+        """The training and held-out ``pipeline.config.DatasetConfig``."""
+        return self._dataset("train_data"), self._dataset("heldout_data")
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
@@ -167,6 +210,7 @@ def load_scaling_config(path) -> ScalingConfig:
     try:
         scfg = ScalingConfig.from_dict(yaml.safe_load(p.read_text()))
         scfg.dataset_configs()
+        scfg.hard_config()
         return scfg
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
@@ -227,16 +271,44 @@ def family_subsets(clip_frames: dict, clip_family: dict, frames: int | None, see
     return {f: {"frames": int(sum(clip_frames[c] for c in v)), "clips": sorted(v)} for f, v in out.items()}
 
 
+def hard_subsets(clip_frames: dict, clip_case: dict, frames: int, shares, seed: int) -> dict:
+    """For each share: ``frames`` training frames of which that share are hard-case frames (clips whose
+    ``case`` is set) and the rest ordinary, ``{share: {"frames", "hard_frames", "clips"}}``. Each kind's
+    clips are taken in an order drawn from ``seed`` (so a larger share holds every hard clip of a smaller
+    one), the nearest prefix in frames; DataError when the store holds too few of a kind."""
+    hard = _order([c for c in clip_frames if clip_case[c]], seed, SUBSET_SALT + 2)
+    plain = _order([c for c in clip_frames if not clip_case[c]], seed, SUBSET_SALT + 3)
+    out = {}
+    for share in sorted(shares):
+        want = round(float(share) * frames)
+        for pool, n, what in ((hard, want, "hard-case"), (plain, frames - want, "ordinary")):
+            have = sum(clip_frames[c] for c in pool)
+            if n > have:
+                raise DataError(f"scaling.hard_share: {frames} frames at share {share:g} need {n} {what} training "
+                                f"frames; the store has {have}")
+        h = _nearest_prefix(hard, clip_frames, want) if want else []
+        got = sum(clip_frames[c] for c in h)
+        p = _nearest_prefix(plain, clip_frames, frames - got) if frames - got > 0 else []
+        out[float(share)] = {"frames": int(got + sum(clip_frames[c] for c in p)), "hard_frames": int(got),
+                             "clips": sorted(h + p)}
+    return out
+
+
 def clip_table(store, split: str) -> dict[int, dict]:
-    """clip id -> ``{"frames": [store frame indices], "family": scene family}`` of a store split (the family
-    from the clip's SceneSpec JSON, '' where there is none)."""
+    """clip id -> ``{"frames": [store frame indices], "family": scene family, "case": hard-case tag}`` of a
+    store split (the family from the clip's SceneSpec JSON, '' where there is none; the case from
+    ``frames/case``, '' for ordinary clips and stores without the column)."""
+    try:
+        cases = [str(c) for c in store.meta_column("case")]
+    except KeyError:
+        cases = None
     out = {}
     for clip, idx in store.clips(split).items():
         try:
             fam = str(json.loads(store.scene_json(idx[0]) or "{}").get("kind", ""))
         except ValueError:
             fam = ""
-        out[int(clip)] = {"frames": [int(i) for i in idx], "family": fam}
+        out[int(clip)] = {"frames": [int(i) for i in idx], "family": fam, "case": cases[idx[0]] if cases else ""}
     return out
 
 
@@ -276,6 +348,24 @@ def _train_job(label: str, cfg: TrainConfig, kind: str, seed: int, sub: dict, na
                clips=tuple(sub["clips"]), train_config=run_cfg.to_dict(), **kw)
 
 
+def hard_share_jobs(scfg: ScalingConfig, frames: dict, cases: dict, record: dict) -> list[Job]:
+    """The runs of the hard-case share axis (``kind`` ``hard``), seed by seed, recording the subsets drawn
+    in ``record["hard_share"]``."""
+    h = scfg.hard_share_plan()
+    if not h:
+        return []
+    by_label = dict(scfg.model_plans())
+    jobs, record["hard_share"] = [], {}
+    for seed in h["seeds"]:
+        subs = hard_subsets(frames, cases, h["frames"], h["shares"], seed)
+        record["hard_share"][str(seed)] = {str(k): v for k, v in subs.items()}
+        for label in h["models"]:
+            for share, sub in subs.items():
+                jobs.append(_train_job(label, by_label[label], "hard", seed, sub,
+                                       f"hard-{round(100 * share):03d}pct-n{sub['frames']:05d}-s{seed}", share=share))
+    return jobs
+
+
 def baseline_jobs(plans) -> list[Job]:
     """The noisy input and OIDN at each (spp, baseline input) of the models (``training.evaluate``)."""
     from training.inputs import KINDS
@@ -305,6 +395,7 @@ def plan(scfg: ScalingConfig, table: dict) -> tuple[list[Job], dict]:
             for label, cfg in plans:
                 jobs.append(_train_job(label, cfg, "subset", seed, sub, f"n{sub['frames']:05d}-s{seed}",
                                        share=sub["share"]))
+    jobs += hard_share_jobs(scfg, frames, {c: v.get("case", "") for c, v in table.items()}, record)
     v = scfg.variety_plan()
     by_label = dict(plans)
     for seed in (v["seeds"] if v else []):

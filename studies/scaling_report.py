@@ -19,6 +19,7 @@ from training import stats
 from training.errors import DataError, TargetBelowFloorError
 from training.jsonio import write as write_json
 from training.report import difference_cell
+from .hard_share import analyse_shares, share_markdown
 from .scaling_fit import (bootstrap_fit, by_size, frames_for_target, limit_name, paired, power_law, sign_of,
                           size_table, support)
 
@@ -172,11 +173,13 @@ def baselines(jobs, records: dict, metrics) -> list[dict]:
     return out
 
 
-def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None) -> dict:
-    """The study's numbers from its jobs and their records (module docstring)."""
+def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None,
+            suite_cases: dict | None = None) -> dict:
+    """The study's numbers from its jobs and their records (module docstring); ``suite_cases`` (frame index
+    -> case tag of the hard-case suite) for the hard-case share axis (:mod:`studies.hard_share`)."""
     held = heldout_frames(records)
     clips = held["clip"]
-    labels = [lab for lab, _ in scfg.model_plans()]
+    labels = [lab for lab, _ in scfg.model_plans()] if scfg.subsets else []
     metrics = list(scfg.metrics) + [m for m in targets if m not in scfg.metrics]
     models = {}
     for label in labels:
@@ -197,6 +200,7 @@ def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None)
     return {"heldout": {"frames": len(clips), "clips": len(set(clips)),
                         "families": {f: held["family"].count(f) for f in sorted(set(held["family"]))}},
             "metrics": metrics, "models": models, "variety": variety, "baselines": baselines(jobs, records, metrics),
+            "hard_share": analyse_shares(scfg, jobs, records, suite_cases or {}),
             "targets": answers, "costs": costs, "runs": runs}
 
 
@@ -292,31 +296,49 @@ def budget_line(label: str, cfg) -> str:
             f"{cfg.crop or 'default'}, {cfg.spp} spp, loss {cfg.loss}, lr {cfg.lr:g}")
 
 
-def report_markdown(result: dict, scfg) -> str:
-    """``scaling.md``: what was run, the verdicts, the figure, each model's table, the fits, the baselines,
-    the cross-family matrix and the targets."""
-    metrics, held, plan = result["metrics"], result["heldout"], result["plan"]
+def intro_markdown(result: dict, scfg) -> list[str]:
+    """What was run: the stores, the axes and how the figures are made."""
+    held, plan = result["heldout"], result["plan"]
     fams = ", ".join(f"{n} {f or 'unknown'}" for f, n in held["families"].items())
-    lines = [f"# What the data buys: `{scfg.name}`", "",
-             f"Training store `{result['stores']['train']}`: {plan['training_frames']} frames in "
-             f"{plan['training_clips']} clips. Held out: `{result['stores']['heldout']}`, {held['frames']} frames in "
-             f"{held['clips']} clips ({fams}), rendered from other seeds. Each model trains for the same steps on "
-             f"nested subsets of the training clips (clips whole; each seed draws its own nested order) with seeds "
-             f"{', '.join(map(str, scfg.seeds))}, and every run is evaluated on all the held-out frames. A size's "
-             "figure is the mean over its seeds; \"seeds' range\" spans the runs' means; the 95% interval is a "
-             "bootstrap over the held-out clips of the seeds-averaged per-frame values; Δ is the paired per-frame "
-             "change from the next smaller set (\"better\"/\"worse\" where its interval excludes 0).", "",
-             "## Verdicts", "", *[f"- {m['verdict']}" for m in result["models"].values()], "",
-             "![error against training frames](scaling.png)", "", "## Budgets", "",
-             *[budget_line(lab, cfg) for lab, cfg in scfg.model_plans()], ""]
+    text = (f"Training store `{result['stores']['train']}`: {plan['training_frames']} frames in "
+            f"{plan['training_clips']} clips. Held out: `{result['stores']['heldout']}`, {held['frames']} frames in "
+            f"{held['clips']} clips ({fams}), rendered from other seeds")
+    if result["stores"].get("hard_cases"):
+        text += f", and the hard-case suite `{result['stores']['hard_cases']}` (seeds no training config draws)"
+    text += (f". Seeds {', '.join(map(str, scfg.seeds))}; every run is evaluated on all the held-out frames. A "
+             "figure is the mean over its seeds; the 95% interval is a bootstrap over the held-out clips of the "
+             "seeds-averaged per-frame values; Δ is a paired per-frame difference (\"better\"/\"worse\" where its "
+             "interval excludes 0).")
+    if scfg.subsets:
+        text += (" The size axis: each model trains for the same steps on nested subsets of the training clips "
+                 "(clips whole; each seed draws its own nested order); \"seeds' range\" spans the runs' means and "
+                 "Δ is the change from the next smaller set.")
+    return [f"# What the data buys: `{scfg.name}`", "", text, ""]
+
+
+def curves_markdown(result: dict, metrics) -> list[str]:
+    """The size axis: verdicts, the figure, each model's table and the fits (nothing without the axis)."""
+    if not result["models"]:
+        return []
+    lines = ["## Verdicts", "", *[f"- {m['verdict']}" for m in result["models"].values()], "",
+             "![error against training frames](scaling.png)", ""]
     for label, mod in result["models"].items():
         lines += [f"## {label}", "", *sizes_markdown(mod, metrics), "",
                   *[f"- {mod['verdicts'][m]}" for m in metrics[1:]], ""]
-    lines += ["## The fit: error(N) = a N^(-b) + c", "",
-              "Least squares over every run's mean (N: training frames; for PSNR and SSIM, c - a N^(-b): c is a "
-              "ceiling); 95% intervals from refits on resamples of the held-out clips and of each size's seeds. "
-              "A fit is used only where the largest set is shown better than the smallest.", "",
-              *fits_markdown(result["models"], metrics), ""]
+    return lines + ["## The fit: error(N) = a N^(-b) + c", "",
+                    "Least squares over every run's mean (N: training frames; for PSNR and SSIM, c - a N^(-b): c is "
+                    "a ceiling); 95% intervals from refits on resamples of the held-out clips and of each size's "
+                    "seeds. A fit is used only where the largest set is shown better than the smallest.", "",
+                    *fits_markdown(result["models"], metrics), ""]
+
+
+def report_markdown(result: dict, scfg) -> str:
+    """``scaling.md``: what was run, the verdicts, the figure, each model's table, the fits, the baselines,
+    the hard-case share axis, the cross-family matrix and the targets."""
+    metrics = result["metrics"]
+    lines = intro_markdown(result, scfg) + ["## Budgets", "", *[budget_line(lab, cfg) for lab, cfg in
+                                                                 scfg.model_plans()], ""]
+    lines += curves_markdown(result, metrics)
     if result["baselines"]:
         def cell(b, m):
             return f"{_fmt(b[m]['mean'], FORMATS[m])} {_interval(b[m]['ci95'], FORMATS[m])}"
@@ -325,6 +347,7 @@ def report_markdown(result: dict, scfg) -> str:
                   "|---|" + "---|" * len(metrics),
                   *[f"| {b['label']} | " + " | ".join(cell(b, m) for m in metrics) + " |" for b in result["baselines"]],
                   ""]
+    lines += share_markdown(result.get("hard_share") or [])
     if result["variety"]:
         lines += ["## Scene variety: one family against both", "",
                   "The same number of training frames from one scene family, or from both (half each), evaluated "
@@ -418,6 +441,7 @@ def write_report(out, result: dict, scfg) -> None:
     """``scaling.json``, ``scaling.md`` and ``scaling.png`` in ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    plot_scaling(result, out / "scaling.png")
+    if result["models"]:                        # the size axis' curves (a study of other axes has none)
+        plot_scaling(result, out / "scaling.png")
     (out / "scaling.md").write_text(report_markdown(result, scfg))
     write_json(out / "scaling.json", _plain_result(result))

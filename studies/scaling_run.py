@@ -26,13 +26,15 @@ from .scaling import Job, ScalingConfig, clip_table, plan
 RECORD = "scaling-run.json"
 
 
-def ensure_store(dcfg, out: Path, workers: int | None, progress: bool) -> str:
+def ensure_store(dcfg, out: Path, workers: int | None, progress: bool, shared: bool = False) -> str:
     """Render (or resume, or find complete) the store of dataset config ``dcfg``: at its ``out`` if it
-    names one, else ``OUT/stores/<name>.zarr``. DataError when frames failed (a rerun retries them)."""
+    names one, else ``OUT/stores/<name>.zarr`` (``shared``: where ``python -m pipeline dataset`` puts it,
+    ``$DENOISE_DATA/<name>.zarr``, as the hard-case suite whose store ``make hard-cases`` reads).
+    DataError when frames failed (a rerun retries them)."""
     from pipeline.cli_dataset import run_dataset
     from pipeline.errors import PipelineError
     from stores.errors import StoreError
-    path = dcfg.store_path(dcfg.out or f"{out / 'stores'}/")
+    path = dcfg.store_path(dcfg.out or (None if shared else f"{out / 'stores'}/"))
     try:
         summary = run_dataset(dcfg, out=path, workers=workers, progress=progress)
     except (PipelineError, StoreError) as e:
@@ -71,9 +73,11 @@ def _trained(run_dir: Path, steps: int) -> bool:
 
 
 def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threads: int, flip: bool,
-            heldout: dict) -> dict:
+            heldout: dict, hard_store: str | None = None) -> dict:
     """Train (or resume) and evaluate one job in this process (a worker of :func:`run_jobs`); writes its
-    record and returns ``{"name", "mean", "seconds"}``. Training's output goes to ``run_dir/run.log``."""
+    record and returns ``{"name", "mean", "seconds"}``. Training's output goes to ``run_dir/run.log``.
+    With ``hard_store`` (the held-out hard-case suite), a hard-share run and a baseline are evaluated on
+    every frame of it as well (``hard_evaluation`` in the record)."""
     import torch
 
     from training.accel import tune_allocator
@@ -97,11 +101,28 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
                 train(cfg, train_store, run_dir, progress=False)
             res = evaluate(run_dir / "checkpoint.pt", heldout_store, split="test", with_flip=flip, device=cfg.device,
                            precision=cfg.precision)
+        hard = suite_evaluation(job, run_dir, hard_store, flip) if hard_store and job.kind in ("hard", "baseline") \
+            else None
     res = {k: v for k, v in res.items() if k not in ("images", "sample_map")}
     seconds = time.perf_counter() - t0
     write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds,
-                                  "cpu_seconds": time.process_time() - c0, "evaluation": res})
+                                  "cpu_seconds": time.process_time() - c0, "evaluation": res,
+                                  **({"hard_evaluation": hard} if hard is not None else {})})
     return {"name": job.name, "mean": res["mean"], "seconds": seconds, "cpu_seconds": time.process_time() - c0}
+
+
+def suite_evaluation(job: Job, run_dir: Path, hard_store: str, flip: bool) -> dict:
+    """``training.evaluate.evaluate`` of a run (or a baseline) on every frame of the hard-case suite (its
+    test split), the frames ``validate`` flags left out and named."""
+    from training.evaluate import evaluate
+    if job.kind == "baseline":
+        res = evaluate(job.method, hard_store, split="test", spp=job.spp, with_flip=flip, skip_bad_frames=True,
+                       baseline_input=job.baseline_input, device="auto")
+    else:
+        cfg = job.config()
+        res = evaluate(run_dir / "checkpoint.pt", hard_store, split="test", with_flip=flip, skip_bad_frames=True,
+                       device=cfg.device, precision=cfg.precision)
+    return {k: v for k, v in res.items() if k not in ("images", "sample_map")}
 
 
 def _ignore_interrupt() -> None:
@@ -123,7 +144,7 @@ def _next(done, timeout: float = 1.0):
 
 
 def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, parallel: int, threads: int,
-             flip: bool, log=print) -> dict[str, dict]:
+             flip: bool, log=print, hard_store: str | None = None) -> dict[str, dict]:
     """Every job's record (``name -> record``): finished ones read back, the others run ``parallel`` at a
     time in fresh worker processes (training and evaluating; one line each as they end). Ctrl-C, or a run
     that fails, stops every worker: finished runs stay, interrupted ones resume from their checkpoints."""
@@ -132,6 +153,8 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
 
     from training.data import open_store
     heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
+    if hard_store:                  # the suite is part of what a finished run was evaluated on
+        heldout["hard_cases"] = json.loads(json.dumps(heldout_identity(open_store(hard_store))))
     runs = out / "runs"
     records, todo = {}, []
     for job in jobs:
@@ -149,7 +172,7 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
     try:
         for j in todo:
             pool.apply_async(run_job, (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
-                                       heldout), callback=lambda r: done.put((r, None)),
+                                       heldout, hard_store), callback=lambda r: done.put((r, None)),
                              error_callback=lambda e, name=j.name: done.put((name, e)))
         for k in range(1, len(todo) + 1):
             res, err = _next(done)
@@ -210,19 +233,24 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
     train_cfg, held_cfg = scfg.dataset_configs()
     train_path = ensure_store(train_cfg, out, workers, progress)
     held_path = ensure_store(held_cfg, out, workers, progress)
+    hard_cfg = scfg.hard_config()
+    hard_path = ensure_store(hard_cfg, out, workers, progress, shared=True) if hard_cfg is not None else None
     train_store = open_store(train_path)
     jobs, record = plan(scfg, clip_table(train_store, "train"))
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     parallel = scfg.parallel or max(1, cores // scfg.threads)
-    records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log)
+    records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log, hard_path)
     targets = {k: float(v) for k, v in {**scfg.targets, **(targets or {})}.items() if v is not None}
-    result = analyse(scfg, jobs, records, targets)
+    suite_cases = ({i: str(c) for i, c in enumerate(open_store(hard_path).meta_column("case"))}
+                   if hard_path else None)
+    result = analyse(scfg, jobs, records, targets, suite_cases=suite_cases)
     if any("frames" in a for a in result["targets"]):           # an answer to price: calibrate (or read the cache)
         result["costs"] = rendering_costs(train_cfg, out, workers, train_store, log)
         price(result["targets"], result["costs"])
-    result.update(config=scfg.to_dict(), stores={"train": train_path, "heldout": held_path}, plan=record,
+    stores = {"train": train_path, "heldout": held_path, **({"hard_cases": hard_path} if hard_path else {})}
+    result.update(config=scfg.to_dict(), stores=stores, plan=record,
                   seconds=time.perf_counter() - t0,
-                  provenance=provenance([], {"train": train_path, "heldout": held_path}, {"out": str(out)}))
+                  provenance=provenance([], stores, {"out": str(out)}))
     write_report(out, result, scfg)
     log(f"scaling: wrote {out / 'scaling.md'}, scaling.png and scaling.json in {result['seconds']:.0f} s")
     from .scaling_report import targets_markdown

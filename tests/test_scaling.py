@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from training.errors import ConfigError, TargetBelowFloorError
+from training.errors import ConfigError, DataError, TargetBelowFloorError
 from studies.scaling import (Job, ScalingConfig, clip_table, family_subsets, load_scaling_config, nested_subsets,
                               plan)
 from studies.scaling_fit import bootstrap_fit, frames_for_target, power_law, support
@@ -242,3 +242,67 @@ def test_the_smoke_study_runs_end_to_end_and_resumes(tmp_path):
     assert again.returncode == 0, again.stderr[-3000:]
     n = len(res["runs"])
     assert f"{n} finished, 0 to run" in again.stdout + again.stderr, again.stdout[-2000:]
+
+
+def test_hard_share_subsets_plan_and_checks():
+    from studies.scaling import hard_subsets
+    frames = {c: 1 for c in range(40)}
+    cases = {c: ("sun" if c >= 30 else "") for c in range(40)}          # 30 ordinary, 10 hard stills
+    subs = hard_subsets(frames, cases, 20, [0.0, 0.1, 0.25], seed=3)
+    assert [subs[s]["hard_frames"] for s in (0.0, 0.1, 0.25)] == [0, 2, 5]
+    assert all(v["frames"] == 20 and len(v["clips"]) == 20 for v in subs.values())
+    hard = {s: {c for c in v["clips"] if cases[c]} for s, v in subs.items()}
+    assert hard[0.1] <= hard[0.25]                                       # the hard clips nest
+    assert hard_subsets(frames, cases, 20, [0.25], seed=3) == {0.25: subs[0.25]}   # a function of the seed
+    with pytest.raises(DataError, match="need 20 hard-case training frames; the store has 10"):
+        hard_subsets(frames, cases, 20, [0.0, 1.0], seed=0)
+    h = dict(models=["nbg"], seeds=[0, 1], frames=20, shares=[0, 0.25])
+    suite = {"held_out": True, "split": {"test": 1}, "scenes": [{"kind": "indoor", "count": 1, "case": "black"}]}
+    scfg = _config(subsets=[], variety=None, hard_share=h, hard_data=suite)
+    table = {c: {"frames": [c], "family": "indoor", "case": cases[c]} for c in range(40)}
+    jobs, record = plan(scfg, table)
+    hard_jobs = [j for j in jobs if j.kind == "hard"]
+    assert sorted((j.seed, j.share) for j in hard_jobs) == [(0, 0.0), (0, 0.25), (1, 0.0), (1, 0.25)]
+    assert all(j.frames == 20 for j in hard_jobs) and record["hard_share"]["0"]["0.25"]["hard_frames"] == 5
+    for bad, needle in (({"shares": [0.1, 0.25]}, "0 among them"), ({"models": ["wskpn"]}, "hard_share.models"),
+                        ({"shares": [0, 1.5]}, "hard_share.shares")):
+        with pytest.raises(ConfigError, match=needle):
+            _config(subsets=[], hard_share={**h, **bad}, hard_data=suite)
+    with pytest.raises(ConfigError, match="scaling.hard_data must be a held-out hard-case suite"):
+        _config(subsets=[], hard_share=h)
+    with pytest.raises(ConfigError, match="scaling.hard_data must be a held-out dataset"):
+        _config(subsets=[], hard_share=h, hard_data={"scenes": [{"kind": "indoor", "count": 1}]}).hard_config()
+
+
+def test_hard_share_analysis_on_synthetic_results(tmp_path):
+    """Made-up evaluations: the runs trained with hard frames beat their input on the suite's case 'sun' and
+    cost nothing on ordinary frames; the analysis says so, with intervals, and the report shows it."""
+    from studies.scaling_report import analyse, write_report
+    suite = {"held_out": True, "split": {"test": 1}, "scenes": [{"kind": "outdoor", "count": 1, "case": "sun"}]}
+    scfg = _config(subsets=[], variety=None, hard_data=suite,
+                   hard_share=dict(models=["nbg"], seeds=[0, 1], frames=20, shares=[0, 0.25]))
+    cases = {c: ("sun" if c >= 30 else "") for c in range(40)}
+    jobs, record = plan(scfg, {c: {"frames": [c], "family": "indoor", "case": cases[c]} for c in range(40)})
+    rng = np.random.default_rng(0)
+    records = _synthetic_records(jobs)
+    for j in jobs:                    # the suite: 8 sun frames in 4 clips; input 1.0, runs 0.5 (0%) and 0.1 (25%)
+        rel = {"baseline": 1.0 if j.method == "input" else 0.3}.get(j.kind, 0.5 if j.share == 0 else 0.1)
+        frames = [{"index": i, "clip": i // 2, "relmse": rel + rng.normal(0, 0.01), "psnr": 20 - 5 * rel
+                   + rng.normal(0, 0.05)} for i in range(8)]
+        records[j.name]["hard_evaluation"] = {"frames": frames}
+    res = analyse(scfg, jobs, records, {}, suite_cases={i: "sun" for i in range(8)})
+    (nbg,) = res["hard_share"]
+    sun = nbg["cases"]["sun"]
+    assert sun["0.25"]["vs_input"]["verdict"] == "beats" and sun["0.25"]["vs_none"]["relmse"]["mean"] < -0.3
+    assert sun["0.25"]["relmse_ci95"][0] < 0.1 < sun["0.25"]["relmse_ci95"][1]
+    assert sun["input"]["relmse"] == pytest.approx(1.0, abs=0.02) and sun["oidn"]["vs_input"]["verdict"] == "beats"
+    assert not nbg["ordinary"]["0.25"]["psnr"]["vs_none"]["shown"]        # the same ordinary frames' values
+    assert "nbg: at 0% hard frames it beats its noisy input on 1 of 1 cases" in nbg["verdict"]
+    res.update(config=scfg.to_dict(), stores={"train": "t.zarr", "heldout": "h.zarr", "hard_cases": "s.zarr"},
+               plan=record, seconds=1.0)
+    write_report(tmp_path, res, scfg)
+    md = (tmp_path / "scaling.md").read_text()
+    for text in ("## Hard cases in the training data", "| nbg | 25% |", "### nbg on the held-out hard-case suite",
+                 "| sun |", ": better", "input @1spp"):
+        assert text in md, text
+    assert not (tmp_path / "scaling.png").exists()                      # no size axis, no curves

@@ -251,7 +251,8 @@ VERDICT_MARK = {"beats": "better", "exact": "exact", "not exact": "**not exact**
                 "not shown": "no difference shown"}
 
 
-def _vs_cell(v: dict | None) -> str:
+def vs_input_cell(v: dict | None) -> str:
+    """Markdown of a cell's ``vs_input``: ΔrelMSE / ΔPSNR with intervals and the verdict."""
     d = (v or {}).get("vs_input")
     if not d:
         return "–"
@@ -284,7 +285,7 @@ def hard_case_table(results: dict) -> str:
                   "higher, both intervals excluding 0.", "",
                   "| case | " + " | ".join(compared) + " |", "|---|" + "---|" * len(compared)]
         for c, row in results["cases"].items():
-            lines.append(f"| {c} | " + " | ".join(_vs_cell(row.get(m)) for m in compared) + " |")
+            lines.append(f"| {c} | " + " | ".join(vs_input_cell(row.get(m)) for m in compared) + " |")
     lines += ["", f"Flags (error: relMSE > {results.get('outlier_factor', OUTLIER_FACTOR):g}x the method's median "
               "over the cases):", ""]
     if not flags:
