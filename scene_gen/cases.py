@@ -176,7 +176,10 @@ def _v(x) -> tuple:
 
 
 @dataclass
-class _View:
+class View:
+    """The first camera as the edits place things: origin ``o``, basis (``r`` right in Mitsuba's sense,
+    the image's left; ``u``; ``f``), the tangents of the half field of view, ``D`` (the look-at distance,
+    1 to MAX_DEPTH) and the resolution."""
     o: np.ndarray
     r: np.ndarray
     u: np.ndarray
@@ -201,15 +204,17 @@ class _View:
         return _v((math.degrees(-math.asin(float(np.clip(f[1], -1, 1)))), math.degrees(math.atan2(f[0], f[2])), 0.0))
 
 
-def _view(spec: SceneSpec, res: int) -> _View:
+def view_of(spec: SceneSpec, res: int) -> View:
+    """The :class:`View` of ``spec``'s first camera at ``res`` pixels."""
     cam = spec.cameras[0]
     r, u, f = cams.basis(cam)
     tx, ty = cams.tan_half(cam, (res, res))
     D = min(float(np.linalg.norm(np.subtract(cam.target, cam.origin))), MAX_DEPTH)
-    return _View(np.asarray(cam.origin, float), r, u, f, tx, ty, max(D, 1.0), res)
+    return View(np.asarray(cam.origin, float), r, u, f, tx, ty, max(D, 1.0), res)
 
 
-def _sphere(name: str, center, radius: float, material: MaterialSpec, emitter=None) -> ObjectSpec:
+def sphere_object(name: str, center, radius: float, material: MaterialSpec, emitter=None) -> ObjectSpec:
+    """A sphere object (an emitter of radiance ``emitter`` when given)."""
     return ObjectSpec(name, MeshSpec("sphere", {"subdivisions": 3}), material,
                       Transform(_v(center), (0.0, 0.0, 0.0), (_f(radius),) * 3),
                       emitter_radiance=None if emitter is None else _v(emitter))
@@ -245,16 +250,16 @@ def _content(o: ObjectSpec) -> bool:
 @register_case("fireflies")
 def fireflies(spec: SceneSpec, res: int) -> SceneSpec:
     """Six tiny very bright emitters across the view and caustics through a glass sphere."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     objs = []
     d = 0.4 * v.D
     for k, (px, py) in enumerate([(-0.6, 0.5), (0.0, 0.6), (0.6, 0.45), (-0.5, -0.3), (0.3, -0.1), (0.7, -0.5)]):
-        objs.append(_sphere(f"case_firefly_{k}", v.point(px, py, d), 0.3 * v.pixel(d), WHITE, (2e4, 2e4, 2e4)))
+        objs.append(sphere_object(f"case_firefly_{k}", v.point(px, py, d), 0.3 * v.pixel(d), WHITE, (2e4, 2e4, 2e4)))
     dg = 0.6 * v.D
     rg = 0.12 * dg * v.tx
     g = v.point(0.0, -0.2, dg)
-    objs.append(_sphere("case_glass", g, rg, GLASS))
-    objs.append(_sphere("case_caustic_light", g + np.array([0.0, 3.0 * rg, 0.0]), 0.1 * rg, WHITE, (1e4, 1e4, 1e4)))
+    objs.append(sphere_object("case_glass", g, rg, GLASS))
+    objs.append(sphere_object("case_caustic_light", g + np.array([0.0, 3.0 * rg, 0.0]), 0.1 * rg, WHITE, (1e4, 1e4, 1e4)))
     return _add(spec, *objs)
 
 
@@ -304,7 +309,7 @@ def black(spec: SceneSpec, res: int) -> SceneSpec:
 def mirror(spec: SceneSpec, res: int) -> SceneSpec:
     """A smooth mirror over the right 60% of the view at 0.9 D (turned 25 degrees), a panning camera
     and moving objects."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     d = 0.9 * v.D
     rot = v.facing()
     rot = (rot[0], _f(rot[1] + 25.0), 0.0)
@@ -319,7 +324,7 @@ def mirror(spec: SceneSpec, res: int) -> SceneSpec:
 @register_case("defocus")
 def defocus(spec: SceneSpec, res: int) -> SceneSpec:
     """Extreme defocus: focus at 0.25 D, lens radius 0.05 D (the generator's largest is 0.02 x focus)."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     cameras = tuple(cams.make_camera(c.origin, c.target, c.fov, 0.05 * v.D, 0.25 * v.D) for c in spec.cameras)
     return dataclasses.replace(spec, cameras=cameras)
 
@@ -328,7 +333,7 @@ def defocus(spec: SceneSpec, res: int) -> SceneSpec:
 def motion(spec: SceneSpec, res: int) -> SceneSpec:
     """Fast motion across the view: every moving object keeps its speed (6-10 of its radii per frame) but
     moves along the camera's right axis (alternately left and right), parallel to the image plane."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     out, k = [], 0
     for o in spec.objects:
         if o.moving:
@@ -355,25 +360,25 @@ def zero_albedo(spec: SceneSpec, res: int) -> SceneSpec:
 @register_case("nan")
 def nan(spec: SceneSpec, res: int) -> SceneSpec:
     """A small emitter in view (2 px radius) whose radiance becomes NaN when the renderer loads the scene."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     d = 0.5 * v.D
-    return _add(spec, _sphere(NAN_EMITTER, v.point(0.3, 0.3, d), 2.0 * v.pixel(d), WHITE, (1.0, 1.0, 1.0)))
+    return _add(spec, sphere_object(NAN_EMITTER, v.point(0.3, 0.3, d), 2.0 * v.pixel(d), WHITE, (1.0, 1.0, 1.0)))
 
 
 @register_case("flat")
 def flat(spec: SceneSpec, res: int) -> SceneSpec:
     """A uniform grey wall facing the camera fills the view; content objects removed but one small sphere."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     d = 0.5 * v.D
     wall = _box("case_wall", v.point(0.0, 0.0, d), (1.5 * d * v.tx, 1.5 * d * v.ty, 0.01), v.facing(), GREY)
-    ball = _sphere("case_ball", v.point(0.3, -0.3, 0.8 * d), 0.08 * d * v.tx, WHITE)
+    ball = sphere_object("case_ball", v.point(0.3, -0.3, 0.8 * d), 0.08 * d * v.tx, WHITE)
     return _add(spec, wall, ball, keep=lambda o: not _content(o))
 
 
 @register_case("thin")
 def thin(spec: SceneSpec, res: int) -> SceneSpec:
     """An emissive bar one pixel high across the image, centred on a pixel row (radiance 20)."""
-    v = _view(spec, res)
+    v = view_of(spec, res)
     d = 0.5 * v.D
     px = v.pixel(d)
     py = (1.0 / res) if res % 2 == 0 else 0.0       # image y of the centre of the row just above the middle

@@ -83,11 +83,12 @@ class SharedSettings:
     shutter: float = 0.5                  # exposure as a fraction of the frame interval
     material_palette: int = 0             # > 0: content objects draw from this many materials per scene
     pymeshlab: bool = True                # false: no blob or boolean meshes, no decimation (see above)
+    p_caustics: float = 0.0               # a glass sphere under a small bright emitter (scene_gen.phenomena)
 
     def __post_init__(self):
         for n, s in self._families.items():
             _check_setting(n, s, getattr(self, n))
-        for n in ("p_defocus", "p_motion", "p_object_motion", "p_floating", "p_user_model", "shutter"):
+        for n in ("p_defocus", "p_motion", "p_object_motion", "p_floating", "p_user_model", "shutter", "p_caustics"):
             _prob(n, getattr(self, n))
         object.__setattr__(self, "fov_range", _range("fov_range", self.fov_range, 0.0, 180.0,
                                                      open_lo=True, open_hi=True))
@@ -113,8 +114,9 @@ class SharedSettings:
             object.__setattr__(self, "model_folder", str(p))
 
     def to_dict(self) -> dict:
-        """Plain data; ``material_palette`` and ``pymeshlab`` only when not their defaults, so stores made
-        before they existed still resume."""
+        """Plain data; ``material_palette``, ``pymeshlab`` and the phenomena's rates (``p_caustics``,
+        ``p_sun_in_view``, ``p_lamps``) only when not their defaults, so stores made before they existed still
+        resume."""
         d = asdict(self)
         for k, v in d.items():
             if isinstance(v, tuple):
@@ -123,6 +125,9 @@ class SharedSettings:
             del d["material_palette"]
         if d["pymeshlab"]:
             del d["pymeshlab"]
+        for k in ("p_caustics", "p_sun_in_view", "p_lamps"):
+            if d.get(k, None) == 0:
+                del d[k]
         return d
 
     @classmethod

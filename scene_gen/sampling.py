@@ -28,6 +28,7 @@ from scene_gen.families import family_names, get_family
 from scene_gen.layout import Layout, Placed
 from scene_gen.materials import random_material
 from scene_gen.meshes import triangle_budget
+from scene_gen.phenomena import add_phenomena
 from scene_gen.spec import MeshSpec, ObjectSpec, SceneSpec
 
 __all__ = ["sample_scene", "scan_models", "Layout", "Placed"]
@@ -102,8 +103,9 @@ def sample_scene(seed: int, kind: str, *, num_frames: int = 1, res: int = 256,
     rpx = cams.max_projected_radius(frames, centers, radii, vel, (res, res))
     out = [_object_spec(o, rpx[i], motion, cfg) for i, o in enumerate(objs)
            if keep[i] and (cfg.pymeshlab or not meshes.needs_pymeshlab(o.mesh))]
-    return SceneSpec(kind=kind, seed=int(seed), objects=tuple(out), lights=tuple(lay.lights), cameras=tuple(frames),
+    spec = SceneSpec(kind=kind, seed=int(seed), objects=tuple(out), lights=tuple(lay.lights), cameras=tuple(frames),
                      shutter=float(cfg.shutter), max_depth=int(cfg.max_depth))
+    return add_phenomena(spec, cfg, family.seed_index, res)
 
 
 def _focus(frames: list, objs: list, vis: np.ndarray, centers: np.ndarray, vel: np.ndarray,

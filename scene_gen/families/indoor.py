@@ -33,7 +33,9 @@ POINT_INTENSITY = (1.0, 6.0)  # point light intensity (log-uniform)
 INDOOR_SKY = (0.8, 2.5)       # probe sky radiance seen through the windows (log-uniform)
 INDOOR_SUN = 8.0              # probe sun irradiance: sunlit patches through windows stand out
 
-SETTINGS = {"indoor_objects": Setting(50, "int", 0, 10000, "meshes placed in a room (furniture included)")}
+SETTINGS = {"indoor_objects": Setting(50, "int", 0, 10000, "meshes placed in a room (furniture included)"),
+            "p_lamps": Setting(0.0, "probability", doc="one to three small, very bright lamps in view "
+                                                        "(scene_gen.phenomena)")}
 
 
 def _f(x) -> float:

@@ -1,0 +1,87 @@
+"""Phenomena the families add at their own rates (scene_gen.phenomena): the sun in an outdoor camera's view,
+lamps indoors, caustics through glass. At the default rate 0 every scene is as before; at rate 1 each is
+where it says, the rest of the scene unchanged; the draw follows the rate; a render shows the sun."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import binomtest
+
+from scene_gen import cameras as cams
+from scene_gen.config import SceneGenConfig
+from scene_gen.sampling import sample_scene
+
+SMALL = {"indoor_objects": 8, "outdoor_objects": 8}
+
+
+def scene(seed, kind, res=32, **rates):
+    return sample_scene(seed, kind, res=res, config=SceneGenConfig.from_dict({**SMALL, **rates}))
+
+
+def _without(spec, prefixes):
+    return tuple(o for o in spec.objects if not o.name.startswith(prefixes))
+
+
+def test_rates_of_0_change_nothing_and_are_not_written():
+    cfg = SceneGenConfig.from_dict(SMALL)
+    assert not {"p_caustics", "p_lamps", "p_sun_in_view"} & set(cfg.to_dict())      # old stores resume
+    assert SceneGenConfig.from_dict({**SMALL, "p_lamps": 0.5}).to_dict()["p_lamps"] == 0.5
+    for kind in ("indoor", "outdoor"):
+        assert scene(3, kind) == sample_scene(3, kind, res=32, config=cfg)
+
+
+def test_lamps_and_caustics_leave_the_rest_of_the_scene_alone():
+    plain, lit = scene(4, "indoor"), scene(4, "indoor", p_lamps=1.0, p_caustics=1.0)
+    assert _without(lit, ("lamp_", "caustic_")) == plain.objects and lit.cameras == plain.cameras
+    lamps = [o for o in lit.objects if o.name.startswith("lamp_")]
+    assert 1 <= len(lamps) <= 3
+    cam = lit.cameras[0]
+    for o in lamps:
+        assert 200 <= o.emitter_radiance[0] <= 5000 and 0.01 <= o.transform.scale[0] <= 0.03
+        p = cams.to_camera(cam, np.array([o.transform.translate]))[0]
+        tx, ty = cams.tan_half(cam, (32, 32))
+        assert p[2] > 0 and abs(p[0] / p[2]) <= tx and abs(p[1] / p[2]) <= ty           # in view
+    glass = next(o for o in lit.objects if o.name == "caustic_glass")
+    light = next(o for o in lit.objects if o.name == "caustic_light")
+    assert glass.material.kind == "dielectric" and light.emitter_radiance[0] >= 2e3
+    assert light.transform.translate[1] > glass.transform.translate[1]
+    outdoor = scene(4, "outdoor", p_lamps=1.0)                       # an indoor setting: not outdoors
+    assert outdoor == scene(4, "outdoor")
+
+
+def _sunsky_seed():
+    return next(s for s in range(50) if any(lt.kind == "sunsky" for lt in scene(s, "outdoor").lights))
+
+
+def test_the_sun_is_moved_into_view_on_flat_ground():
+    seed = _sunsky_seed()
+    plain, sunny = scene(seed, "outdoor"), scene(seed, "outdoor", p_sun_in_view=1.0)
+    d = np.array(next(lt for lt in sunny.lights if lt.kind == "sunsky").params["sun_direction"])
+    cam = sunny.cameras[0]
+    r, u, f = cams.basis(cam)
+    tx, ty = cams.tan_half(cam, (32, 32))
+    x, y, z = -(d @ r) / (d @ f), (d @ u) / (d @ f), d @ f            # image coordinates (x right)
+    assert z > 0 and abs(x) <= tx and 0 < y <= ty and d[1] > 0
+    backdrop = next(o for o in sunny.objects if o.name == "backdrop")
+    assert "bend" not in backdrop.mesh.params
+    assert [o for o in sunny.objects if o.name != "backdrop"] == [o for o in plain.objects if o.name != "backdrop"]
+    assert [dataclasses.replace(lt, params={}) for lt in sunny.lights] == \
+        [dataclasses.replace(lt, params={}) for lt in plain.lights]
+
+
+def test_each_phenomenon_is_drawn_at_its_rate():
+    n = 150
+    got = sum(any(o.name.startswith("lamp_") for o in scene(s, "indoor", res=16, p_lamps=0.3).objects)
+              for s in range(n))
+    assert binomtest(got, n, 0.3).pvalue > 1e-3, got
+
+
+@pytest.mark.parametrize("kind", ["outdoor"])
+def test_a_render_shows_the_sun(kind):
+    from pipeline.render import RenderConfig, render_frame
+    spec = scene(_sunsky_seed(), kind, res=32, p_sun_in_view=1.0)
+    out = render_frame(spec, 0, RenderConfig(res=(32, 32), spp=4, layer_levels=1, ref_spp=16, ref_passes=2,
+                                             ref_min_passes=2))
+    assert out["reference"].max() > 1e3                            # the sun's disc (the sky is ~0.1-1)
