@@ -266,9 +266,11 @@ def check_store(ck: dict, schema_version: int, path=None) -> None:
 
 
 def build_model(ck: dict, device="cpu"):
-    """The checkpoint's model with its weights, in eval mode."""
-    from .models import build
-    model = build(ck["model"], **ck["model_config"])
+    """The checkpoint's model with its weights, in eval mode. A setting the checkpoint does not record (it
+    was written before the setting existed, such as ``outliers``, training.models.robust) takes the value the
+    model was trained with (the model's ``legacy_config``), not today's default."""
+    from .models import build, get
+    model = build(ck["model"], **{**get(ck["model"]).legacy_config, **ck["model_config"]})
     model.load_state_dict(ck["state_dict"])
     return model.to(device).eval()
 

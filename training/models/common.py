@@ -22,6 +22,7 @@ from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 from core.checks import need
 from ..errors import ConfigError
 from ..inputs import ALL_FEATURES, InputSpec, check_feature_groups, mask_features
+from .robust import OUTLIER_K, bound_outliers, check_outliers  # noqa: F401  (OUTLIER_K: the models' default)
 
 NEG_SLOPE = 0.01
 EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)
@@ -374,11 +375,15 @@ class Denoiser(nn.Module):
     train_defaults: dict = {}
     tiny: dict = {}
     realtime = False        # a real-time denoiser: compiled with CUDA graphs on a GPU (training.accel)
+    outlier_bound = 0.0     # the default of the setting ``outliers`` (training.models.robust; 0: off)
+    # settings a checkpoint written before they existed was trained with (training.checkpoint.build_model)
+    legacy_config: dict = {"outliers": 0.0}
 
     def __init__(self, **config):
         super().__init__()
         self.config = dict(config)
         self.feature_groups: tuple[str, ...] = type(self).inputs.features    # use_features narrows them
+        self.use_outliers(type(self).outlier_bound)
 
     def declared_inputs(self) -> InputSpec:
         """The model's input declaration (override where it depends on settings)."""
@@ -401,6 +406,19 @@ class Denoiser(nn.Module):
         self.feature_groups = check_feature_groups(groups, f"model {self.name!r}: setting \"features\"")
         self.config["features"] = list(self.feature_groups)
         return self
+
+    def use_outliers(self, k) -> "Denoiser":
+        """Bound what the model's filter spreads: values above ``k`` times their neighbourhood's level are
+        cut before filtering (:func:`training.models.robust.bound_outliers`; 0: off). The model setting
+        ``outliers`` (``--model-cfg '{"outliers": 0}'``); the kernel-predicting models default to
+        :data:`training.models.robust.OUTLIER_K`."""
+        self.outliers = check_outliers(k)
+        self.config["outliers"] = self.outliers
+        return self
+
+    def bound(self, radiance: torch.Tensor) -> torch.Tensor:
+        """``radiance`` (non-negative, linear) as the model's filter may see it (:meth:`use_outliers`)."""
+        return bound_outliers(radiance, self.outliers)
 
     def for_inference(self) -> "Denoiser":
         """The form ``evaluate``, ``denoise`` and ``bench`` run (e.g. with re-parameterised branches

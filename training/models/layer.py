@@ -18,7 +18,7 @@ import torch
 
 from core.checks import need_int
 from ..errors import ConfigError
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
                      clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat,
                      xavier_init)
 from .registry import register
@@ -29,6 +29,7 @@ MAX_LAYERS = 5
 @register("layer")
 class LayerDenoiser(Denoiser):
     compositing = "alpha"
+    outlier_bound = OUTLIER_K
     tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, partition_hidden=(8,), kernel_hidden=(8,))
 
     def __init__(self, layers: int = 2, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32,
@@ -71,7 +72,7 @@ class LayerDenoiser(Denoiser):
 
     def denoise(self, radiance, features):
         e, ctx = self.embed_samples(radiance, features)
-        lin = clean_radiance(radiance)
+        lin = self.bound(clean_radiance(radiance))
         w = self.partition(e, ctx)                                      # B S L H W
         b, s, nl, h, wd = w.shape
         l_rad = (w.unsqueeze(3) * lin.unsqueeze(2)).sum(dim=1)             # eq. 2, L^l

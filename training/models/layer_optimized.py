@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from core.checks import need_int
 from ..errors import ConfigError
-from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
+from .common import (IN_FEATURES, OUTLIER_K, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
                      exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, replicate_pad, splat, xavier_init)
 from .layer import MAX_LAYERS, LayerDenoiser
 from .registry import register
@@ -35,6 +35,7 @@ OPT_UNET = dict(
 
 @register("layer-optimized")
 class LayerOptimizedDenoiser(Denoiser):
+    outlier_bound = OUTLIER_K
     tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=3, partition_hidden=(8,), kernel_hidden=(8,))
 
     def __init__(self, layers: int = 2, kernel_size: int = 5, kernel_sigma: float = 1.0, levels: int = 3,
@@ -73,7 +74,7 @@ class LayerOptimizedDenoiser(Denoiser):
         b, s, c, h, w = x.shape
         e = self.reducer(x.reshape(b * s, c, h, w)).view(b, s, self.embed, h, w)
         ctx, decoder = self.unet(e.mean(dim=1))
-        lin = clean_radiance(radiance)
+        lin = self.bound(clean_radiance(radiance))
         wts = self.partition(e, ctx)                                    # B S L H W
         nl = self.layers
         l_rad = (wts.unsqueeze(3) * lin.unsqueeze(2)).sum(dim=1)

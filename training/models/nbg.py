@@ -30,7 +30,7 @@ import torch.nn as nn
 from core.checks import need
 
 from ..errors import ConfigError
-from ._pixel import PixelDenoiser
+from ._pixel import ALBEDO_OFFSET, PixelDenoiser
 from .common import conv_fmas
 from .registry import register
 
@@ -120,7 +120,8 @@ class NeuralBilateralGrid(PixelDenoiser):
     tiny = dict(guide_hidden=(6,), guide_kernel=3)
 
     def __init__(self, guide_hidden=(20,), guide_kernel: int = 5, rates=(4, 8, 16), guide_range: float = 255.0,
-                 temporal_frames: int = 1, temporal_alpha: float = 0.2):
+                 temporal_frames: int = 1, temporal_alpha: float = 0.2,
+                 albedo_offset: float = ALBEDO_OFFSET):
         guide_hidden = tuple(int(c) for c in guide_hidden)
         rates = tuple(int(r) for r in rates)
         need(all(c >= 1 for c in guide_hidden), '"guide_hidden"', "positive widths (one per hidden conv layer)",
@@ -130,8 +131,9 @@ class NeuralBilateralGrid(PixelDenoiser):
         need(bool(rates) and all(r >= 1 for r in rates), '"rates"', "one or more sampling rates >= 1 (one grid each)",
              rates, ConfigError)
         need(guide_range > 0, '"guide_range"', "> 0", guide_range, ConfigError)
-        super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, guide_hidden=guide_hidden,
-                         guide_kernel=int(guide_kernel), rates=rates, guide_range=float(guide_range))
+        super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, albedo_offset=albedo_offset,
+                         guide_hidden=guide_hidden, guide_kernel=int(guide_kernel), rates=rates,
+                         guide_range=float(guide_range))
         self.rates, self.guide_range = rates, float(guide_range)
         layers, prev = [], 10
         for c in guide_hidden:

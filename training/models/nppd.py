@@ -51,7 +51,7 @@ from core.checks import known_keys, need, need_int
 from ..errors import ConfigError
 from ..inputs import InputSpec, mask_features
 from ._pixel import warp
-from .common import Denoiser, UNet, clean_radiance, conv_fmas, replicate_pad, splat, xavier_init
+from .common import OUTLIER_K, Denoiser, UNet, clean_radiance, conv_fmas, replicate_pad, splat, xavier_init
 from .registry import register
 
 KERNEL = 5
@@ -89,6 +89,7 @@ def upsample(x: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
 class NPPD(Denoiser):
     """Neural partitioning pyramids (module docstring)."""
 
+    outlier_bound = OUTLIER_K
     inputs = InputSpec("clips", frames=4, default_spp=8, features=("normal", "depth", "albedo"))
     train_defaults = dict(loss="smape-temporal", lr=1e-4, grad_clip_norm=0.0, grad_clip_value=0.0, warmup=0)
     tiny = dict(levels=3, embed=4, unet_encoder=((4,), (4,), (4,)), unet_bottleneck=(4,),
@@ -161,7 +162,7 @@ class NPPD(Denoiser):
             pad = lambda t: replicate_pad(t.flatten(0, 1), (0, pw, 0, ph)).unflatten(0, t.shape[:2])  # noqa: E731
             radiance, features = pad(radiance), pad(features)
             motion = replicate_pad(motion, (0, pw, 0, ph))
-        colour = radiance.mean(dim=1)
+        colour = self.bound(radiance).mean(dim=1)          # what the pyramid filters (training.models.robust)
         feat = self.encode(radiance, self.masked(features))
         if state is None:
             prev = torch.zeros(colour.shape[0], 6 + self.embed, *colour.shape[-2:], dtype=colour.dtype,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
                      clean_radiance, conv_fmas, exp_kernels, gather, gaussian_kernel_bias, mlp,
                      prepare_inputs, xavier_init)
 from .registry import register
@@ -18,6 +18,7 @@ from .registry import register
 
 @register("pixelgather")
 class PixelGatherDenoiser(Denoiser):
+    outlier_bound = OUTLIER_K
     tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
 
     def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
@@ -48,7 +49,7 @@ class PixelGatherDenoiser(Denoiser):
 
     def denoise(self, radiance, features):
         kernels = self.pixel_kernels(radiance, features)
-        mean = clean_radiance(radiance).mean(dim=1)
+        mean = self.bound(clean_radiance(radiance)).mean(dim=1)
         ones = torch.ones_like(mean[:, :1])
         f = gather(torch.cat((mean, ones), dim=1), kernels, self.kernel_size)
         return f[:, :3] / (f[:, 3:4] + EPS)

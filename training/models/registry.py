@@ -71,9 +71,12 @@ def build(name: str, **cfg):
     cls = get(name)
     cfg = dict(cfg)
     features = cfg.pop("features", None)        # every model's setting (Denoiser.use_features)
+    outliers = cfg.pop("outliers", None)        # every model's setting (Denoiser.use_outliers)
     check_settings(name, cfg)
     try:
         model = cls(**cfg)
     except TypeError as e:
         raise ConfigError(f"bad settings for model {name!r}: {e}") from None
+    if outliers is not None:
+        model.use_outliers(outliers)
     return model if features is None else model.use_features(features)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
                      clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs,
                      splat_columns, xavier_init)
 from .registry import register
@@ -20,6 +20,7 @@ from .registry import register
 
 @register("samplesplat")
 class SampleSplatDenoiser(Denoiser):
+    outlier_bound = OUTLIER_K
     tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
 
     def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
@@ -48,7 +49,7 @@ class SampleSplatDenoiser(Denoiser):
 
     def denoise(self, radiance, features):
         kernels = self.sample_kernels(radiance, features)               # B S k2 H W
-        lin = clean_radiance(radiance)
+        lin = self.bound(clean_radiance(radiance))
         vals = torch.cat((lin, torch.ones_like(lin[:, :, :1])), dim=2)  # B S 4 H W
         b, s, k2, h, w = kernels.shape                                   # sum over samples before the fold:
         cols = torch.bmm(vals.permute(0, 3, 4, 2, 1).reshape(b * h * w, 4, s),      # one (4 x S) @ (S x k2)

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from core.checks import need
 
 from ..errors import ConfigError
-from ._pixel import PixelDenoiser
+from ._pixel import ALBEDO_OFFSET, PixelDenoiser
 from .common import conv_fmas
 from .registry import register
 
@@ -124,14 +124,15 @@ class WSKPN(PixelDenoiser):
     tiny = dict(widths=(6, 6), kernel_sizes=(3, 5))
 
     def __init__(self, widths=(14, 14, 14, 14, 14), kernel_sizes=(3, 5, 7, 9, 11, 13), fused: bool = False,
-                 temporal_frames: int = 1, temporal_alpha: float = 0.2):
+                 temporal_frames: int = 1, temporal_alpha: float = 0.2,
+                 albedo_offset: float = ALBEDO_OFFSET):
         widths = tuple(int(c) for c in widths)
         kernel_sizes = tuple(int(k) for k in kernel_sizes)
         need(all(c >= 1 for c in widths), '"widths"', "positive block widths", widths, ConfigError)
         need(bool(kernel_sizes) and all(k >= 1 and k % 2 for k in kernel_sizes), '"kernel_sizes"',
              "one or more odd sizes >= 1", kernel_sizes, ConfigError)
-        super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, widths=widths,
-                         kernel_sizes=kernel_sizes, fused=bool(fused))
+        super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, albedo_offset=albedo_offset,
+                         widths=widths, kernel_sizes=kernel_sizes, fused=bool(fused))
         self.kernel_sizes = kernel_sizes
         chans = (10, *widths, 2 * len(kernel_sizes))
         blocks = [RepVGGBlock(a, b, act=i < len(chans) - 2) for i, (a, b) in enumerate(zip(chans[:-1], chans[1:]))]
