@@ -13,17 +13,17 @@ So each model bounds the values its filter sees, per pixel, by the pixel's neigh
     bound(p) = k * level(p) + floor
 
 and every value of pixel ``p`` (each sample of a per-sample model, the pixel of a per-pixel one) whose
-luminance exceeds ``bound(p)`` is scaled down to it, hue kept (:func:`bound_outliers`). The level is a
-geometric mean of the neighbours, which one outlier among 24 raises by at most a factor
-``(1 + V)^(1/24)``, so a value's bound never follows the value. What is cut is not filtered: a bright
-value stays at most ``bound / (k * level)`` times its neighbours' level wherever a kernel carries it, and the
-cut energy is dropped, so the output underestimates the few true small emitters (the sun's disc, a lamp;
-their relMSE is then ~1 a pixel, bounded, where spreading cost up to 1e6 a pixel).
+luminance exceeds ``bound(p)`` is scaled down to it, hue kept (:func:`bound_outliers`). The level leaves
+the pixel out and is a geometric mean of its neighbours, which one outlier among them raises by a factor
+of at most ``(1 + V)^(1/24)``, so a value's bound never follows the value. Whatever a filter makes of the
+bounded values, what it carries to a pixel is at most about ``k`` times the level around its source; the
+cut energy is dropped, not filtered, so the output underestimates the few true small emitters (the sun's
+disc, a lamp): their relMSE is then at most about 1 a pixel, where spreading cost up to 1e6 a pixel.
 
-``k`` (the model setting ``outliers``; 0 turns the bound off) and the floor were chosen by measurement on
-the held-out hard-case suite and ordinary frames (docs/hard-cases.md, "What each model needed"). A
-checkpoint written before the setting existed builds with ``outliers: 0`` (``legacy_config``), as it was
-trained.
+``k`` (the model setting ``outliers``; 0 turns the bound off) was chosen by measurement on the held-out
+hard-case suite and ordinary frames (docs/hard-cases.md): 16 kept nbg and wskpn below their input on the
+sun where 64 did not always; the floor keeps values below 1 (dim frames) from ever being cut. A checkpoint
+written before the setting existed builds with ``outliers: 0`` (``legacy_config``), as it was trained.
 """
 from __future__ import annotations
 
