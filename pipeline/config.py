@@ -20,7 +20,7 @@ YAML layout (every key optional except ``scenes``; see ``configs/default.yaml``)
     store: {}                    # passed to the store writer (compression, chunks)
     split: null                  # scene split fractions (default train 0.8 / val 0.1 / test 0.1)
     clip_ids: balanced           # how scenes get their clip ids, hence their split (see below)
-    held_out: false              # true: scene seeds from the held-out space, split {test: 1} (see below)
+    held_out: false              # true: scene seeds from the held-out space; the split is {test: 1} (see below)
     tasks: {retries: 2, split_streams: null, reference_resources: null}
     cluster: {kind: local, workers: null, threads_per_worker: 1, ...}
 
@@ -43,7 +43,8 @@ combination; the rest of the scenes are ordinary). ``frames/case`` records every
 **Held-out datasets** (``held_out: true``, e.g. the hard-case suite ``configs/hard-cases.yaml``) take
 their scene seeds from [2**31, 2**32) and every other dataset from [0, 2**31) (:func:`scene_seed`), so
 no training config, whatever its root seed, draws a held-out scene; a held-out dataset's split is
-``{test: 1}``, and ``python -m training train`` refuses a store that records ``held_out``.
+``{test: 1}`` (the default there; any other is refused), and ``python -m training train`` refuses a store
+that records ``held_out``.
 
 Before anything runs, a frame must fit in a worker's memory: :func:`frame_bytes` (its arrays as
 rendered, twice: the parts and their store copy in the write task) against the memory of one
@@ -69,7 +70,7 @@ from stores.schema import StoreLayout
 
 CLIP_ID_SCHEMES = ("balanced", "scene_seed")
 SPLIT_SHUFFLE = 0x5B17           # SeedSequence([seed, SPLIT_SHUFFLE]) shuffles the balanced split
-CLIP_ID_STRIDE = 2 ** 31         # clip id candidates: scene_seed + j * stride (scene seeds are < 2**31)
+CLIP_ID_STRIDE = 2 ** 31         # clip id candidates: scene_seed + j * stride (distinct seeds, distinct ids)
 MAX_CLIP_ID_TRIES = 1_000_000
 CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
 MAX_RES = 16384
@@ -427,6 +428,8 @@ class DatasetConfig:
         need(self.clip_ids in CLIP_ID_SCHEMES, "dataset.clip_ids", f"one of {CLIP_ID_SCHEMES}", self.clip_ids,
              ConfigError)
         need(isinstance(self.held_out, bool), "dataset.held_out", "true or false", self.held_out, ConfigError)
+        if self.held_out and self.split is None:            # evaluation only: every scene in the test split
+            object.__setattr__(self, "split", {"test": 1.0})
         if self.held_out and (self.split_fractions.get("train", 0) > 0 or self.split_fractions.get("val", 0) > 0):
             raise ConfigError(f"dataset.held_out: a held-out dataset is for evaluation only: its split must be "
                               f"{{test: 1}}, got {self.split_fractions}")

@@ -11,8 +11,9 @@ default) leaves every scene exactly as before:
 - ``p_sun_in_view`` (outdoor): a ``sunsky`` scene's sun moves into the first camera's view: the direction
   through a random image point in the upper part of the frame, at least 2 degrees above the horizon; a
   camera whose frame shows no sky is first pitched up until the frame's top is 5-15 degrees above the
-  horizon, and a cyclorama backdrop (whose curve hides the sky) is laid flat; the objects stay where they
-  are (the sun may stand behind one). Scenes lit by a probe are left alone: about half of the outdoor
+  horizon, and a cyclorama backdrop (whose curve hides the sky) is laid flat; the sun is drawn among the
+  points of a random image column that lie above that; the objects stay where they are (the sun may
+  stand behind one). Scenes lit by a probe are left alone: about half of the outdoor
   scenes (``p_sunsky``) can show the sun;
 - ``p_lamps`` (indoor): one to three lamps, spheres of 1-3 cm radius and radiance 200-5000 (a bulb),
   floating in view at 30-80% of the way to the camera's look-at point;
@@ -71,22 +72,24 @@ def sun_in_view(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneSpe
     k = next((i for i, lt in enumerate(lights) if lt.kind == "sunsky"), None)
     if k is None:
         return spec
-    spec = flat_ground(spec)
-    v = view_of(spec, res)
+    out = flat_ground(spec)
+    v = view_of(out, res)
     top = math.asin(float(np.clip(v.f[1], -1, 1))) + math.atan(v.ty)        # elevation of the frame's top
     want = math.radians(rng.uniform(5.0, 15.0))
     if top < want:
-        spec = pitched(spec, want - top)
-        v = view_of(spec, res)
-    for _ in range(16):
-        px, py = rng.uniform(-0.85, 0.85), rng.uniform(0.1, 0.9)
-        d = v.f - v.r * px * v.tx + v.u * py * v.ty
-        d = d / np.linalg.norm(d)
-        if d[1] >= math.sin(MIN_SUN_ELEVATION):
-            params = {**lights[k].params, "sun_direction": [round(float(x), 6) for x in d]}
-            lights[k] = dataclasses.replace(lights[k], params=params)
-            return dataclasses.replace(spec, lights=tuple(lights))
-    return spec
+        out = pitched(out, want - top)
+        v = view_of(out, res)
+    px = rng.uniform(-0.85, 0.85)
+    py = np.linspace(0.0, 0.95, 96)
+    d = v.f[None] - v.r[None] * px * v.tx + v.u[None] * py[:, None] * v.ty      # the column at px, rows py
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    above = np.nonzero(d[:, 1] >= math.sin(MIN_SUN_ELEVATION))[0]
+    if above.size == 0:                       # no sky in this column: the scene stays as it was
+        return spec
+    sun = d[above[int(rng.integers(above.size))]]
+    lights[k] = dataclasses.replace(lights[k], params={**lights[k].params,
+                                                       "sun_direction": [round(float(x), 6) for x in sun]})
+    return dataclasses.replace(out, lights=tuple(lights))
 
 
 def flat_ground(spec: SceneSpec) -> SceneSpec:

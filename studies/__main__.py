@@ -43,6 +43,11 @@ def _scaling(a) -> int:
 
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
+    from stores.objectstore import quiet_abandoned_requests, retry_defaults
+    from training.accel import tune_allocator
+    tune_allocator()
+    retry_defaults()
+    quiet_abandoned_requests()
     from pipeline.errors import PipelineError
     from stores.errors import StoreError, exit_status, unreachable_exit
     from training.errors import TrainingError

@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from training import stats
+from training.errors import DataError
 from training.hardcases import NO_CASE, against_input, case_cell, vs_input_cell
 
 METRICS = ("relmse", "psnr")
@@ -32,6 +33,8 @@ def _rows(evaluations: list[dict]) -> list[dict]:
     """Per-frame rows averaged over several evaluations of the same frames (seeds): index, clip, relmse,
     psnr (inf where every seed's output is exact) and whether the values are finite."""
     first = evaluations[0]["frames"]
+    if any([g["index"] for g in ev["frames"]] != [f["index"] for f in first] for ev in evaluations):
+        raise DataError("the runs of one share were evaluated on other frames: evaluate them again")
     out = []
     for k, f in enumerate(first):
         row = {"index": int(f["index"]), "clip": int(f.get("clip", f["index"]))}

@@ -1,12 +1,13 @@
-"""What the data buys: denoiser quality against the number of training frames and their scene variety.
+"""What the data buys: denoiser quality against the number of training frames, their scene variety and
+their share of hard cases.
 
-``python -m training scaling --config configs/scaling-cpu.yaml [--out DIR] [--target-relmse X]`` (and
+``python -m studies scaling --config configs/scaling-cpu.yaml [--out DIR] [--target-relmse X]`` (and
 ``make scaling``) renders (or resumes) a training store and a held-out store of other seeds, trains each
 model of the config on nested subsets of the training frames (the same steps for every size, several
 seeds), evaluates every run on the same held-out frames, fits ``error(N) = a N^(-b) + c`` per model and
-metric (:mod:`training.scaling_fit`) and writes ``scaling.png``, ``scaling.md`` and ``scaling.json``
-(:mod:`training.scaling_report`). This module holds the settings and the plan; the runs are in
-:mod:`training.scaling_run`.
+metric (:mod:`studies.scaling_fit`) and writes ``scaling.png``, ``scaling.md`` and ``scaling.json``
+(:mod:`studies.scaling_report`). This module holds the settings and the plan; the runs are in
+:mod:`studies.scaling_run`.
 
 * **Nested subsets by clip** (:func:`nested_subsets`): the training clips (a still is a clip of one
   frame) in an order drawn from the seed; the subset of each size is the prefix of that order whose
@@ -15,6 +16,8 @@ metric (:mod:`training.scaling_fit`) and writes ``scaling.png``, ``scaling.md`` 
   includes which frames were drawn, not only the initial weights).
 * **Variety** (:func:`family_subsets`): the same number of frames from one scene family (indoor, outdoor)
   or from both (half each), evaluated on each family of the held-out frames.
+* **Hard-case share** (:func:`hard_subsets`, :mod:`studies.hard_share`): the same number of frames with
+  0%, 10%, 25% ... of them hard-case frames, evaluated on the held-out frames and the hard-case suite.
 * **Resumable**: a run folder whose evaluation is written for its settings, its final step and this
   held-out store counts as finished and is not trained or evaluated again; a run interrupted mid-way
   resumes from its checkpoint (``training.loop.train``).
@@ -158,9 +161,9 @@ class ScalingConfig:
         need_int("scaling.hard_share.frames", v.get("frames"), 1, 10_000_000, ConfigError)
         shares = v.get("shares") or [0.0, 0.1, 0.25]
         need(isinstance(shares, list) and all(is_number(x, finite=True) and 0 <= x <= 1 for x in shares)
-             and len(set(shares)) == len(shares) and 0 in shares, "scaling.hard_share.shares",
-             "distinct shares of hard-case frames in [0, 1], 0 among them (the others are compared with it)", shares,
-             ConfigError)
+             and len({round(100 * x) for x in shares}) == len(shares) and 0 in shares, "scaling.hard_share.shares",
+             "shares of hard-case frames in [0, 1] at least a percent apart, 0 among them (the others are compared "
+             "with it)", shares, ConfigError)
         need(self.hard_data is not None, "scaling.hard_data", "a held-out hard-case suite (e.g. "
              "configs/hard-cases.yaml) when hard_share is set", self.hard_data, ConfigError)
         return {"models": models, "seeds": seeds, "frames": int(v["frames"]), "shares": sorted(float(x) for x in shares)}
@@ -318,10 +321,10 @@ def clip_table(store, split: str) -> dict[int, dict]:
 
 @dataclass(frozen=True)
 class Job:
-    """One training run (``kind`` ``subset`` or ``variety``) or one baseline evaluation (``baseline``):
-    its folder under ``OUT/runs`` (``name``), model ``label``, seed, training frames and clips, the
-    subset's ``share`` or the variety ``family``, and its TrainConfig as a dict (a baseline: ``method``
-    and ``spp``, ``baseline_input``)."""
+    """One training run (``kind`` ``subset``, ``variety`` or ``hard``) or one baseline evaluation
+    (``baseline``): its folder under ``OUT/runs`` (``name``), model ``label``, seed, training frames and
+    clips, the subset's ``share`` (of the training frames; for ``hard``, of hard-case frames) or the variety
+    ``family``, and its TrainConfig as a dict (a baseline: ``method`` and ``spp``, ``baseline_input``)."""
     name: str
     label: str
     kind: str
@@ -358,6 +361,11 @@ def hard_share_jobs(scfg: ScalingConfig, frames: dict, cases: dict, record: dict
     jobs, record["hard_share"] = [], {}
     for seed in h["seeds"]:
         subs = hard_subsets(frames, cases, h["frames"], h["shares"], seed)
+        counts = [v["hard_frames"] for v in subs.values()]
+        if len(set(counts)) < len(counts):
+            raise DataError(f"scaling.hard_share: the shares {list(subs)} of {h['frames']} frames give "
+                            f"{counts} hard-case frames; two shares with the same count would be the same run: "
+                            "use shares further apart or more frames")
         record["hard_share"][str(seed)] = {str(k): v for k, v in subs.items()}
         for label in h["models"]:
             for share, sub in subs.items():

@@ -1,10 +1,10 @@
 """A scaling study's results: the analysis of its runs and the three files it writes.
 
-:func:`analyse` turns the runs' evaluations (``training.scaling_run`` records: per-frame metrics on the
+:func:`analyse` turns the runs' evaluations (``studies.scaling_run`` records: per-frame metrics on the
 same held-out frames) into the study's numbers: per model and metric the table of training-set sizes
 (mean over seeds, the seeds' range, a 95% interval over the held-out clips, the paired change from the
 next smaller set), the fit ``a N^(-b) + c`` with intervals or the reason there is none
-(:mod:`training.scaling_fit`), a verdict in one sentence, the cross-family matrix of the variety runs
+(:mod:`studies.scaling_fit`), a verdict in one sentence, the cross-family matrix of the variety runs
 and the frames a target needs with what rendering them costs. :func:`write_report` writes
 ``scaling.json`` (all of it), ``scaling.md`` (the tables) and ``scaling.png`` (the curves).
 """
@@ -61,7 +61,7 @@ def _interval(ci, f: str) -> str:
 
 
 def model_curve(jobs, records: dict, label: str, metric: str, clips, resamples: int) -> dict:
-    """One model's curve in one metric: its sizes (:func:`training.scaling_fit.size_table` without the
+    """One model's curve in one metric: its sizes (:func:`studies.scaling_fit.size_table` without the
     per-frame values), the paired change from each size to the next, the support and the fit."""
     sel = [j for j in jobs if j.kind == "subset" and j.label == label and j.name in records]
     points = [{"n": j.frames, "seed": j.seed, "values": frame_values(records[j.name], metric)[1]} for j in sel]
@@ -155,7 +155,7 @@ def cost_of(frames: float, costs: dict) -> dict:
 
 def price(answers: list[dict], costs: dict) -> None:
     """Add to every answered target what rendering its frames (and its interval's ends) costs (``costs``:
-    ``training.scaling_run.rendering_costs``)."""
+    ``studies.scaling_run.rendering_costs``)."""
     for a in answers:
         if "frames" in a:
             a["cost"] = cost_of(a["frames"], costs)
@@ -305,7 +305,9 @@ def intro_markdown(result: dict, scfg) -> list[str]:
             f"{held['clips']} clips ({fams}), rendered from other seeds")
     if result["stores"].get("hard_cases"):
         text += f", and the hard-case suite `{result['stores']['hard_cases']}` (seeds no training config draws)"
-    text += (f". Seeds {', '.join(map(str, scfg.seeds))}; every run is evaluated on all the held-out frames. A "
+    h = scfg.hard_share_plan()
+    seeds = sorted(set(scfg.seeds if scfg.subsets or scfg.variety else []) | set(h["seeds"] if h else []))
+    text += (f". Seeds {', '.join(map(str, seeds))}; every run is evaluated on all the held-out frames. A "
              "figure is the mean over its seeds; the 95% interval is a bootstrap over the held-out clips of the "
              "seeds-averaged per-frame values; Δ is a paired per-frame difference (\"better\"/\"worse\" where its "
              "interval excludes 0).")

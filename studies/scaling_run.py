@@ -1,4 +1,4 @@
-"""Running a scaling study (:mod:`training.scaling`): its stores, its runs side by side, their evaluation
+"""Running a scaling study (:mod:`studies.scaling`): its stores, its runs side by side, their evaluation
 on the held-out frames, and what rendering costs (``pipeline.estimate``).
 
 Each job runs in a worker process (``parallel`` at a time, ``threads`` torch threads each) and writes its
@@ -81,7 +81,6 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
     import torch
 
     from training.accel import tune_allocator
-    from training.evaluate import evaluate
     from training.loop import train
     tune_allocator()
     torch.set_num_threads(int(threads))
@@ -92,18 +91,11 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
     with open(run_dir / "run.log", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log), \
             warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="training without validation")   # judged on the held-out store
-        if job.kind == "baseline":
-            res = evaluate(job.method, heldout_store, split="test", spp=job.spp, with_flip=flip,
-                           baseline_input=job.baseline_input, device="auto")
-        else:
-            cfg = job.config()
-            if not _trained(run_dir, cfg.steps):
-                train(cfg, train_store, run_dir, progress=False)
-            res = evaluate(run_dir / "checkpoint.pt", heldout_store, split="test", with_flip=flip, device=cfg.device,
-                           precision=cfg.precision)
-        hard = suite_evaluation(job, run_dir, hard_store, flip) if hard_store and job.kind in ("hard", "baseline") \
-            else None
-    res = {k: v for k, v in res.items() if k not in ("images", "sample_map")}
+        if job.kind != "baseline" and not _trained(run_dir, job.config().steps):
+            train(job.config(), train_store, run_dir, progress=False)
+        res = job_evaluation(job, run_dir, heldout_store, flip)
+        hard = job_evaluation(job, run_dir, hard_store, flip, skip_bad_frames=True) \
+            if hard_store and uses_suite(job) else None
     seconds = time.perf_counter() - t0
     write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds,
                                   "cpu_seconds": time.process_time() - c0, "evaluation": res,
@@ -111,18 +103,29 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
     return {"name": job.name, "mean": res["mean"], "seconds": seconds, "cpu_seconds": time.process_time() - c0}
 
 
-def suite_evaluation(job: Job, run_dir: Path, hard_store: str, flip: bool) -> dict:
-    """``training.evaluate.evaluate`` of a run (or a baseline) on every frame of the hard-case suite (its
-    test split), the frames ``validate`` flags left out and named."""
+def job_evaluation(job: Job, run_dir: Path, store: str, flip: bool, skip_bad_frames: bool = False) -> dict:
+    """``training.evaluate.evaluate`` of a run's checkpoint (or a baseline) on the test split of ``store``
+    (``skip_bad_frames``: the frames ``validate`` flags left out and named, as on the hard-case suite)."""
     from training.evaluate import evaluate
     if job.kind == "baseline":
-        res = evaluate(job.method, hard_store, split="test", spp=job.spp, with_flip=flip, skip_bad_frames=True,
+        res = evaluate(job.method, store, split="test", spp=job.spp, with_flip=flip, skip_bad_frames=skip_bad_frames,
                        baseline_input=job.baseline_input, device="auto")
     else:
         cfg = job.config()
-        res = evaluate(run_dir / "checkpoint.pt", hard_store, split="test", with_flip=flip, skip_bad_frames=True,
+        res = evaluate(run_dir / "checkpoint.pt", store, split="test", with_flip=flip, skip_bad_frames=skip_bad_frames,
                        device=cfg.device, precision=cfg.precision)
     return {k: v for k, v in res.items() if k not in ("images", "sample_map")}
+
+
+def uses_suite(job: Job) -> bool:
+    """Whether a job is evaluated on a study's hard-case suite too: the share axis' runs and the baselines."""
+    return job.kind in ("hard", "baseline")
+
+
+def job_heldout(job: Job, heldout: dict, suite: dict | None) -> dict:
+    """What a job's record must have been evaluated on to count as finished: the held-out store, and the
+    suite for the jobs :func:`uses_suite` (so adding a suite to a study leaves its other runs finished)."""
+    return {**heldout, "hard_cases": suite} if suite is not None and uses_suite(job) else heldout
 
 
 def _ignore_interrupt() -> None:
@@ -153,12 +156,11 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
 
     from training.data import open_store
     heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
-    if hard_store:                  # the suite is part of what a finished run was evaluated on
-        heldout["hard_cases"] = json.loads(json.dumps(heldout_identity(open_store(hard_store))))
+    suite = json.loads(json.dumps(heldout_identity(open_store(hard_store)))) if hard_store else None
     runs = out / "runs"
     records, todo = {}, []
     for job in jobs:
-        rec = finished(job, runs / job.name, heldout)
+        rec = finished(job, runs / job.name, job_heldout(job, heldout, suite))
         if rec is None:
             todo.append(job)
         else:
@@ -171,8 +173,9 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
     pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
     try:
         for j in todo:
-            pool.apply_async(run_job, (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
-                                       heldout, hard_store), callback=lambda r: done.put((r, None)),
+            args = (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
+                    job_heldout(j, heldout, suite), hard_store)
+            pool.apply_async(run_job, args, callback=lambda r: done.put((r, None)),
                              error_callback=lambda e, name=j.name: done.put((name, e)))
         for k in range(1, len(todo) + 1):
             res, err = _next(done)
@@ -221,7 +224,7 @@ def rendering_costs(dcfg, out: Path, workers: int | None, store=None, log=print)
 
 def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, workers: int | None = None,
               progress: bool = True, log=print) -> dict:
-    """The whole study (``training.scaling``): the stores, every run, the analysis and the three files in
+    """The whole study (``studies.scaling``): the stores, every run, the analysis and the three files in
     ``out`` (default: the config's ``out``, else ``data/<name>``). ``targets`` (``{metric: value}``) are
     added to the config's. Returns the result written to ``scaling.json``."""
     from training.data import open_store
@@ -252,7 +255,8 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
                   seconds=time.perf_counter() - t0,
                   provenance=provenance([], stores, {"out": str(out)}))
     write_report(out, result, scfg)
-    log(f"scaling: wrote {out / 'scaling.md'}, scaling.png and scaling.json in {result['seconds']:.0f} s")
+    files = "scaling.md, scaling.png" if result["models"] else "scaling.md"
+    log(f"scaling: wrote {out}/{files} and scaling.json in {result['seconds']:.0f} s")
     from .scaling_report import targets_markdown
     for line in [mod["verdict"] for mod in result["models"].values()] + targets_markdown(result["targets"],
                                                                                            result["costs"]):

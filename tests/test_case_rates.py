@@ -84,7 +84,9 @@ def test_held_out_scenes_come_from_a_seed_space_no_other_dataset_draws():
             if not cfg.held_out:
                 assert all(f.seed < HELD_OUT_SEEDS for f in cfg.frames()), path.name
     with pytest.raises(ConfigError, match="held_out: a held-out dataset is for evaluation only"):
-        DatasetConfig.from_dict({"held_out": True, "scenes": [{"kind": "indoor", "count": 1}]})
+        DatasetConfig.from_dict({"held_out": True, "split": {"train": 1}, "scenes": [{"kind": "indoor", "count": 1}]})
+    plain = DatasetConfig.from_dict({"held_out": True, "scenes": [{"kind": "indoor", "count": 2}]})
+    assert plain.split == {"test": 1.0} and set(plain.scene_splits()) == {"test"}
 
 
 def test_training_refuses_a_held_out_store():

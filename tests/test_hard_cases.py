@@ -258,6 +258,11 @@ def test_hard_cases_command(case_store, runs, tmp_path, capsys):
     assert not any(f["kind"] == "not evaluated" for f in flags)
     assert "stage *model output*, method `poisoned`" in md and "| thin | finite |" in md
     assert "| black | finite | " in md and " / inf |" in md      # the table shows the perfect PSNR as inf
+    # each method against its own noisy input (the run reads 2 spp per sample: the input at 2 spp)
+    assert res["methods_info"]["good"]["input_label"] == "input" and res["methods_info"]["input"]["input_label"] is None
+    assert res["cases"]["black"]["good"]["vs_input"]["verdict"] in ("exact", "not exact")
+    assert "vs_input" not in res["cases"]["thin"]["input"] and "relmse_ci95" in res["cases"]["thin"]["good"]
+    assert "Against its own noisy input" in md
     # without the poisoned run nothing is wrong: the nan frame's replaced NaN are its case's purpose
     assert main(["hard-cases", "--store", case_store, "--runs", str(runs / "good"), "--no-oidn",
                  "--out", str(tmp_path / "good")]) == 0
@@ -270,3 +275,38 @@ def test_outlier_rule():
     assert [(f["case"], f["frame"], f["kind"]) for f in res["flags"]] == [("d", 3, "error")]
     res = summarize([{"label": "m", "frames": rows[:3]}], ["a", "b", "c"], [])
     assert res["flags"] == []
+
+
+def test_each_method_is_judged_against_its_own_input_with_intervals():
+    """Six frames of a case in three clips: a method far below its input is better, one above it worse, one
+    level with it shows no difference; where the input is exact, a method is exact or not."""
+    from training.hardcases import hard_case_table, link_inputs, summarize
+    rng = np.random.default_rng(0)
+
+    def ev(label, method, rel, psnr, spp=1, kind="pixels"):
+        rows = [{"index": i, "clip": i // 2, "relmse": max(rel + rng.normal(0, 0.01), 0.0) if rel else 0.0,
+                 "psnr": psnr + rng.normal(0, 0.1) if np.isfinite(psnr) else psnr, "finite": True} for i in range(6)]
+        return {"label": label, "method": method, "spp": spp, "input_kind": kind, "frames": rows}
+    noisy = ev("input", "input", 1.0, 20.0)
+    same = {**noisy, "label": "same", "method": "nbg", "frames": [dict(r) for r in noisy["frames"]]}
+    for r, sign in zip(same["frames"], (1, -1, -1, 1, 1, -1)):      # level with the input: +-0.05 per clip
+        r["relmse"] += 0.05 * sign
+    evals = [ev("good", "nbg", 0.2, 25.0), ev("bad", "nbg", 2.0, 15.0), same, noisy,
+             ev("other", "layer", 0.1, 30.0, spp=8, kind="samples"), ev("input @8spp", "input", 0.5, 22.0, spp=8)]
+    link_inputs(evals)
+    assert [e.get("input_label") for e in evals] == ["input", "input", "input", None, "input @8spp", None]
+    res = summarize(evals, ["a"] * 6, [])
+    cell = res["cases"]["a"]
+    assert cell["good"]["vs_input"]["verdict"] == "beats" and cell["bad"]["vs_input"]["verdict"] == "worse"
+    assert cell["same"]["vs_input"]["verdict"] == "not shown"
+    d = cell["good"]["vs_input"]["relmse"]
+    assert d["mean"] == pytest.approx(-0.8, abs=0.02) and d["ci95"][1] < 0 and cell["good"]["vs_input"]["frames"] == 6
+    assert cell["other"]["vs_input"]["input"] == "input @8spp"
+    lo, hi = cell["good"]["relmse_ci95"]
+    assert lo < cell["good"]["relmse"] < hi
+    md = hard_case_table(res)
+    assert ": better" in md and ": **worse**" in md and "no difference shown" in md
+    black = [ev("zero", "nbg", 0.0, float("inf")), ev("leak", "nbg", 0.1, 40.0), ev("input", "input", 0.0, float("inf"))]
+    link_inputs(black)
+    cell = summarize(black, ["black"] * 6, [])["cases"]["black"]
+    assert cell["zero"]["vs_input"]["verdict"] == "exact" and cell["leak"]["vs_input"]["verdict"] == "not exact"

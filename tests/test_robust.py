@@ -8,7 +8,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from training.inputs import KINDS
 from training.models import build, get, names
 from training.models.robust import OUTLIER_FLOOR, bound_outliers, neighbourhood_level
 
@@ -78,13 +77,31 @@ def test_the_bound_is_the_neighbourhoods_level():
     assert torch.equal(out[..., :4, :], rad[..., :4, :]) and torch.equal(bound_outliers(rad, 0.0), rad)
 
 
-def test_an_old_checkpoint_builds_as_it_was_trained(tmp_path):
+def test_an_old_checkpoint_builds_and_resumes_as_it_was_trained(tmp_path):
+    """A checkpoint without the settings ``outliers`` and ``albedo_offset`` (written before they existed)
+    builds with the values it was trained with, and a run resumed from it trains that model on."""
+    from test_training import make_store
     from training import checkpoint as ckpt
+    from training.config import TrainConfig
+    from training.loop import train
+    from training.models._pixel import DEMOD_EPS
     m = build("nbg", **get("nbg").tiny)
-    ck = {"model": "nbg", "model_config": {k: v for k, v in m.config.items() if k != "outliers"},
-          "state_dict": m.state_dict()}
-    assert ckpt.build_model(ck).outliers == 0.0 and ckpt.build_model({**ck, "model_config": m.config}).outliers > 0
-    assert all(KINDS[get(n).inputs.kind] for n in BOUNDED)
+    old = {k: v for k, v in m.config.items() if k not in ("outliers", "albedo_offset")}
+    ck = {"model": "nbg", "model_config": old, "state_dict": m.state_dict()}
+    built = ckpt.build_model(ck)
+    assert (built.outliers, built.albedo_offset) == (0.0, DEMOD_EPS)
+    assert ckpt.build_model({**ck, "model_config": m.config}).outliers == get("nbg").outlier_bound > 0
+    store = make_store(tmp_path / "s.zarr", h=16, w=16, per_split=(2, 1, 1))
+    cfg = TrainConfig.from_dict({"model": "nbg", "steps": 2, "batch": 1, "crop": 16, "val_every": 0, "workers": 0,
+                                 "model_cfg": dict(get("nbg").tiny)})
+    train(cfg, store, tmp_path / "run", progress=False, stop_after=1)
+    saved = ckpt.load(tmp_path / "run" / "checkpoint.pt")
+    saved["model_config"] = {k: v for k, v in saved["model_config"].items() if k not in ("outliers", "albedo_offset")}
+    torch.save(saved, tmp_path / "run" / "checkpoint.pt")             # as a run begun before the settings
+    train(cfg, store, tmp_path / "run", progress=False)
+    resumed = ckpt.load(tmp_path / "run" / "checkpoint.pt")
+    assert resumed["step"] == 2 and resumed["model_config"]["outliers"] == 0.0
+    assert resumed["model_config"]["albedo_offset"] == DEMOD_EPS
 
 
 @pytest.mark.parametrize("name", ["nbg", "wskpn"])

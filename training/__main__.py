@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 from .jsonio import dumps
@@ -91,10 +90,17 @@ def _hard_cases(a) -> int:
     return hard_cases_cli(a)
 
 
-def run_study_command(argv: list[str]) -> None:
+def run_study_command(argv: list[str]) -> int:
     """``python -m training scaling ARGS``: the study lives above training and pipeline (``studies``, which
-    neither imports), so this command becomes ``python -m studies scaling ARGS`` in this process."""
-    os.execv(sys.executable, [sys.executable, "-m", "studies", "scaling", *argv])
+    neither imports), so this command runs ``python -m studies scaling ARGS`` as a program of its own and
+    ends with its exit code. Ctrl-C reaches both; this one waits for the study to stop by itself."""
+    import subprocess
+    p = subprocess.Popen([sys.executable, "-m", "studies", "scaling", *argv])
+    while True:
+        try:
+            return p.wait()
+        except KeyboardInterrupt:
+            continue
 
 
 def _model_names() -> str:
@@ -230,7 +236,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["scaling"]:
-        run_study_command(argv[1:])
+        return run_study_command(argv[1:])
     a = parser().parse_args(argv)
     from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause, unreachable_exit
     from stores.objectstore import quiet_abandoned_requests, retry_defaults

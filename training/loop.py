@@ -39,7 +39,7 @@ from .config import TrainConfig
 from .data import batch_loader, batches_per_epoch, draws_per_epoch, model_dataset, open_store, to_device
 from .errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from .losses import build_loss
-from .models import build
+from .models import build, get
 from .models.common import flush_denormals
 
 DEFAULT_CROP = 128
@@ -335,12 +335,12 @@ def _train(cfg: TrainConfig, store, out, dist: distributed.Dist, device_name: st
            stop_after: int | None, seconds: float | None = None) -> dict:
     if seconds is not None and not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds > 0):
         raise ConfigError(f"--seconds must be a number of seconds > 0, got {seconds!r}")
+    store = open_store(store)
+    refuse_held_out(store)
     out = _prepare_out(out, dist.rank)
     device = accel.pick_device(device_name)
     precision = accel.precision_for(cfg.precision, device)
     flush_denormals()
-    store = open_store(store)
-    refuse_held_out(store)
     if cfg.crop is None:                    # the paper's 128 px, or whole frames of a smaller store
         cfg = cfg.replace(crop=min(DEFAULT_CROP, store.layout.height, store.layout.width))
     if dist.enabled and cfg.batch % dist.world:
@@ -398,6 +398,10 @@ class _Run:
             raise CheckpointError(f"{path} was trained with other settings (setting: (checkpoint, now)): {diff}")
         ckpt.check_store(ck, self.store.schema_version, path)
         check_same_store(ck, self.store_info, path)
+        trained = {**get(cfg.model).legacy_config, **ck["model_config"]}
+        if trained != self.module.config:           # begun before a model setting existed: go on as it began
+            self.module = accel.prepare(build(cfg.model, **trained), self.device)
+            self.optimizer = accel.adam(self.module.parameters(), cfg.lr)
         self.module.load_state_dict(ck["state_dict"])
         accel.load_optimizer_state(self.optimizer, ck["optimizer"])
         ckpt.set_rng_state(ck["rng"])

@@ -375,7 +375,7 @@ class Denoiser(nn.Module):
     train_defaults: dict = {}
     tiny: dict = {}
     realtime = False        # a real-time denoiser: compiled with CUDA graphs on a GPU (training.accel)
-    outlier_bound = 0.0     # the default of the setting ``outliers`` (training.models.robust; 0: off)
+    outlier_bound = 0.0     # the default of the setting ``outliers`` (training.models.robust; 0: the model has none)
     # settings a checkpoint written before they existed was trained with (training.checkpoint.build_model)
     legacy_config: dict = {"outliers": 0.0}
 
@@ -411,8 +411,12 @@ class Denoiser(nn.Module):
         """Bound what the model's filter spreads: values above ``k`` times their neighbourhood's level are
         cut before filtering (:func:`training.models.robust.bound_outliers`; 0: off). The model setting
         ``outliers`` (``--model-cfg '{"outliers": 0}'``); the kernel-predicting models default to
-        :data:`training.models.robust.OUTLIER_K`."""
-        self.outliers = check_outliers(k)
+        :data:`training.models.robust.OUTLIER_K`. The temporal family has no bound (it stayed below its
+        input on the fireflies and the sun without one): it refuses ``outliers`` above 0."""
+        k = check_outliers(k)
+        if k and not type(self).outlier_bound:
+            raise ConfigError(f'model {self.name!r} does not bound its filter input: "outliers" must be 0, got {k:g}')
+        self.outliers = k
         self.config["outliers"] = self.outliers
         return self
 
