@@ -34,9 +34,10 @@ def parser() -> argparse.ArgumentParser:
 
 
 def _scaling(a) -> int:
-    from .scaling import load_scaling_config
+    from .scaling import check_targets, load_scaling_config
     from .scaling_run import run_study
     targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
+    check_targets(targets, "--target")
     run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
     return 0
 

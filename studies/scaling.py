@@ -40,6 +40,20 @@ SUBSET_SALT = 0x5CA1E
 FAMILY_MIX = "both"
 
 
+TARGET_RANGES = {"relmse": "a relMSE > 0", "smape": "a SMAPE in (0, 1)", "flip": "a FLIP in (0, 1)",
+                 "psnr": "a PSNR > 0 dB", "ssim": "an SSIM in (0, 1)", "tpsnr": "a tPSNR > 0 dB"}
+
+
+def check_targets(targets: dict, where: str) -> None:
+    """Targets to invert (``{metric: value or None}``): known metrics, each a value the metric can take
+    (ConfigError naming ``where.metric``; ``--target-psnr -5`` included)."""
+    known_keys(targets, LOWER_IS_BETTER, where, ConfigError)
+    for k, v in targets.items():
+        bounded = k in ("smape", "flip", "ssim")
+        ok = v is None or (is_number(v, finite=True) and v > 0 and (not bounded or v < 1))
+        need(ok, f"{where}.{k}", f"null or {TARGET_RANGES[k]}", v, ConfigError)
+
+
 @dataclass(frozen=True)
 class ScalingConfig:
     """A scaling study (``configs/scaling-*.yaml``). ``train_data`` and ``heldout_data``: dataset configs
@@ -91,9 +105,7 @@ class ScalingConfig:
              list(self.seeds), ConfigError)
         need(len(self.metrics) >= 1 and all(m in LOWER_IS_BETTER for m in self.metrics), "scaling.metrics",
              f"a list of {sorted(LOWER_IS_BETTER)}", list(self.metrics), ConfigError)
-        known_keys(self.targets, LOWER_IS_BETTER, "scaling.targets", ConfigError)
-        for k, v in self.targets.items():
-            need(v is None or is_number(v, finite=True), f"scaling.targets.{k}", "a number or null", v, ConfigError)
+        check_targets(self.targets, "scaling.targets")
         need_int("scaling.parallel", self.parallel, 0, 256, ConfigError)
         need_int("scaling.threads", self.threads, 1, 1024, ConfigError)
         need_int("scaling.resamples", self.resamples, 50, 100_000, ConfigError)
@@ -124,6 +136,8 @@ class ScalingConfig:
                 cfg = TrainConfig.from_dict({**self.train, **m})
             except (ConfigError, UnknownModelError) as e:
                 raise ConfigError(f"scaling.models[{i}] ({label}): {e}") from e
+            need(cfg.steps >= 1, f"scaling.models[{i}].steps", "an integer >= 1 (a run of 0 steps has no checkpoint "
+                 "to evaluate)", cfg.steps, ConfigError)
             out.append((label, cfg))
         labels = [lab for lab, _ in out]
         need(len(set(labels)) == len(labels) and all("/" not in lab for lab in labels), "scaling.models",

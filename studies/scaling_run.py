@@ -226,12 +226,21 @@ def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, wor
               progress: bool = True, log=print) -> dict:
     """The whole study (``studies.scaling``): the stores, every run, the analysis and the three files in
     ``out`` (default: the config's ``out``, else ``data/<name>``). ``targets`` (``{metric: value}``) are
-    added to the config's. Returns the result written to ``scaling.json``."""
+    added to the config's. Returns the result written to ``scaling.json``. One study a folder at a time:
+    ``out`` holds a :class:`stores.lock.StoreLock` while the study runs (a second is refused, naming the
+    first; a dead one's is taken over)."""
+    from stores.lock import StoreLock
+    out = Path(out or scfg.out or f"data/{scfg.name}")
+    with StoreLock(str(out), command=f"studies scaling {scfg.name}"):     # one study a folder at a time
+        return _run_study(scfg, out, targets, workers, progress, log)
+
+
+def _run_study(scfg: ScalingConfig, out: Path, targets: dict | None, workers: int | None, progress: bool,
+               log) -> dict:
     from training.data import open_store
     from training.report import provenance
     from .scaling_report import analyse, price, write_report
     t0 = time.perf_counter()
-    out = Path(out or scfg.out or f"data/{scfg.name}")
     workers = workers or scfg.workers
     train_cfg, held_cfg = scfg.dataset_configs()
     train_path = ensure_store(train_cfg, out, workers, progress)

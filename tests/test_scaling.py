@@ -306,3 +306,19 @@ def test_hard_share_analysis_on_synthetic_results(tmp_path):
                  "| sun |", ": better", "input @1spp"):
         assert text in md, text
     assert not (tmp_path / "scaling.png").exists()                      # no size axis, no curves
+
+
+def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path):
+    from stores.errors import StoreLockedError
+    from stores.lock import StoreLock
+    from studies.__main__ import main
+    from studies.scaling_run import run_study
+    with pytest.raises(ConfigError, match=r"scaling.models\[0\].steps must be an integer >= 1"):
+        _config(models=[{"model": "nbg", "steps": 0}])
+    with pytest.raises(ConfigError, match=r"scaling.targets.psnr must be null or a PSNR > 0 dB, got -5"):
+        _config(targets={"psnr": -5})
+    assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--target-psnr", "-5",
+                 "--out", str(tmp_path / "x")]) == 2
+    with StoreLock(str(tmp_path / "study")):           # another study runs in this folder
+        with pytest.raises(StoreLockedError, match="dataset.lock"):
+            run_study(_config(), tmp_path / "study", progress=False)
