@@ -349,6 +349,7 @@ def run(args) -> int:
     need(workers >= 1, "--workers", ">= 1", workers, ConfigError)
     threads = args.threads or cfg.cluster.threads_per_worker
     concurrent = args.concurrent if args.concurrent is not None else min(workers, local_slots(threads))
+    cfg.check_memory(workers=concurrent)       # the calibration renders its frames in this machine's memory
     W, H = cfg.resolution
     print(f"estimate for {args.config}: {cfg.num_scenes} scenes, {cfg.num_frames} frames at {W}x{H}", flush=True)
     t0 = time.perf_counter()

@@ -90,6 +90,11 @@ def test_estimate_bad_input_is_exit_2(tmp_path, capsys):
     bad.write_text(CONFIG.replace("spp: 4,", "spp: 0,"))
     assert main(["estimate", "--config", str(bad)]) == 2
     assert "spp" in capsys.readouterr().err
+    huge = tmp_path / "huge.yaml"                        # inside the allowed range, beyond this machine's memory
+    huge.write_text(CONFIG.replace("resolution: [12, 8]", "resolution: 16384"))
+    assert main(["estimate", "--config", str(huge)]) == 2
+    err = capsys.readouterr().err
+    assert "resolution 16384x16384 cannot be rendered" in err and "Traceback" not in err and len(err.splitlines()) == 1
 
 
 def test_calibration_renders_side_by_side(estimated):
