@@ -39,11 +39,19 @@ def _rows(evaluations: list[dict]) -> list[dict]:
     for k, f in enumerate(first):
         row = {"index": int(f["index"]), "clip": int(f.get("clip", f["index"]))}
         for m in METRICS:
-            row[m] = float(np.mean([np.nan if ev["frames"][k].get(m) is None else ev["frames"][k][m]
-                                    for ev in evaluations]))
+            row[m] = float(np.mean([_value(ev["frames"][k], m) for ev in evaluations]))
         row["finite"] = bool(np.isfinite(row["relmse"]) and not np.isnan(row["psnr"]))
         out.append(row)
     return out
+
+
+def _value(frame: dict, metric: str) -> float:
+    """A record's per-frame figure; strict JSON writes a non-finite number as null: a PSNR of null is the
+    +inf of an exact output (relMSE 0), anything else null is NaN."""
+    v = frame.get(metric)
+    if v is not None:
+        return float(v)
+    return math.inf if metric == "psnr" and frame.get("relmse") == 0.0 else math.nan
 
 
 def _by_case(rows: list[dict], cases: dict) -> dict:
