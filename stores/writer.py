@@ -204,6 +204,12 @@ class StoreWriter:
         lost -= set(idx) | set(failures)
         failures.update({i: f"damaged: a metadata chunk of this frame could not be read and was written "
                             "again; the frame is rendered again" for i in sorted(lost)})
+        # The first commit into a chunk of META_CHUNK frames makes its flag chunk (all False) before
+        # status/error: a status/error chunk without its flag chunk then only ever means a lost flag
+        # (damage), and an interruption inside this commit leaves its frames incomplete, never damaged.
+        fresh = schema.missing_chunks(self.root, idx + [int(i) for i in failures], self.version,
+                                      paths=["status/complete"])
+        _set_many(self._array("status/complete"), [(i, False) for i in sorted(fresh)])
         lost = _set_many(self._array("status/error"), [(i, "") for i in idx] +
                          [(int(i), text or "failed") for i, text in failures.items()])
         # last: the flags (a damaged flag chunk is rebuilt with its other frames incomplete: fill False)

@@ -644,3 +644,34 @@ def test_v3_a_clips_scene_json_is_written_only_where_it_is_missing_or_damaged(tm
     os.unlink(f)
     StoreWriter(path).write_scene_json(0, text)
     assert validate_store(path).ok
+
+
+@pytest.mark.parametrize("frame", [0, schema.META_CHUNK + 1])
+def test_v3_an_interruption_inside_a_chunks_first_commit_leaves_its_frame_incomplete_not_damaged(
+        tmp_path, monkeypatch, capsys, frame):
+    """A commit killed after it wrote ``status/error`` and before ``status/complete`` (the last write), in
+    the first commit into a chunk of META_CHUNK frames (the store's first, and one past a chunk
+    boundary): validate says incomplete (exit 1), never damaged (exit 3), and a resume completes it."""
+    import stores.writer as writer_mod
+    path = tmp_path / "s.zarr"
+    layout = StoreLayout(num_frames=schema.META_CHUNK + 3, height=H, width=W, spp=S, tile=8)
+    w = open_or_create(path, layout, {})
+    if frame:
+        w.write_frame(0, synthetic_frame(0, H, W, S, motion=False))
+    real = writer_mod._set_many
+
+    def killed_at_the_flags(arr, values):
+        if arr.path == "status/complete" and any(v is True for _, v in values):
+            raise KeyboardInterrupt
+        return real(arr, values)
+    monkeypatch.setattr(writer_mod, "_set_many", killed_at_the_flags)
+    with pytest.raises(KeyboardInterrupt):
+        w.write_frame(frame, synthetic_frame(frame, H, W, S, motion=False))
+    monkeypatch.setattr(writer_mod, "_set_many", real)
+    code = pipeline_main(["validate", str(path), "--frames", f"{frame}"])
+    out = capsys.readouterr()
+    assert code == EXIT_PROBLEMS, out.out + out.err
+    assert "status/complete" not in out.out + out.err and "DAMAGED" not in out.out + out.err
+    assert frame in StoreWriter(path).incomplete_frames()
+    StoreWriter(path).write_frame(frame, synthetic_frame(frame, H, W, S, motion=False))
+    assert open_store(path).frames_meta(frame)["complete"]

@@ -398,3 +398,49 @@ def test_export_and_training_read_from_s3_what_a_local_copy_holds(synthetic_s3, 
                        text=True, timeout=300)
     assert r.returncode == 0 and (tmp_path / "run" / "checkpoint.pt").exists(), r.stderr[-3000:]
     assert SECRET not in r.stdout + r.stderr
+
+
+def test_an_endpoint_gone_inside_a_first_commit_leaves_the_frame_incomplete_not_damaged(s3, monkeypatch, capsys):
+    """The endpoint dies during the PUT of a chunk's first completion flags (after status/error was
+    written), in the store's first chunk and one past a chunk boundary: the write ends unreachable (exit
+    5); with the endpoint back, validate says incomplete (exit 1), never damaged (exit 3), and the frame
+    is written again."""
+    import s3fs
+
+    import stores.writer as writer_mod
+    from pipeline.__main__ import main
+    from stores import schema
+    from stores.errors import exit_status
+    from stores.reader import open_store
+    from stores.schema import StoreLayout
+    from stores.writer import StoreWriter, open_or_create
+    from test_stores_synthetic import synthetic_frame
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    s3fs.S3FileSystem.clear_instance_cache()
+    url = s3("first-commit")
+    w = open_or_create(url, StoreLayout(num_frames=schema.META_CHUNK + 2, height=8, width=8, spp=2, tile=8), {})
+    real = writer_mod._set_many
+
+    def endpoint_dies_at_the_flags(arr, values):
+        if arr.path == "status/complete" and any(v is True for _, v in values):
+            s3.stop()
+        return real(arr, values)
+    try:
+        for frame in (0, schema.META_CHUNK + 1):
+            monkeypatch.setattr(writer_mod, "_set_many", endpoint_dies_at_the_flags)
+            with pytest.raises(Exception) as e:
+                w.write_frame(frame, synthetic_frame(frame, 8, 8, 2, motion=False))
+            assert exit_status(e.value) == 5, repr(e.value)
+            monkeypatch.setattr(writer_mod, "_set_many", real)
+            s3.start()
+            s3fs.S3FileSystem.clear_instance_cache()
+            w = StoreWriter(url)
+            assert main(["validate", url, "--frames", str(frame)]) == 1
+            text = capsys.readouterr().out
+            assert "incomplete" in text and "DAMAGED" not in text, text
+            w.write_frame(frame, synthetic_frame(frame, 8, 8, 2, motion=False))
+            assert open_store(url).frames_meta(frame)["complete"]
+    finally:
+        if s3.srv is None:
+            s3.start()
+        s3fs.S3FileSystem.clear_instance_cache()
