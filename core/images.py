@@ -103,7 +103,15 @@ def write_exr(path: str | Path, image, channels="RGB", half: bool = False) -> Pa
     chans = {c: np.ascontiguousarray(img[..., i]) for i, c in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, chans) as f:
-        f.write(str(path))
+        try:
+            f.write(str(path))
+        except RuntimeError as e:         # OpenEXR's bindings raise a RuntimeError with the system's text
+            if "no space left on device" in str(e).lower() or "disk quota exceeded" in str(e).lower():
+                import errno
+                code = errno.ENOSPC if "no space" in str(e).lower() else errno.EDQUOT
+                raise OSError(code, "No space left on device" if code == errno.ENOSPC else "Disk quota exceeded",
+                              str(path)) from e
+            raise
     return path
 
 

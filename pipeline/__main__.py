@@ -62,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as e:                    # an s3:// store's endpoint is gone: 5; anything else is raised
-        return unreachable_exit(e, getattr(args, "store", None) or getattr(args, "out", None))
+        return unreachable_exit(e, getattr(args, "store", None) or getattr(args, "out", None),
+                                getattr(args, "out", None))
 
 
 if __name__ == "__main__":

@@ -185,15 +185,43 @@ def raise_if_unreachable(e: BaseException, store=None, doing: str = "") -> None:
         raise store_unreachable(store if store is not None else "the store", e, doing) from e
 
 
-def unreachable_exit(e: BaseException, store=None) -> int:
+def unreachable_exit(e: BaseException, store=None, out=None) -> int:
     """A command's last handler: for a failed connection to the object store of ``store`` (anywhere in
-    ``e``'s chain), one line on stderr naming the endpoint and the last error, and exit code 5; any other
+    ``e``'s chain), one line on stderr naming the endpoint and the last error, and exit code 5; for a
+    full disk or quota (``ENOSPC``, ``EDQUOT`` anywhere in the chain: a checkpoint, an evaluation, an
+    export being written), one line naming the file and the free space there, and exit code 4, as
+    ``dataset`` gives (``out``: the command's output, named where the error names no file); any other
     error is raised again, traceback and all."""
     import sys
-    if unreachable_cause(e) is None:
+    if unreachable_cause(e) is None and not is_disk_full(e):
         raise e
-    print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
-    return StoreUnreachableError.exit_code
+    if unreachable_cause(e) is not None:
+        print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
+        return StoreUnreachableError.exit_code
+    print(f"error: {disk_full(e, out)}", file=sys.stderr)
+    return StoreFullError.exit_code
+
+
+def disk_full(e: BaseException, out=None) -> StoreFullError:
+    """The :class:`StoreFullError` for the full-disk error in ``e``'s chain that is not a store's (a run's
+    checkpoint, an evaluation's JSON, an export): one line naming the file (else ``out``, the command's
+    output), the free space on its device and what to do."""
+    import os
+    seen, cause = set(), e
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, OSError) and cause.errno in DISK_FULL_ERRNOS:
+            break
+        cause = cause.__cause__ or cause.__context__
+    if isinstance(cause, StoreFullError) or cause is None:
+        return cause or StoreFullError(str(e))
+    where = os.fspath(cause.filename) if getattr(cause, "filename", None) else None
+    where = where or (os.fspath(out) if out is not None else None)
+    free = _free_bytes(os.path.dirname(os.path.abspath(where))) if where and "://" not in where else None
+    at = f" writing {where}" if where else ""
+    have = f"; {_size(free)} free there" if free is not None else ""
+    return StoreFullError(f"no space left on the device{at} ({os.strerror(cause.errno)}{have}): free space and run "
+                          "the same command again (a training run resumes from its last checkpoint.pt)")
 
 
 def exit_status(e: BaseException, default: int = 2) -> int:
@@ -202,14 +230,14 @@ def exit_status(e: BaseException, default: int = 2) -> int:
     4 a full disk), else ``default``."""
     if unreachable_cause(e) is not None:
         return StoreUnreachableError.exit_code
-    seen = set()
+    seen, first = set(), e
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         code = getattr(e, "exit_code", None)
         if isinstance(code, int):
             return code
         e = e.__cause__
-    return default
+    return StoreFullError.exit_code if is_disk_full(first) else default
 
 
 def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreachableError:

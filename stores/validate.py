@@ -366,7 +366,7 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as e:
-        return unreachable_exit(e, getattr(args, "store", None))
+        return unreachable_exit(e, getattr(args, "store", None), getattr(args, "out", None))
 
 
 def main(argv=None) -> int:

@@ -62,7 +62,7 @@ def main(argv=None) -> int:
               "resumes", file=sys.stderr)
         return 130
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
-        return unreachable_exit(err, None)
+        return unreachable_exit(err, None, getattr(a, "out", None))
 
 
 if __name__ == "__main__":

@@ -223,3 +223,23 @@ def test_a_full_disk_is_one_line_with_its_own_exit_code_and_the_store_resumes(sm
     r = _dataset(out)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
     assert "4/4 complete" in r.stdout and "validation: ok" in r.stdout
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate", "export"])
+def test_a_full_disk_under_any_commands_output_is_exit_4_in_one_line(small_disk, tmp_path, command):
+    """train (its checkpoint), evaluate (its JSON) and export (its files) on a full disk: one line naming
+    the file and the free space there, exit 4 (as dataset), never an ENOSPC traceback and exit 1."""
+    from test_training import make_store
+    store = make_store(tmp_path / "s.zarr", h=16, w=16, spp=2, per_split=(2, 1, 1))
+    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
+    (small_disk / "filler").write_bytes(b"\0" * free)
+    argv = {"train": ["training", "train", "--model", "nbg", "--store", str(store), "--steps", "1", "--crop", "8",
+                      "--batch", "1", "--out", str(small_disk / "run"), "--no-progress"],
+            "evaluate": ["training", "evaluate", "--checkpoint", "input", "--store", str(store), "--out",
+                         str(small_disk / "e.json"), "--no-flip"],
+            "export": ["pipeline", "export", str(store), "--format", "exr", "--out", str(small_disk / "exr")]}[command]
+    r = subprocess.run([sys.executable, "-m", *argv], env=_env(), cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 4, r.stdout[-2000:] + r.stderr[-3000:]
+    line = _one_line_error(r)
+    assert "no space left on the device" in line and str(small_disk) in line, line

@@ -262,19 +262,20 @@ def main(argv=None) -> int:
         print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
-        return unreachable_exit(err, getattr(a, "store", None))
+        return unreachable_exit(err, getattr(a, "store", None), getattr(a, "out", None))
 
 
 EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values
 EXIT_ERROR = 2      # bad settings, a store that cannot be used as asked, a bad checkpoint
 EXIT_DAMAGED = 3    # the store is damaged (missing, truncated or corrupt files): see `python -m pipeline validate`
-EXIT_FULL = 4       # the disk of the run's output or store is full
+EXIT_FULL = 4       # a disk is full: the store's, or the run's output's (checkpoint, evaluation, export)
 EXIT_UNREACHABLE = 5   # the object store of an s3:// store could not be reached (botocore's retries spent)
 EXIT_INTERRUPTED = 130
 EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/Inf) or hard-cases found problems "
                    "(non-finite outputs or stored values); 2 bad settings, or a store, split or checkpoint that "
                    "cannot be used as asked (frames validate flags included: --skip-bad-frames leaves them out); "
-                   "3 the store is damaged (see python -m pipeline validate); 4 the store's disk is full; 5 the S3 "
+                   "3 the store is damaged (see python -m pipeline validate); 4 a disk is full (the store's, or that of a "
+                   "checkpoint, evaluation or export being written); 5 the S3 "
                    "endpoint of an s3:// store could not be reached (run again once it is back); 130 interrupted")
 
 
