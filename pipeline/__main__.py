@@ -25,7 +25,8 @@ COMMANDS = {
 EXIT_CODES_HELP = ("exit status: 0 ok; 1 problems found (validate) or frames failed (dataset); 2 bad input "
                    "(config, arguments, a path that is not a readable store, an unreachable cluster, a store "
                    "in use); 3 the store is damaged (missing or corrupt chunk files, array metadata that "
-                   "disagrees with the schema); 4 a disk is full (the store's or an export's); 5 the store's object store (S3 endpoint) "
+                   "disagrees with the schema); 4 a disk is full (the store's or an export's); 5 the store's "
+                   "object store (S3 endpoint) "
                    "could not be reached: run again once it is back; 130 interrupted")
 
 
