@@ -274,9 +274,9 @@ EXIT_INTERRUPTED = 130
 EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/Inf) or hard-cases found problems "
                    "(non-finite outputs or stored values); 2 bad settings, or a store, split or checkpoint that "
                    "cannot be used as asked (frames validate flags included: --skip-bad-frames leaves them out); "
-                   "3 the store is damaged (see python -m pipeline validate); 4 a disk is full (the store's, or that of a "
-                   "checkpoint, evaluation or export being written); 5 the S3 "
-                   "endpoint of an s3:// store could not be reached (run again once it is back); 130 interrupted")
+                   "3 the store is damaged (see python -m pipeline validate); 4 a disk is full (the store's, or that "
+                   "of a checkpoint, evaluation or report being written); 5 the S3 endpoint of an s3:// store "
+                   "could not be reached (run again once it is back); 130 interrupted")
 
 
 def _message(err: BaseException) -> str:
