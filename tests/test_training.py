@@ -445,6 +445,45 @@ def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):
     assert "Traceback" not in err and "interrupted" in err and "resumes" in err
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_ctrl_c_before_the_first_checkpoint_keeps_the_steps_done(store, tmp_path, workers):
+    """Ctrl-C long before the first --checkpoint-every step: the step under way finishes, checkpoint.pt is
+    written at it and the line says so (exit 130, no traceback, the loader's workers' included); the same
+    command resumes from that step. Before, the line promised a checkpoint that did not exist."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import torch
+    out = tmp_path / "r"
+    argv = [sys.executable, "-m", "training", "train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
+            store, "--out", str(out), "--steps", "100000", "--crop", "16", "--batch", "2", "--spp", "2", "--workers",
+            str(workers), "--checkpoint-every", "100000", "--log-every", "1", "--no-progress"]
+    with open(tmp_path / "err.txt", "w") as err_file:
+        proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], stdout=subprocess.DEVNULL,
+                                stderr=err_file, text=True, start_new_session=True)
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 120 and not (out / "metrics.csv").exists():
+                time.sleep(0.1)
+            while time.monotonic() - t0 < 120 and len((out / "metrics.csv").read_text().splitlines()) < 4:
+                time.sleep(0.1)                           # a few steps logged (one a step): training is under way
+            os.killpg(proc.pid, signal.SIGINT)
+            proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+    err = (tmp_path / "err.txt").read_text()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err, err
+    line = [ln for ln in err.splitlines() if ln.startswith("interrupted")]
+    assert len(line) == 1 and "checkpoint.pt holds it" in line[0] and "resumes" in line[0], err
+    step = int(line[0].split("at step ")[1].split(":")[0])
+    assert step >= 3 and torch.load(out / "checkpoint.pt", weights_only=False)["step"] == step
+
+
 def test_an_incomplete_frame_is_refused_by_name_or_left_out_and_recorded(tmp_path, capsys):
     """A finished store with one frame's completion flag turned off (validate: exit 1) is refused by train
     and evaluate, naming the frame and --skip-bad-frames, instead of being used without it; with the flag

@@ -258,8 +258,9 @@ def main(argv=None) -> int:
             err = store_unreachable(getattr(a, "store", None) or "the store", err)
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return code
-    except KeyboardInterrupt:
-        print("interrupted: the last checkpoint.pt (every --checkpoint-every steps) resumes the run", file=sys.stderr)
+    except KeyboardInterrupt as err:
+        kept = _kept(err, a)
+        print(f"interrupted{': ' + kept if kept else ''}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
         return unreachable_exit(err, getattr(a, "store", None), getattr(a, "out", None))
@@ -277,6 +278,23 @@ EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/In
                    "3 the store is damaged (see python -m pipeline validate); 4 a disk is full (the store's, or that "
                    "of a checkpoint, evaluation or report being written); 5 the S3 endpoint of an s3:// store "
                    "could not be reached (run again once it is back); 130 interrupted")
+
+
+def _kept(err: KeyboardInterrupt, a) -> str:
+    """What an interrupted training run kept, said plainly: the checkpoint it resumes from (and its
+    step), or that nothing was kept; '' for the other commands."""
+    from .loop import TrainingInterrupted
+    if isinstance(err, TrainingInterrupted):
+        if err.checkpoint is None:
+            return f"at step {err.step}, before any step was trained: nothing was kept"
+        return f"at step {err.step}: {err.checkpoint} holds it, and the same command resumes from there"
+    if getattr(a, "cmd", None) != "train":
+        return ""
+    from pathlib import Path
+    ck = Path(a.out or f"data/runs/{a.model}") / "checkpoint.pt"
+    if not ck.exists():
+        return "no checkpoint was written yet: nothing of the run was kept, the same command starts it again"
+    return f"{ck} (its last --checkpoint-every step) is kept, and the same command resumes from it"
 
 
 def _message(err: BaseException) -> str:

@@ -24,6 +24,8 @@ from __future__ import annotations
 import csv
 import math
 import os
+import signal
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -467,31 +469,77 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
     if progress and dist.is_main:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
+    ctrl_c = _CtrlC(enabled=not dist.enabled and todo > 0)
     try:
         t_step = t_run = time.perf_counter()
-        for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
-                                  dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
-            epoch = run.step // per_epoch
-            t_data = time.perf_counter()
-            losses.add(run.step + 1, run.train_step(to_device(batch, run.device)))
-            if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
-                (bar.write if bar else say)(feed.line())
-            t_step = time.perf_counter()
-            run.step += 1
-            if bar:
-                bar.update(1)
-            done = _after_step(run, losses, val_ds, epoch, bar, t0)
-            val = val if done is None else done
-            if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
-                    and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
-                break
-        if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
-            losses.read()
-            run.save()
+        with ctrl_c:
+            try:
+                for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
+                                          dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
+                    epoch = run.step // per_epoch
+                    t_data = time.perf_counter()
+                    losses.add(run.step + 1, run.train_step(to_device(batch, run.device)))
+                    if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
+                        (bar.write if bar else say)(feed.line())
+                    t_step = time.perf_counter()
+                    run.step += 1
+                    if bar:
+                        bar.update(1)
+                    done = _after_step(run, losses, val_ds, epoch, bar, t0)
+                    val = val if done is None else done
+                    if ctrl_c.pressed:
+                        break
+                    if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
+                            and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
+                        break
+            except Exception:       # the loader's workers got the Ctrl-C too and ended: a stop between steps
+                if not ctrl_c.pressed:
+                    raise
+            if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
+                losses.read()
+                run.save()
+        if ctrl_c.pressed:
+            raise TrainingInterrupted(run.step, run.ck_path if run.ck_path.exists() else None)
     finally:
         if bar:
             bar.close()
     return losses.read(), val, feed
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a run between two steps: ``step`` steps are done and ``checkpoint`` (None when no
+    step ran and none existed) holds them; the same command resumes from it."""
+
+    def __init__(self, step: int, checkpoint: Path | None):
+        super().__init__(f"interrupted at step {step}")
+        self.step, self.checkpoint = step, checkpoint
+
+
+class _CtrlC:
+    """Ctrl-C (SIGINT) during training: the step under way finishes, the run is checkpointed at it and
+    :class:`TrainingInterrupted` is raised (``pressed``, read between steps); a second Ctrl-C stops at
+    once (KeyboardInterrupt). An interruption inside an optimiser step would leave the weights half
+    updated, so the first one never does that. Only in the main thread of a one-process run (under
+    torchrun the ranks must stop at the same step: there Ctrl-C stops at once, the last checkpoint
+    stays)."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.pressed, self._previous = False, None
+
+    def __enter__(self):
+        if self.enabled:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.pressed:
+            raise KeyboardInterrupt
+        self.pressed = True
+
+    def __exit__(self, *exc) -> None:
+        if self.enabled:
+            signal.signal(signal.SIGINT, self._previous)
 
 
 def _stop_on_time(dist: distributed.Dist, due: bool) -> bool:
