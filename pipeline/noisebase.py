@@ -50,22 +50,34 @@ def whole_clips(store, frames: list[int]) -> list[tuple[int, list[int]]]:
     clips that ``frames`` covers in part, stills and clips of different lengths (ExportError)."""
     chosen = set(int(i) for i in frames)
     clip_of = store.meta_column("clip_id")
+    position, length = store.meta_column("frame"), store.meta_column("num_frames")
     members = store.clips(None)
-    out, partial = [], []
+    out, partial, gaps = [], [], []
     for c, idx in members.items():
         have = [i for i in idx if i in chosen]
         if not have:
             continue
-        if len(have) != len(idx):
+        first = idx[0] - int(position[idx[0]])                  # a clip's frames are consecutive in the store
+        pos = {int(position[i]) for i in idx}
+        absent = sorted(set(range(min(pos), max(pos) + 1)) - pos)
+        if absent:                  # a frame inside the clip is not complete: never join its neighbours across it
+            gaps.append(f"clip {c} has no complete frame {', '.join(str(first + p) for p in absent[:5])} "
+                        f"(position {', '.join(str(p) for p in absent[:5])} of its {int(length[idx[0]])})")
+        elif len(have) != len(idx):
             partial.append(f"clip {c} (frames {idx[0]}-{idx[-1]}; {len(have)} of {len(idx)} chosen)")
         out.append((int(c), list(idx)))
+    if gaps:
+        raise ExportError("a Noisebase sequence is a run of consecutive frames, never joined across a gap: "
+                          + "; ".join(gaps[:5]) + ": render the frames again (the same `python -m pipeline "
+                          "dataset` command resumes them) or leave the clips out (--frames)")
     lost = sorted(chosen - {i for _, idx in out for i in idx})
     if lost:
         raise ExportError(f"frames {lost[:8]} are not complete frames of any clip (clip ids "
                           f"{sorted({int(clip_of[i]) for i in lost})[:8]})")
     if partial:
-        raise ExportError("a Noisebase sequence is a whole clip; --frames covers only part of "
-                          + "; ".join(partial[:5]) + ": choose whole clips (or --frames all)")
+        raise ExportError("a Noisebase sequence is a whole clip; --frames (or --skip-bad-frames, leaving out "
+                          "frames validate flags) covers only part of " + "; ".join(partial[:5])
+                          + ": choose whole clips (or --frames all)")
     stills = [c for c, idx in out if len(idx) == 1]
     if stills:
         raise ExportError(f"{len(stills)} of the {len(out)} clips chosen are stills (clips {stills[:8]}): Noisebase "

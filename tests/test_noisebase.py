@@ -349,3 +349,22 @@ class TestNoisebaseStoreContract(StoreContract):
     def contract_store(self, exported):
         from stores.noisebase import NoisebaseStore
         return NoisebaseStore(exported)
+
+
+def test_export_never_joins_a_clip_across_an_incomplete_frame(store, tmp_path, capsys):
+    """The middle frame of a clip marked incomplete, then `export --format noisebase --skip-bad-frames`:
+    exit 2 with one line naming the clip and the missing frame, and nothing written, where it wrote the
+    clip's other frames as a consecutive sequence whose motion pointed at the missing frame."""
+    import shutil
+
+    from pipeline.__main__ import main
+    from stores.writer import StoreWriter
+    copy = tmp_path / "gap.zarr"
+    shutil.copytree(store, copy)
+    StoreWriter(str(copy)).mark_failed(1, "a frame lost in the test")
+    out = tmp_path / "nb"
+    assert main(["export", str(copy), "--format", "noisebase", "--skip-bad-frames", "--frames", "0-2",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "never joined across a gap" in err and "has no complete frame 1 (position 1 of its 3)" in err, err
+    assert not out.exists() or not any(out.iterdir())
