@@ -35,8 +35,10 @@ from ``position``, ``motion`` and the two frames' cameras; 0 on a sequence's fir
 does). Those it does not hold, :data:`MISSING_FEATURES` (specular, roughness, coc, lens, time), are 0
 and declared missing: a model that reads them is refused by name
 (:func:`training.inputs.check_features`). The per-pixel guides are the samples' means;
-``reference/stderr`` is 0 (the format has none). Splits are ours, by sequence
-(:func:`stores.reader.split_of_clip` of the sequence index). A missing file is never zeros here either:
+``reference/stderr`` is 0 (the format has none). Splits are by sequence: those the folder declares (our
+export's ``sequences.json`` gives each sequence file the split of the clip it came from), else ours
+(:func:`stores.reader.split_of_clip` of the sequence index: Noisebase's own data declares none);
+``split_source`` says which, and a training run records it. A missing file is never zeros here either:
 a chunk missing from a sequence's zip (which zarr reads as its fill value) is ``MissingShardError``, and
 one that does not decode or fails the zip's CRC ``CorruptChunkError``, each naming the sequence, array,
 frame and chunk key (training exits 3, as for a damaged store of ours).
@@ -183,6 +185,33 @@ class NoisebaseError(StoreError):
     """A folder that is not a set of readable sampleset_v1 sequences, or a sequence that breaks the format."""
 
 
+SEQUENCES_JSON = "sequences.json"
+
+
+def declared_splits(path, files: list[str]) -> list[str] | None:
+    """The split of each sequence file that the folder's ``sequences.json`` declares (our export writes
+    one: ``{"sequences": [{"file", "split", ...}]}``), in the order of ``files``; None when the folder
+    has none (Noisebase's own data). A ``sequences.json`` that does not declare a split for every file
+    is NoisebaseError: reading some sequences by their declared split and others by ours could put a
+    test clip into training."""
+    import json
+    j = os.path.join(os.fspath(path), SEQUENCES_JSON)
+    if not os.path.isfile(j):
+        return None
+    try:
+        with open(j) as f:
+            rows = json.load(f)["sequences"]
+        declared = {str(r["file"]): str(r["split"]) for r in rows if "split" in r}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise NoisebaseError(f"{j} does not list the sequences' splits ({type(e).__name__}: {e})") from None
+    names = [os.path.basename(f) for f in files]
+    missing = [n for n in names if n not in declared]
+    if missing:
+        raise NoisebaseError(f"{j} declares no split for {len(missing)} of the {len(names)} sequences, e.g. "
+                             f"{missing[0]}: give every sequence its split, or remove the file to use ours")
+    return [declared[n] for n in names]
+
+
 def is_noisebase(path) -> bool:
     """Whether ``path`` is a folder of Noisebase sequences (a ``noisebase.yaml`` or ``*.zip`` files, and no
     Zarr store of ours)."""
@@ -248,6 +277,9 @@ class NoisebaseStore:
         self.layout = StoreLayout(num_frames=int(self.offsets[-1]), height=int(H), width=int(W), spp=int(S),
                                   layer_spp=())
         self.config = {"source": "noisebase", "format": FORMAT, "files": [os.path.basename(f) for f in self.files]}
+        self._declared = declared_splits(self.path, self.files)
+        self.split_source = (f"declared ({SEQUENCES_JSON})" if self._declared is not None
+                             else "ours (a hash of the sequence index)")
 
     # -- the sequences
     def _group(self, n: int):
@@ -317,8 +349,17 @@ class NoisebaseStore:
 
     @property
     def split_fractions(self) -> dict:
+        """Ours (``DEFAULT_SPLIT``), or for declared splits each split's share of the sequences (every
+        split of ours named, so that an empty one is empty rather than unknown)."""
         from stores.reader import DEFAULT_SPLIT
-        return dict(DEFAULT_SPLIT)
+        if self._declared is None:
+            return dict(DEFAULT_SPLIT)
+        names = list(DEFAULT_SPLIT) + sorted(set(self._declared) - set(DEFAULT_SPLIT))
+        return {k: self._declared.count(k) / len(self._declared) for k in names}
+
+    def _split_of_sequence(self, n: int) -> str:
+        from stores.reader import split_of_clip
+        return self._declared[n] if self._declared is not None else split_of_clip(n, self.split_fractions)
 
     def has_array(self, path: str) -> bool:
         return path in ARRAYS
@@ -363,15 +404,13 @@ class NoisebaseStore:
         return moves
 
     def split_of_frame(self, i: int) -> str:
-        from stores.reader import split_of_clip
-        return split_of_clip(self._where(i)[0], self.split_fractions)
+        return self._split_of_sequence(self._where(i)[0])
 
     def frames_in_split(self, split: str | None, *, complete_only: bool = True) -> list[int]:
-        from stores.reader import split_of_clip
         from stores.errors import SplitError
         if split is not None and split not in self.split_fractions:
             raise SplitError(f"unknown split {split!r}; this store has {list(self.split_fractions)}")
-        return [i for n in range(len(self.files)) if split is None or split_of_clip(n, self.split_fractions) == split
+        return [i for n in range(len(self.files)) if split is None or self._split_of_sequence(n) == split
                 for i in range(self.offsets[n], self.offsets[n + 1])]
 
     def clips(self, split: str | None = None, *, complete_only: bool = True) -> dict[int, list[int]]:

@@ -368,3 +368,50 @@ def test_export_never_joins_a_clip_across_an_incomplete_frame(store, tmp_path, c
     err = capsys.readouterr().err
     assert "never joined across a gap" in err and "has no complete frame 1 (position 1 of its 3)" in err, err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_folder_keeps_the_splits_it_declares(store, exported, tmp_path, capsys):
+    """An exported folder reads each sequence in the split of the clip it came from (sequences.json), so a
+    store's test clip stays test data: train on a folder of test sequences finds no training frame,
+    evaluate --split test reads them all. Without sequences.json (Noisebase's own data) the splits are
+    ours; a run records which; a sequences.json without every sequence's split is one line, exit 2."""
+    import shutil
+
+    from stores.noisebase import NoisebaseStore
+    from stores.reader import open_store
+    from training.models import get
+    ours = open_store(store)
+    folder = NoisebaseStore(exported)
+    assert folder.split_source == "declared (sequences.json)"
+    rows = json.loads((exported / "sequences.json").read_text())["sequences"]
+    for n, row in enumerate(rows):
+        assert folder.split_of_frame(int(folder.offsets[n])) == ours.split_of_frame(row["frames"][0]) == row["split"]
+    test_only = tmp_path / "test-only"
+    shutil.copytree(exported, test_only)
+    doc = json.loads((test_only / "sequences.json").read_text())
+    for row in doc["sequences"]:
+        row["split"] = "test"                           # as an export of a store's test clips writes it
+    (test_only / "sequences.json").write_text(json.dumps(doc))
+    nb = NoisebaseStore(test_only)
+    assert nb.frames_in_split("train") == [] and nb.frames_in_split("test") == list(range(nb.num_frames))
+    common = ["--steps", "1", "--batch", "1", "--crop", "8", "--spp", "2", "--workers", "0", "--device", "cpu",
+              "--no-progress", "--model-cfg", json.dumps(get("nppd").tiny)]
+    assert cli("train", "--model", "nppd", "--store", test_only, "--out", tmp_path / "r", *common) == 2
+    assert "train" in capsys.readouterr().err
+    assert cli("evaluate", "--checkpoint", "input", "--store", test_only, "--split", "test", "--no-flip",
+               "--out", tmp_path / "e.json") == 0
+    assert len(json.loads((tmp_path / "e.json").read_text())["frames"]) == nb.num_frames
+    undeclared = tmp_path / "undeclared"
+    shutil.copytree(exported, undeclared)
+    (undeclared / "sequences.json").unlink()
+    assert NoisebaseStore(undeclared).split_source.startswith("ours")
+    assert cli("train", "--model", "nppd", "--store", undeclared, "--out", tmp_path / "r2", "--val-split", "train",
+               *common) == 0
+    import torch
+    ck = torch.load(tmp_path / "r2" / "checkpoint.pt", weights_only=False)
+    assert ck["store"]["split_source"].startswith("ours")
+    doc["sequences"][0].pop("split")
+    (test_only / "sequences.json").write_text(json.dumps(doc))
+    assert cli("evaluate", "--checkpoint", "input", "--store", test_only, "--out", tmp_path / "e2.json") == 2
+    err = capsys.readouterr().err
+    assert "declares no split for 1 of the" in err, err

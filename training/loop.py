@@ -258,8 +258,11 @@ def store_identity(store) -> dict:
     import json
     cfg = json.dumps(store.config, sort_keys=True, default=str).encode()
     path = os.fspath(store.path)
-    return {"path": path if "://" in path else os.path.realpath(path), "schema_version": store.schema_version,
-            "layout": store.layout.to_dict(), "config_sha256": hashlib.sha256(cfg).hexdigest()}
+    out = {"path": path if "://" in path else os.path.realpath(path), "schema_version": store.schema_version,
+           "layout": store.layout.to_dict(), "config_sha256": hashlib.sha256(cfg).hexdigest()}
+    if getattr(store, "split_source", None):          # a Noisebase folder: its declared splits, or ours
+        out["split_source"] = store.split_source
+    return out
 
 
 def check_same_store(ck: dict, now: dict, path) -> None:
