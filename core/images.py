@@ -124,6 +124,24 @@ def read_exr_channels(path: str | Path) -> dict:
         return {k: np.array(v.pixels) for k, v in f.channels().items()}
 
 
+def exr_channel_names(path: str | Path) -> list[str]:
+    """The channel names of an OpenEXR file (as the file lists them: sorted by name)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        return list(f.channels().keys())
+
+
+def read_exr_named(path: str | Path, names) -> np.ndarray:
+    """The channels ``names`` of an OpenEXR file, in that order, as float32 HWC (KeyError for a name the
+    file does not have)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in names], axis=-1)
+
+
 def read_exr(path: str | Path) -> tuple[np.ndarray, str]:
     """An OpenEXR image as (float32 HWC, channel names): R, G, B, A first, then the others in file order;
     the names joined as ``"RGB"`` when all are one letter, else with commas."""

@@ -176,3 +176,51 @@ def test_tiles_cover_the_image_once_and_match_the_whole_pass(store, tmp_path):
         tiled = denoise(m, [item], tile=32)
         assert np.isfinite(tiled).all() and np.abs(whole - item["radiance"].permute(1, 2, 0).numpy()).mean() > 0.05
         assert np.abs(tiled - whole).max() < 1e-5 * np.abs(whole).max(), name
+
+
+def _aov_exr(mi, path, res=32):
+    """Mitsuba's own multichannel EXR: the Cornell box through its ``aov`` integrator (R, G, B beside
+    albedo.R/G/B, sh_normal.X/Y/Z, depth.T), written by ``mi.Bitmap.write``; and its layers as Mitsuba
+    splits them (the oracle of which channel is which)."""
+    scene = mi.cornell_box()
+    scene["sensor"]["film"].update(width=res, height=res)
+    scene["integrator"] = {"type": "aov", "aovs": "albedo:albedo,sh_normal:sh_normal,depth:depth",
+                           "img": {"type": "path"}}
+    sc = mi.load_dict(scene)
+    mi.render(sc, spp=4)
+    bmp = sc.sensors()[0].film().bitmap()
+    bmp.write(str(path))
+    return {name: np.array(b, copy=True).reshape(res, res, -1) for name, b in bmp.split()}
+
+
+def test_channels_are_read_by_name_from_mitsubas_own_aov_file(mi, store, tmp_path, capsys):
+    """One multichannel AOV file as --input, --albedo, --normal and --depth gives what separate files of
+    Mitsuba's own layers give (before: every guide was the file's first channels, B, G, R); a layer's
+    channels are read R, G, B / X, Y, Z, never in the file's alphabetical order; a file without the
+    channels a guide needs (an albedo image as --depth) is one line naming the channels, exit 2."""
+    ck = save_model(tmp_path / "wskpn.pt", "wskpn", store)
+    aov = tmp_path / "aov.exr"
+    layers = _aov_exr(mi, aov)
+    assert {"albedo", "sh_normal", "depth"} <= set(layers)
+    sep = {"input": write_exr(tmp_path / "rgb.exr", layers["<root>"]),
+           "albedo": write_exr(tmp_path / "albedo.exr", layers["albedo"]),
+           "normal": write_exr(tmp_path / "normal.exr", layers["sh_normal"], "XYZ"),
+           "depth": write_exr(tmp_path / "depth.exr", layers["depth"][..., :1], "Z")}
+    assert _run("--checkpoint", ck, "--input", aov, "--albedo", aov, "--normal", aov, "--depth", aov,
+                "--out", tmp_path / "one.exr") == 0
+    assert _run("--checkpoint", ck, *[x for k, p in sep.items() for x in (f"--{k}", p)],
+                "--out", tmp_path / "sep.exr") == 0
+    np.testing.assert_array_equal(read_exr(tmp_path / "one.exr")[0], read_exr(tmp_path / "sep.exr")[0])
+    from training.denoise import _read_image
+    np.testing.assert_array_equal(_read_image(str(aov), "albedo"), layers["albedo"])
+    np.testing.assert_array_equal(_read_image(str(aov), "normal"), layers["sh_normal"])
+    swapped = np.zeros((8, 8, 3), np.float32)
+    swapped[..., 0], swapped[..., 1] = 1.0, 0.5
+    write_exr(tmp_path / "layer.exr", swapped, ["albedo.R", "albedo.G", "albedo.B"])
+    np.testing.assert_array_equal(_read_image(str(tmp_path / "layer.exr"), "albedo")[0, 0], [1.0, 0.5, 0.0])
+    capsys.readouterr()
+    assert _run("--checkpoint", ck, "--input", aov, "--albedo", aov, "--normal", aov, "--depth", sep["albedo"],
+                "--out", tmp_path / "bad.exr") == 2
+    err = capsys.readouterr().err
+    assert f"--depth {sep['albedo']} has channels B,G,R; the depth is read from channels depth.T" in err, err
+    assert not (tmp_path / "bad.exr").exists()

@@ -8,8 +8,10 @@
 What a model reads decides the input it accepts (``training.inputs``):
 
 * per-pixel models (kind ``pixels``: nbg, wskpn) take EXR images: the noisy radiance and the guides the
-  model was trained with (albedo, normal, depth; each an HW3 EXR, depth its first channel). A missing
-  guide is an error naming it: a denoiser fed a made-up guide gives a plausible but wrong image.
+  model was trained with (albedo, normal, depth), each read by channel name (:data:`CHANNELS`): separate
+  files, or one multichannel file for all (Mitsuba's ``aov`` integrator's ``albedo.R``, ``sh_normal.X``,
+  ``depth.T`` beside R, G, B). A missing guide, or a file without the channels a guide needs, is an error
+  naming them: a denoiser fed a made-up guide gives a plausible but wrong image.
 * per-sample models (kind ``samples``/``clips``: the layer family) need the samples of every pixel: the
   ``.npz`` of ``python -m pipeline render-frame`` (``radiance`` HWS3, ``features`` HWS17) or a store frame.
 * samplers (kind ``sampled-layers``: temporal) compose their input from sample layers: an ``.npz`` or a
@@ -82,18 +84,56 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _read_image(path: str, name: str, channels: int) -> np.ndarray:
-    from core.images import read_exr
+def _layer(layers, suffixes) -> list[tuple[str, ...]]:
+    return [tuple(f"{lay}.{c}" if lay else c for c in suf) for lay in layers for suf in suffixes]
+
+
+# What each image is read from, by channel name, in order of preference: the layers renderers write
+# (Mitsuba's `aov` integrator: albedo.R, sh_normal.X, depth.T beside the image's R, G, B; OpenEXR's N.X, Z),
+# then a plain image's own channels, which only a file without layers may give to a guide (a multichannel
+# file's R, G, B are its radiance, never its albedo). Channels are taken by name in R, G, B / X, Y, Z order,
+# never in the file's (alphabetical) order.
+CHANNELS = {
+    "input": {"layered": [], "plain": [("R", "G", "B")]},
+    "albedo": {"layered": _layer(["albedo"], ["RGB", "XYZ"]), "plain": [("R", "G", "B")]},
+    "normal": {"layered": _layer(["sh_normal", "normal", "N"], ["XYZ", "RGB"]),
+               "plain": [("X", "Y", "Z"), ("R", "G", "B")]},
+    "depth": {"layered": _layer(["depth"], ["T", "Z", "Y"]), "plain": [("Z",), ("Y",), ("depth",)]},
+}
+
+
+def image_channels(names: list[str], role: str) -> tuple[str, ...] | None:
+    """The channels of a file with channels ``names`` that hold ``role`` (``input``, ``albedo``,
+    ``normal``, ``depth``; :data:`CHANNELS`), in the order the image needs, or None."""
+    have, rule = set(names), CHANNELS[role]
+    unlayered = not any("." in n for n in names)
+    for cand in rule["layered"] + (rule["plain"] if unlayered or role == "input" else []):
+        if have.issuperset(cand):
+            return cand
+    return None
+
+
+def _accepted(role: str) -> str:
+    rule = CHANNELS[role]
+    text = [",".join(c) for c in rule["layered"][:4]] + [",".join(c) for c in rule["plain"]]
+    return " or ".join(text) + ("" if role == "input" else " (the plain channels only in a file without layers)")
+
+
+def _read_image(path: str, name: str) -> np.ndarray:
+    """The image ``--NAME PATH`` holds for ``name``, its channels chosen by name (:data:`CHANNELS`)."""
+    from core.images import exr_channel_names, read_exr_named
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"--{name} {path}: no such file")
     try:
-        img, names = read_exr(p)
+        names = exr_channel_names(p)
     except Exception as e:  # noqa: BLE001 - OpenEXR raises plain exceptions for non-EXR files
         raise DataError(f"--{name} {path} is not a readable OpenEXR image: {e}") from e
-    if img.shape[-1] < channels:
-        raise DataError(f"--{name} {path} has channels {names!r}; {channels} are needed")
-    return _finite(f"--{name} {path}", img[..., :channels])
+    chosen = image_channels(names, name)
+    if chosen is None:
+        raise DataError(f"--{name} {path} has channels {','.join(names)}; the {name} is read from channels "
+                        f"{_accepted(name)}")
+    return _finite(f"--{name} {path}", read_exr_named(p, chosen))
 
 
 def _chw(a: np.ndarray) -> torch.Tensor:
@@ -103,7 +143,7 @@ def _chw(a: np.ndarray) -> torch.Tensor:
 def items_from_exr(spec, a) -> list[dict]:
     """One item (channel-first tensors) from ``--input`` and the guide EXRs, for a model whose input kind
     reads per-pixel images (or OIDN: ``spec`` None, guides optional)."""
-    rad = _read_image(a.input, "input", 3)
+    rad = _read_image(a.input, "input")
     H, W = rad.shape[:2]
     kind = _kind(spec)
     if not kind.reads_images:
@@ -123,7 +163,7 @@ def items_from_exr(spec, a) -> list[dict]:
         path = getattr(a, g)
         if path is None:
             continue
-        img = _read_image(path, g, 1 if g == "depth" else 3)
+        img = _read_image(path, g)
         if img.shape[:2] != (H, W):
             raise DataError(f"--{g} {path} is {img.shape[1]}x{img.shape[0]}; --input {a.input} is {W}x{H}")
         images[g] = _chw(img)
