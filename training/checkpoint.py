@@ -15,10 +15,8 @@ nothing in it runs. ``load`` recommends ``upgrade`` only for a file that asks fo
 """
 from __future__ import annotations
 
-import os
 import pickle
 import random
-import tempfile
 from collections import OrderedDict
 from pathlib import Path
 
@@ -86,14 +84,8 @@ def check_plain(obj, where: str = "checkpoint") -> None:
 
 def _write(path: Path, payload: dict) -> None:
     """``torch.save`` to a temp file, then rename: an interrupted save never leaves a broken file."""
-    fd, tmp = tempfile.mkstemp(prefix="checkpoint-", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from core.files import write_atomically
+    write_atomically(path, lambda f: torch.save(payload, f), binary=True)
 
 
 def save(path, *, model, optimizer, step: int, cfg: TrainConfig, store_info: dict, extra: dict | None = None) -> None:

@@ -300,14 +300,21 @@ def summarize(frames: list[dict], runs: list) -> dict:
 
 def by_kind(frames: list[dict], keys: list[str]) -> dict:
     """Means over the frames of each kind (:func:`frame_kinds`; a frame may have several): the scene
-    families first (in the order the frames show them), then the hard parts."""
+    families first (in the order the frames show them), then the hard parts; each with ``ci95``, the
+    95% interval of every mean (a bootstrap over clips), and ``same_as``, the earlier kind whose frames
+    are exactly these (defocus and motion on a store where every indoor scene has both), or None."""
     tags = [frame_kinds(f) for f in frames]
     order = list(dict.fromkeys(f["scene_kind"] for f in frames if f.get("scene_kind"))) + list(HARD_PARTS)
-    out = {}
+    out, seen = {}, {}
     for kind in order:
         sel = [f for f, t in zip(frames, tags) if kind in t]
         if sel:
-            out[kind] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys}}
+            ids = tuple(f["index"] for f in sel)
+            clips = [f.get("clip", f["index"]) for f in sel]
+            out[kind] = {"frames": len(sel), **{k: float(np.mean([f[k] for f in sel])) for k in keys},
+                         "ci95": {k: stats.mean_ci([f[k] for f in sel], clips) for k in keys},
+                         "same_as": seen.get(ids)}
+            seen.setdefault(ids, kind)
     return out
 
 

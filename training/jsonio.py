@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -44,13 +42,8 @@ def dumps(obj, **kw) -> str:
 def write(path, obj) -> None:
     """``obj`` as indented strict JSON at ``path`` (its folder made), through a temporary file and a
     rename, so a reader never sees half a file."""
+    from core.files import write_atomically
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}-", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(dumps(obj, indent=2))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    text = dumps(obj, indent=2)
+    write_atomically(path, lambda f: f.write(text))

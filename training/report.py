@@ -33,6 +33,7 @@ from core.images import tonemap
 # ms/MP there and OIDN 4,390, while at 128x128 nbg is about twice as fast as OIDN).
 BENCH_SIZE = 128
 SPEED = "speed_ms_per_mp"           # the table's time column: ``result["speed"]["ms_per_mp"]``
+INTERVALS = ("relmse", "smape", "psnr", "ssim", "flip", "tpsnr")     # the figures whose means get an interval
 COLUMNS = (("relmse", "relMSE ↓", "{:.4f}"), ("smape", "SMAPE ↓", "{:.4f}"), ("psnr", "PSNR ↑", "{:.2f}"),
            ("ssim", "SSIM ↑", "{:.4f}"), ("flip", "FLIP ↓", "{:.4f}"), ("tpsnr", "tPSNR ↑", "{:.2f}"),
            ("spp", "spp", "{:.2f}"), (SPEED, f"ms/MP @{BENCH_SIZE}² ↓", "{:.0f}"))
@@ -42,27 +43,52 @@ def _fmt(v, f):
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f.format(v)
 
 
+def _with_ci(v, ci, f) -> str:
+    """A mean and, where it has one, its 95% interval: ``0.0123 [0.0101, 0.0150]``."""
+    text = _fmt(v, f)
+    if not ci or text == "–":
+        return text
+    return f"{text} [{_fmt(ci[0], f)}, {_fmt(ci[1], f)}]"
+
+
 def table_markdown(results: list[dict]) -> str:
     head = "| method | " + " | ".join(c[1] for c in COLUMNS) + " | params | FMAs/pixel |"
     lines = [head, "|---|" + "---|" * (len(COLUMNS) + 2)]
     for r in results:
         m = {**r["mean"], SPEED: (r.get("speed") or {}).get("ms_per_mp")}
-        cells = [_fmt(m.get(k), f) for k, _, f in COLUMNS]
+        ci = r.get("ci95") or {}
+        cells = [_with_ci(m.get(k), ci.get(k) if k in INTERVALS else None, f) for k, _, f in COLUMNS]
         fm = r.get("fmas_per_pixel")
         lines.append(f"| {r['label']} | " + " | ".join(cells) +
                      f" | {r.get('params', 0):,} | {'–' if fm is None else f'{fm / 1e3:.0f}k'} |")
     return "\n".join(lines)
 
 
+def distinct_kinds(by_kind: dict) -> dict[str, list[str]]:
+    """The kinds of an evaluation's ``by_kind`` whose frames no earlier kind has exactly, each with the
+    kinds that repeat it (defocus and motion where every indoor frame has both): kind -> [repeats]."""
+    out: dict[str, list[str]] = {}
+    for k, agg in by_kind.items():
+        same = agg.get("same_as")
+        if same in out:
+            out[same].append(k)
+        else:
+            out[k] = []
+    return out
+
+
 def kinds_markdown(results: list[dict], key: str = "relmse", fmt: str = "{:.4f}") -> str:
-    """Mean ``key`` per method over the frames of each kind (defocus, motion, fireflies, plain; a frame
-    may have several kinds), with the frame counts in the header."""
-    kinds = list(results[0].get("by_kind", {}))          # evaluate's order: scene families, then hard parts
+    """Mean ``key`` per method, with its 95% interval, over the frames of each kind (defocus, motion,
+    fireflies, plain; a frame may have several kinds), with the frame counts in the header; a kind whose
+    frames are exactly an earlier one's is named in that one's header, not repeated as a column."""
+    kinds = distinct_kinds(results[0].get("by_kind", {}))   # evaluate's order: scene families, then hard parts
     counts = {k: results[0]["by_kind"][k]["frames"] for k in kinds}
-    head = "| method | all | " + " | ".join(f"{k} ({counts[k]})" for k in kinds) + " |"
+    head = "| method | all | " + " | ".join(
+        f"{k} ({counts[k]}{'; also ' + ', '.join(rep) if rep else ''})" for k, rep in kinds.items()) + " |"
     lines = [head, "|---|---|" + "---|" * len(kinds)]
     for r in results:
-        cells = [_fmt(r["mean"].get(key), fmt)] + [_fmt(r["by_kind"][k].get(key), fmt) for k in kinds]
+        cells = [_with_ci(r["mean"].get(key), (r.get("ci95") or {}).get(key), fmt)] + [
+            _with_ci(r["by_kind"][k].get(key), (r["by_kind"][k].get("ci95") or {}).get(key), fmt) for k in kinds]
         lines.append(f"| {r['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -100,8 +126,9 @@ def speed_of(r: dict) -> float | None:
 
 
 def plot_speed_vs_error(results: list[dict], path, decades: float = 4.0) -> None:
-    """ms per megapixel at :data:`BENCH_SIZE` (log x) against relMSE (log y), one marker per method; a
-    method without a time (the noisy input) is a horizontal line. The y range spans the methods within
+    """ms per megapixel at :data:`BENCH_SIZE` (log x) against relMSE (log y), one marker per method with
+    its 95% interval as an error bar; a method without a time (the noisy input) is a horizontal line in a
+    band of its interval. The y range spans the methods within
     ``decades`` of the lowest relMSE: one far above (a model early in training) is drawn on the top edge
     as an upward triangle, and one that cannot be drawn on a log axis (NaN, infinite, 0) is named in the
     legend, each with its value."""
@@ -116,16 +143,23 @@ def plot_speed_vs_error(results: list[dict], path, decades: float = 4.0) -> None
     for i, (r, v) in enumerate(zip(results, vals)):
         x, label = speed_of(r), r["label"]
         colour, above = f"C{i % 10}", f"relMSE {v:.3g}: above the plot"
+        ci = (r.get("ci95") or {}).get("relmse")
+        ci = ci if ci and all(math.isfinite(c) and c > 0 for c in ci) else None
         if not (math.isfinite(v) and v > 0):
             extra.append(Line2D([], [], linestyle="", marker="x", color="grey",
                                 label=f"{label} (relMSE {v}: not plotted)"))
         elif x is None:
             ax.axhline(min(v, top), linestyle="--", linewidth=1, color=colour,
                        label=f"{label} (no time{'; ' + above if v > top else ''})")
+            if ci and v <= top:
+                ax.axhspan(max(ci[0], lo / 1.6), min(ci[1], top * 1.6), color=colour, alpha=0.12, linewidth=0)
         elif v > top:
             ax.scatter([x], [top], s=60, marker="^", color=colour, label=f"{label} ({above})")
         else:
             ax.scatter([x], [v], s=36, marker=markers[i % len(markers)], color=f"C{i % 10}", label=label)
+            if ci:                  # its 95% interval (a bootstrap over the held-out clips)
+                ax.errorbar([x], [v], yerr=[[v - max(ci[0], lo / 1.6)], [min(ci[1], top * 1.6) - v]], fmt="none",
+                            ecolor=colour, elinewidth=1, capsize=3)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_ylim(lo / 1.6, top * 1.6)
@@ -329,7 +363,7 @@ def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: s
     of the baseline's ``by_kind``): ``{"baseline", "kinds": [(kind, frames)], "rows": [{"label", kind: diff}]}``."""
     comp = comparisons(results, baseline)
     base = next(r for r in results if r["label"] == comp["baseline"])
-    kinds = list(base.get("by_kind", {}))
+    kinds = list(distinct_kinds(base.get("by_kind", {})))
     tags = {f["index"]: frame_kinds(f) for f in base["frames"]}
     clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
     rows = []
@@ -523,7 +557,8 @@ def main_section(results: list[dict], store, split: str, spps, maps, baseline: s
              f"({results[0]['torch_threads']} torch threads), a model with its trained weights at its spp; on the "
              "store's own small frames fixed costs per call dominate, and those per-frame times are in each "
              "eval-*.json (`ms_per_megapixel`). Each model is evaluated at the samples per pixel it was trained at; "
-             "the noisy input and OIDN at each of those counts.", "", *_busy_lines(results), *reference_note(results),
+             "the noisy input and OIDN at each of those counts. Each mean has its 95% interval in brackets (a "
+             "bootstrap over the held-out clips; none over a single clip).", "", *_busy_lines(results), *reference_note(results),
              table_markdown(results), "", *comparisons_section(results, baseline), *seed_spread_section(results),
              "![speed against error](speed_vs_error.png)", "",
              f"relMSE by kind of frame (frame counts in brackets; the scene family, defocus and motion from the "
