@@ -196,6 +196,10 @@ class _ByEpoch(Dataset):
 
 def _worker_init(_):
     torch.set_num_threads(1)          # the training process owns the cores' math libraries
+    import signal
+    # A terminal's Ctrl-C reaches the whole process group: the training process stops between steps and
+    # shuts its loader down; a worker that died of it mid-transfer left a resource_sharer traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers: int = 0, rank: int = 0,
