@@ -415,3 +415,14 @@ def test_a_folder_keeps_the_splits_it_declares(store, exported, tmp_path, capsys
     assert cli("evaluate", "--checkpoint", "input", "--store", test_only, "--out", tmp_path / "e2.json") == 2
     err = capsys.readouterr().err
     assert "declares no split for 1 of the" in err, err
+
+
+def test_hard_cases_runs_on_a_noisebase_folder(exported, tmp_path):
+    """`python -m training hard-cases --store NOISEBASE_FOLDER` (the input and OIDN, no runs): exit 0 and a
+    table of its frames, where it died with a KeyError on the renderer-NaN columns the format lacks."""
+    r = subprocess.run([sys.executable, "-m", "training", "hard-cases", "--store", str(exported), "--out",
+                        str(tmp_path / "hc")], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stdout[-2000:] + r.stderr[-3000:]
+    res = json.loads((tmp_path / "hc" / "hard-cases.json").read_text())
+    assert set(res["frames"]) == {"input", "oidn"} and all(
+        len(rows) == CLIPS * FRAMES for rows in res["frames"].values())

@@ -82,15 +82,21 @@ def store_flags(store) -> list[dict]:
     st = open_store(store)
     cases = frame_cases(st)
     out = []
+    replaced = {}
+    for stage in STAGE_ARRAYS:
+        try:
+            replaced[stage] = st.meta_column(f"nonfinite_{stage}")
+        except KeyError:                # a format that does not count them (a Noisebase folder): none known
+            replaced[stage] = np.zeros(st.num_frames, np.int64)
     for i in st.complete_frames():
         for stage, arrays in STAGE_ARRAYS.items():
-            n = int(st.meta_column(f"nonfinite_{stage}")[i])
+            n = int(replaced[stage][i])
             if n:
                 out.append({"stage": stage, "method": "store", "frame": i, "case": cases[i] or NO_CASE,
                             "kind": "renderer",
                             "detail": f"the renderer gave {n} NaN/Inf values, replaced by the NaN/Inf rule "
                                       f"(frames/nonfinite_{stage})"})
-            for path in arrays:
+            for path in (p for p in arrays if st.has_array(p)):     # a Noisebase folder has no layers
                 a = np.asarray(st.read_array(path, i))
                 bad = int(a.size - np.isfinite(a).sum())
                 if bad:
@@ -326,8 +332,7 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
             evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
                                          with_flip=with_flip, progress=progress))
     link_inputs(evals)
-    from stores.fitness import check_frames
-    res = summarize(evals, cases, store_flags(st), str(st.path), check_frames(st, st.complete_frames()))
+    res = summarize(evals, cases, store_flags(st), str(st.path), st.check_frames(st.complete_frames()))
     res["runs"] = [str(d) for d in run_dirs]
     res["markdown"] = hard_case_table(res)
     out = Path(out)
