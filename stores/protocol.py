@@ -7,15 +7,22 @@ screen, evaluation) reads through these members only, so a third format is one c
 suite.
 
 Layouts, as the datasets consume them (no transpose on read): ``read_array("inputs/radiance", i)``
-float32 ``(S, 3, h, w)``, ``"inputs/features"`` ``(S, 17, h, w)``, images ``(C, h, w)``
+float32 ``(S, 3, h, w)``, ``"inputs/features"`` ``(S, 17, h, w)`` float16 or float32 (as stored: the
+features are float16 in our stores and go to the device so, to be widened there), images ``(C, h, w)``
 (``reference/*``, ``guides/albedo|normal|motion``), ``"guides/depth"`` ``(h, w)``, ``"layers/radiance"``
-``(L, 3, h, w)``; a crop is ``(y, x, h, w)``.
+``(L, 3, h, w)``, all float32; a crop is ``(y, x, h, w)``. :data:`DTYPES` says it for the contract suite.
 """
 from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+# array -> the dtypes read_array may return (the contract suite checks every array a store has)
+DTYPES = {"inputs/radiance": (np.float32,), "inputs/features": (np.float16, np.float32),
+          "layers/radiance": (np.float32,), "reference/radiance": (np.float32,),
+          "reference/stderr": (np.float32,), "guides/albedo": (np.float32,), "guides/normal": (np.float32,),
+          "guides/depth": (np.float32,), "guides/motion": (np.float32,)}
 
 
 @runtime_checkable
@@ -43,7 +50,8 @@ class TrainingStore(Protocol):
 
     def read_array(self, path: str, i: int, crop=None, *, samples: int | None = None,
                    check_complete: bool = True) -> np.ndarray:
-        """Frame ``i`` of array ``path`` in the layout above, float32, cropped, the first ``samples``."""
+        """Frame ``i`` of array ``path`` in the layout above, of a dtype of :data:`DTYPES`, cropped, the
+        first ``samples``."""
 
     def complete_frames(self) -> list[int]: ...
 

@@ -9,11 +9,20 @@ import pytest
 
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 from stores.errors import CropSizeError, SampleCountError
-from stores.protocol import TrainingStore
+from stores.protocol import DTYPES, TrainingStore
 
 IMAGES = {"reference/radiance": 3, "reference/stderr": 3, "guides/albedo": 3, "guides/normal": 3,
           "guides/motion": 2}
 COLUMNS = ("clip_id", "frame", "num_frames", "has_motion", "has_defocus", "scene_json", "case")
+
+
+def check_dtypes(st) -> None:
+    """Every array the store has comes back in a dtype the protocol allows (``stores.protocol.DTYPES``)."""
+    i = st.complete_frames()[-1]
+    for path, allowed in DTYPES.items():
+        if st.has_array(path):
+            a = st.read_array(path, i)
+            assert a.dtype in allowed, f"{path}: {a.dtype}, the protocol allows {[np.dtype(d).name for d in allowed]}"
 
 
 class StoreContract:
@@ -81,6 +90,9 @@ class StoreContract:
             st.read_array("inputs/radiance", i, samples=S + 1)
         with pytest.raises(IndexError):
             st.read_array("inputs/radiance", st.num_frames)
+
+    def test_every_array_in_its_dtype(self, contract_store):
+        check_dtypes(contract_store)
 
     def test_a_finished_store_is_fit(self, contract_store):
         st = contract_store

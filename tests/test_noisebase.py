@@ -330,7 +330,7 @@ def test_a_lost_or_corrupt_chunk_is_named_never_zeros(exported, tmp_path, member
         assert member in capsys.readouterr().err
 
 
-from store_contract import StoreContract  # noqa: E402
+from store_contract import StoreContract, check_dtypes  # noqa: E402
 
 
 class TestZarrStoreContract(StoreContract):
@@ -340,6 +340,28 @@ class TestZarrStoreContract(StoreContract):
     def contract_store(self, store):
         from stores.reader import open_store
         return open_store(store)
+
+
+def test_the_contract_refuses_a_dtype_the_protocol_does_not_allow(store):
+    """Both ways: our store passes the dtype check; the same store returning its radiance as float16 (or
+    its features as float64), where the protocol promises float32 (float16 or float32), fails it."""
+    from stores.reader import open_store
+    st = open_store(store)
+    check_dtypes(st)
+
+    class Narrowed:
+        def __init__(self, inner, path, dtype):
+            self.inner, self.path_, self.dtype = inner, path, dtype
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def read_array(self, path, i, *a, **k):
+            out = self.inner.read_array(path, i, *a, **k)
+            return out.astype(self.dtype) if path == self.path_ else out
+    for path, dtype in (("inputs/radiance", np.float16), ("inputs/features", np.float64)):
+        with pytest.raises(AssertionError, match=path):
+            check_dtypes(Narrowed(st, path, dtype))
 
 
 class TestNoisebaseStoreContract(StoreContract):
