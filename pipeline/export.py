@@ -1,6 +1,8 @@
-"""``python -m pipeline export``: the store's own formats (:mod:`stores.export`: ``exr``, ``oidn``,
-``layerdenoise``) and ``noisebase`` (:mod:`pipeline.noisebase`), which re-traces the stored samples with
-the renderer for their exact world-space positions and so lives here, above the store package."""
+"""``python -m pipeline export``: every export format, as ``python -m stores export`` offers them
+(:func:`stores.export.writers`): the store's own (``exr``, ``oidn``, ``layerdenoise``) and the installed
+plug-ins (``noisebase``, :mod:`pipeline.noisebase`, which re-traces the stored samples with the renderer
+for their exact world-space positions and so lives here, above the store package; registered as an
+entry point in pyproject.toml)."""
 from __future__ import annotations
 
 import sys
@@ -8,10 +10,7 @@ import sys
 from stores import export as _export
 from stores.validate import cli_main
 
-from pipeline.noisebase import export_noisebase
-
-_export.WRITERS.setdefault("noisebase", export_noisebase)
-FORMATS = tuple(_export.WRITERS)
+FORMATS = tuple(_export.writers())
 export = _export.export
 add_arguments = _export.add_arguments
 run = _export.run

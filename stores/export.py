@@ -51,7 +51,7 @@ from core.images import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
 from stores.validate import cli_main, parse_frames
 
-FORMATS = ("exr", "oidn", "layerdenoise")       # the formats of the store alone (``python -m stores export``)
+FORMATS = ("exr", "oidn", "layerdenoise")       # the formats of the store alone (more: :func:`writers`)
 
 
 # ``{"RGB": ...}``-style reading, for callers of this module's former reader
@@ -192,14 +192,12 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     when ``skip_bad_frames``. Everything is written into a temporary folder in ``out`` first and moved
     into place at the end (:func:`_into_place`): a failed export leaves ``out`` as it was."""
     from stores.fitness import screen
-    if fmt not in WRITERS:
-        raise ExportError(f"unknown export format {fmt!r}; choose one of {tuple(WRITERS)}")
+    write = _writer(fmt)
     store = open_store(store_path)
     idx = frames if isinstance(frames, list) else parse_frames(frames, store.num_frames)
     if not idx:
         raise ExportError("no frames to export")
     idx = screen(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}", progress=True)
-    write = WRITERS[fmt]
     made = _missing_parents(out)
     try:
         os.makedirs(out, exist_ok=True)
@@ -232,11 +230,40 @@ def _missing_parents(out: str) -> list[str]:
     return made
 
 
-# format -> writer(store, frames, out, name) -> files. Other packages add formats that need more than the
-# store (``pipeline.export`` adds ``noisebase``, which re-traces the samples with the renderer).
+# format -> writer(store, frames, out, name) -> files: the store's own formats. Formats that need more than
+# the store are plug-ins (:data:`PLUGINS`, :func:`writers`): ``noisebase``, which re-traces the samples
+# with the renderer, is ``pipeline.noisebase``'s.
 WRITERS = {"exr": lambda st, fr, out, name: export_exr(st, fr, out),
            "oidn": lambda st, fr, out, name: export_oidn(st, fr, out),
            "layerdenoise": export_layerdenoise}
+PLUGINS = "denoise_datagen.export_formats"      # the entry-point group (pyproject.toml) of the other formats
+
+
+def _plugins() -> dict:
+    """name -> entry point of every installed export format plug-in (nothing is imported here)."""
+    from importlib.metadata import entry_points
+    return {ep.name: ep for ep in entry_points(group=PLUGINS) if ep.name not in WRITERS}
+
+
+def writers() -> dict:
+    """Every export format, the store's own and the installed plug-ins': name -> writer, or an entry
+    point loaded when the format is used. Both ``python -m stores export`` and ``python -m pipeline
+    export`` offer these."""
+    return {**WRITERS, **_plugins()}
+
+
+def _writer(fmt: str):
+    found = writers()
+    if fmt not in found:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {tuple(found)} (a plug-in format comes "
+                          "with the installed package: `make setup` or `pip install -e .` brings a missing one)")
+    w = found[fmt]
+    if callable(w):
+        return w
+    try:
+        return w.load()
+    except ImportError as e:
+        raise ExportError(f"the export format {fmt!r} ({w.value}) cannot be loaded: {e}") from e
 
 
 def _into_place(tmp: str, out: str, files: list[str]) -> list[str]:
@@ -255,7 +282,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The ``export`` sub-command's arguments (shared by ``python -m pipeline`` and ``python -m stores``)."""
     ap.add_argument("store", help="path of the Zarr store")
     ap.add_argument("--frames", default="all", help="all (default), 3, 0,2,5-7")
-    ap.add_argument("--format", required=True, choices=tuple(WRITERS))
+    ap.add_argument("--format", required=True, choices=tuple(writers()))
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default="dataset", help="file name stem for layerdenoise (NAME_input.h5)")
     ap.add_argument("--skip-bad-frames", action="store_true",
@@ -282,8 +309,8 @@ def run(args) -> int:
 def main(argv=None) -> int:
     """``export STORE --format F --out DIR``: exit 0 on success, 3 on a damaged store, 2 on any other
     error (message on stderr), as ``python -m pipeline export``."""
-    return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, or layerdenoise HDF5.",
-                    add_arguments, run, argv)
+    return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, layerdenoise HDF5 or "
+                    "Noisebase sequences (the installed formats: --format).", add_arguments, run, argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -449,3 +449,22 @@ def test_hard_cases_runs_on_a_noisebase_folder(exported, tmp_path):
     res = json.loads((tmp_path / "hc" / "hard-cases.json").read_text())
     assert set(res["frames"]) == {"input", "oidn"} and all(
         len(rows) == CLIPS * FRAMES for rows in res["frames"].values())
+
+
+def test_both_export_commands_offer_every_format(store, exported, tmp_path, capsys):
+    """`python -m stores export` and `python -m pipeline export` take the same formats, the noisebase
+    plug-in included (it had only the store's own), and write the same Noisebase sequences."""
+    from pipeline.__main__ import main as pipeline_main
+    from pipeline.export import FORMATS
+    from stores.__main__ import main as stores_main
+    from stores.export import writers
+    assert set(FORMATS) == set(writers()) >= {"exr", "oidn", "layerdenoise", "noisebase"}
+    out = tmp_path / "via-stores"
+    assert stores_main(["export", store, "--format", "noisebase", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in exported.iterdir())
+    for p in exported.glob("*.zip"):
+        assert (out / p.name).read_bytes() == p.read_bytes(), p.name
+    for main in (stores_main, pipeline_main):
+        with pytest.raises(SystemExit):
+            main(["export", "--help"])
+        assert "noisebase" in capsys.readouterr().out
