@@ -53,9 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     from scene_gen.errors import SceneGenError
     try:
         return int(args._run(args) or 0)
-    except StoreCorruptionError as e:         # before StoreError: damage is 3 in every command
+    except StoreCorruptionError as e:         # before StoreError: its message says damage (3, its exit_code)
         print(f"error: the store is damaged: {e}", file=sys.stderr)
-        return 3
+        return exit_status(e)
     except (PipelineError, StoreError, SceneGenError) as e:
         print(f"error: {e}", file=sys.stderr)
         return exit_status(e)                 # 2, or the error's own: 4 a full disk, 5 an unreachable endpoint

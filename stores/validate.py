@@ -358,7 +358,7 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
         return run_fn(args)
     except StoreCorruptionError as e:
         print(f"error: the store is damaged: {e}", file=sys.stderr)
-        return EXIT_DAMAGED
+        return exit_status(e)
     except StoreError as e:
         print(f"error: {e}", file=sys.stderr)
         return exit_status(e, EXIT_UNREADABLE)

@@ -246,13 +246,10 @@ def main(argv=None) -> int:
     retry_defaults()
     quiet_abandoned_requests()
 
-    from .errors import NonFiniteError, TrainingError
+    from .errors import TrainingError
     try:
         return a.fn(a)
-    except NonFiniteError as err:               # the run itself failed: not a bad setting
-        print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
-        return EXIT_FAILED
-    except (TrainingError, StoreError) as err:      # 3 damage, 4 a full disk, 5 an unreachable S3 endpoint
+    except (TrainingError, StoreError) as err:      # 1 a NaN loss, 3 damage, 4 a full disk, 5 unreachable S3
         code = exit_status(err, EXIT_ERROR)
         if unreachable_cause(err) is not None and not isinstance(err, TrainingError):
             err = store_unreachable(getattr(a, "store", None) or "the store", err)

@@ -24,7 +24,9 @@ class DataError(TrainingError, RuntimeError):
 
 
 class NonFiniteError(TrainingError, FloatingPointError):
-    """A loss or gradient became NaN/Inf during training."""
+    """A loss or gradient became NaN/Inf during training. Its own exit code (``exit_code``, 1): the run
+    failed, no setting was wrong."""
+    exit_code = 1
 
 
 class TargetBelowFloorError(ConfigError):
