@@ -368,6 +368,7 @@ def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, syntheti
                                capture_output=True, text=True, timeout=300)
             errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
             assert r.returncode == 5 and len(errors) == 1 and "Traceback" not in r.stderr, (name, r.stderr[-3000:])
+            assert "leaked semaphore" not in r.stderr, (name, r.stderr[-3000:])       # nothing after the line
             assert s3.endpoint in errors[0] and "could not be reached" in errors[0], (name, errors)
     finally:
         s3.start()

@@ -477,7 +477,7 @@ def test_ctrl_c_before_the_first_checkpoint_keeps_the_steps_done(store, tmp_path
                 os.killpg(proc.pid, signal.SIGKILL)
     err = (tmp_path / "err.txt").read_text()
     assert proc.returncode == 130, err
-    assert "Traceback" not in err, err
+    assert "Traceback" not in err and "leaked semaphore" not in err, err
     line = [ln for ln in err.splitlines() if ln.startswith("interrupted")]
     assert len(line) == 1 and "checkpoint.pt holds it" in line[0] and "resumes" in line[0], err
     step = int(line[0].split("at step ")[1].split(":")[0])
