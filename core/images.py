@@ -106,11 +106,11 @@ def write_exr(path: str | Path, image, channels="RGB", half: bool = False) -> Pa
         try:
             f.write(str(path))
         except RuntimeError as e:         # OpenEXR's bindings raise a RuntimeError with the system's text
-            if "no space left on device" in str(e).lower() or "disk quota exceeded" in str(e).lower():
-                import errno
-                code = errno.ENOSPC if "no space" in str(e).lower() else errno.EDQUOT
-                raise OSError(code, "No space left on device" if code == errno.ENOSPC else "Disk quota exceeded",
-                              str(path)) from e
+            import errno
+            import os
+            for code in (errno.ENOSPC, errno.EDQUOT):   # a full disk is an OSError, as every other writer's
+                if os.strerror(code).lower() in str(e).lower():
+                    raise OSError(code, os.strerror(code), str(path)) from e
             raise
     return path
 

@@ -105,15 +105,21 @@ class StoreFullError(StoreError, OSError):
 DISK_FULL_ERRNOS = (28, 122)      # ENOSPC, EDQUOT (Linux)
 
 
-def is_disk_full(e: BaseException) -> bool:
-    """Whether ``e`` (or an exception it was raised from) is a full file system or quota."""
+def disk_full_cause(e: BaseException) -> OSError | None:
+    """The exception in ``e``'s chain (itself, its cause or context) that is a full file system or quota,
+    else None."""
     seen = set()
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         if isinstance(e, OSError) and e.errno in DISK_FULL_ERRNOS:
-            return True
+            return e
         e = e.__cause__ or e.__context__
-    return False
+    return None
+
+
+def is_disk_full(e: BaseException) -> bool:
+    """Whether ``e`` (or an exception it was raised from) is a full file system or quota."""
+    return disk_full_cause(e) is not None
 
 
 def _free_bytes(path: str) -> int | None:
@@ -193,11 +199,11 @@ def unreachable_exit(e: BaseException, store=None, out=None) -> int:
     ``dataset`` gives (``out``: the command's output, named where the error names no file); any other
     error is raised again, traceback and all."""
     import sys
-    if unreachable_cause(e) is None and not is_disk_full(e):
-        raise e
     if unreachable_cause(e) is not None:
         print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
         return StoreUnreachableError.exit_code
+    if not is_disk_full(e):
+        raise e
     print(f"error: {disk_full(e, out)}", file=sys.stderr)
     return StoreFullError.exit_code
 
@@ -207,13 +213,8 @@ def disk_full(e: BaseException, out=None) -> StoreFullError:
     checkpoint, an evaluation's JSON, an export): one line naming the file (else ``out``, the command's
     output), the free space on its device and what to do."""
     import os
-    seen, cause = set(), e
-    while cause is not None and id(cause) not in seen:
-        seen.add(id(cause))
-        if isinstance(cause, OSError) and cause.errno in DISK_FULL_ERRNOS:
-            break
-        cause = cause.__cause__ or cause.__context__
-    if isinstance(cause, StoreFullError) or cause is None:
+    cause = disk_full_cause(e)
+    if cause is None or isinstance(cause, StoreFullError):
         return cause or StoreFullError(str(e))
     where = os.fspath(cause.filename) if getattr(cause, "filename", None) else None
     where = where or (os.fspath(out) if out is not None else None)
