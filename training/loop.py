@@ -474,25 +474,30 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
         bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
     ctrl_c = _CtrlC(enabled=not dist.enabled and todo > 0)
     try:
-        loader = batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers, dist.rank,
-                              dist.world, pin_memory=run.device.type == "cuda")
         t_step = t_run = time.perf_counter()
         with ctrl_c:
-            for batch in ctrl_c.batches(loader):
-                epoch = run.step // per_epoch
-                t_data = time.perf_counter()
-                losses.add(run.step + 1, run.train_step(to_device(batch, run.device)))
-                if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
-                    (bar.write if bar else say)(feed.line())
-                t_step = time.perf_counter()
-                run.step += 1
-                if bar:
-                    bar.update(1)
-                done = _after_step(run, losses, val_ds, epoch, bar, t0)
-                val = val if done is None else done
-                if ctrl_c.pressed or (seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0)
-                                      and _stop_on_time(dist, time.perf_counter() - t_run >= seconds)):
-                    break
+            try:
+                for batch in batch_loader(train_ds, cfg.batch, cfg.seed, run.step, run.step + todo, cfg.workers,
+                                          dist.rank, dist.world, pin_memory=run.device.type == "cuda"):
+                    epoch = run.step // per_epoch
+                    t_data = time.perf_counter()
+                    losses.add(run.step + 1, run.train_step(to_device(batch, run.device)))
+                    if feed and feed.add(t_data - t_step, time.perf_counter() - t_data):
+                        (bar.write if bar else say)(feed.line())
+                    t_step = time.perf_counter()
+                    run.step += 1
+                    if bar:
+                        bar.update(1)
+                    done = _after_step(run, losses, val_ds, epoch, bar, t0)
+                    val = val if done is None else done
+                    if ctrl_c.pressed:
+                        break
+                    if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
+                            and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
+                        break
+            except Exception:       # the loader's workers got the Ctrl-C too and ended: a stop between steps
+                if not ctrl_c.pressed:
+                    raise
             if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
                 losses.read()
                 run.save()
@@ -534,21 +539,6 @@ class _CtrlC:
         if self.pressed:
             raise KeyboardInterrupt
         self.pressed = True
-
-    def batches(self, loader):
-        """The loader's batches, ended early when the loader fails after Ctrl-C (a worker that got the
-        terminal's Ctrl-C before it could ignore it): a stop between steps, not an error."""
-        it = iter(loader)
-        while True:
-            try:
-                batch = next(it)
-            except StopIteration:
-                return
-            except Exception:
-                if self.pressed:
-                    return
-                raise
-            yield batch
 
     def __exit__(self, *exc) -> None:
         if self.enabled:
