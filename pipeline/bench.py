@@ -14,11 +14,12 @@ import traceback
 
 SUITES = {
     "render": "pipeline.bench_render",     # samples/s of the per-sample loop and reference vs mi.render, peak memory
+    "reference": "pipeline.bench_reference",   # launches, host vs kernel ms, z tests of the reference
     "store": "stores.bench",               # crops/s and MB/s vs raw np.load, stored/raw bytes
     "dask": "pipeline.bench_dask",         # frames/min 1 vs 2 workers, scheduler overhead per task
     "scale": "pipeline.bench_scale",       # per-frame cost of every stage at 100, 1,000 and 10,000 frames
 }
-DEFAULT_SUITES = ("render", "store", "dask")   # `make bench` (then training's); scale runs alone (--only scale)
+DEFAULT_SUITES = ("render", "reference", "store", "dask")   # `make bench` (then training's); scale runs alone (--only scale)
 
 
 # `--tiny`: every suite at a size that runs in seconds (tests/test_pipeline_bench.py runs each one this way,
@@ -26,6 +27,7 @@ DEFAULT_SUITES = ("render", "store", "dask")   # `make bench` (then training's);
 TINY = {
     "render": {"res": 16, "ref_passes": 2, "ref_pass_spp": 8, "repeats": 1, "memory_res": 16, "e2e_res": 8,
                "e2e_ref_spp": 16, "fph_res": 8, "counts_res": 16, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
+    "reference": {"res": 8, "ref_spp": 64, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
     "store": {"crops": 4, "crop": 16, "frames": 2, "size": 32},
     "dask": {"frames": 2, "res": 8, "ref_spp": 16, "objects": 3, "noop_tasks": 20},
     "scale": {"frames": (6, 12), "graphs": False},

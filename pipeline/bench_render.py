@@ -172,7 +172,7 @@ def _frame_counts(R, fs) -> dict:
     finally:
         R._read = read
     ours.update(reads=reads[0], wavefronts=len(list(R._input_wavefronts(fs))))
-    theirs = launches(dr, lambda: R.render_sliced(fs, spp, R.STREAM_ORACLE, 0))
+    theirs = launches(dr, lambda: R.render_sliced(fs, spp, R.STREAM_ORACLE, 0, max_slices=fs.cfg.time_slices))
     g = math.gcd(fs.cfg.time_slices, spp) if fs.has_motion else 1
     theirs["reads"] = g
     out = {"input_loop": ours, "mi_render": theirs}

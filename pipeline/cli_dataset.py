@@ -108,6 +108,8 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         legacy = cfg.with_overrides(clip_ids="scene_seed")      # a store made before clip_ids existed
         if have == json.loads(json.dumps(legacy.content_dict())):
             cfg, want = legacy, have
+    if have != want and (have.get("render") or {}).get("reference", "batch_means") == "batch_means":
+        cfg, want = _legacy_reference(cfg, have, want)
     if have != want:
         keys = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
         raise StoreMismatchError(
@@ -118,6 +120,21 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         raise StoreMismatchError(f"the store at {store} has layout {layout.to_dict()}, the config needs "
                                  f"{want_layout.to_dict()}")
     return cfg
+
+
+# render settings that did not exist before ``render.reference``: a store made then records none of them
+_REFERENCE_KEYS = ("reference", "ref_max_times", "ref_times")
+
+
+def _legacy_reference(cfg, have: dict, want: dict):
+    """A store made before ``render.reference`` existed resumes with the method it was made with
+    (``batch_means``) when the config is otherwise the store's; else ``(cfg, want)`` unchanged."""
+    legacy = cfg.with_overrides(render={**cfg.render, "reference": "batch_means"})
+    old, rec = json.loads(json.dumps(legacy.content_dict())), json.loads(json.dumps(have))
+    for d in (old, rec):
+        for k in _REFERENCE_KEYS:
+            (d.get("render") or {}).pop(k, None)
+    return (legacy, have) if old == rec else (cfg, want)
 
 
 def _validate_run(store: str, written: list[int], checked: dict[int, list[str]] | None = None) -> dict:
@@ -195,9 +212,10 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         _print("resume: every frame is complete; nothing to render")
         return _summary(cfg, store, t0, results=[], failed={}, skipped=cfg.num_frames, dashboard=None,
                         cluster="none (nothing to render)", validation=_validate_run(store, []))
+    tc = time.perf_counter()
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
     results: list[dict] = []
-    timings: dict = {}
+    timings: dict = {"start_s": tc - t0, "cluster_start_s": time.perf_counter() - tc}
     try:
         dashboard = conn.dashboard
         gpus = getattr(conn.cluster, "gpus", None)
@@ -220,24 +238,34 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         graph = build_graph(cfg, store, frames, functions=functions, generation=generation(store))
         timings["build_graph_s"] = time.perf_counter() - tb
         committer = Committer(writer, check=lock.check if lock is not None else None)
+        tr = time.perf_counter()
         results, failed = _execute(conn.client, graph, writer, progress, as_completed,
                                    watch_workers=conn.kind == "local", committer=committer, timings=timings,
                                    on_disk_full=lambda left: store_full(store, "writing frames",
                                                                         space_needed(cfg, store, left)))
-        timings.update(commits=committer.commits, commit_latency_s=committer.latencies)
+        timings.update(commits=committer.commits, commit_latency_s=committer.latencies,
+                       frames_s=time.perf_counter() - tr)
     except KeyboardInterrupt:
         _print(f"\ninterrupted: complete frames stay in {store}; run the same command again to resume")
         raise
     finally:
+        tc = time.perf_counter()
         conn.close()
+        timings["cluster_close_s"] = time.perf_counter() - tc
+    tv = time.perf_counter()
     validation = _validate_run(store, [r["index"] for r in results] + list(failed),
                                {r["index"]: r.get("checked") or [] for r in results})
+    timings["validate_s"] = time.perf_counter() - tv
     summary = _summary(cfg, store, t0, results=results, failed=failed, skipped=skipped, dashboard=dashboard,
                        cluster=conn.kind, validation=validation)
     lat = timings.pop("commit_latency_s", [])
-    summary["timings"] = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
-                          "commit_latency_max_s": float(np.max(lat)) if lat else None,
-                          "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
+    summary["timings"] = tm = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
+                               "commit_latency_max_s": float(np.max(lat)) if lat else None,
+                               "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
+    _print(f"time:       start {tm['start_s']:.1f} s, cluster {tm['cluster_start_s']:.1f} s up and "
+           f"{tm['cluster_close_s']:.1f} s down, frames {tm.get('frames_s', 0.0):.1f} s (render "
+           f"{summary['render_s']:.1f} s and writes {tm['write_s']:.1f} s summed over tasks), validation "
+           f"{tm['validate_s']:.1f} s")
     return summary
 
 

@@ -1,7 +1,7 @@
 """``python -m pipeline render-frame``: render one frame of a generated scene to an .npz and a PNG.
 
     python -m pipeline render-frame --seed S --kind indoor|outdoor --res N [--spp 8] [--ref-spp 4096]
-                                    [--frame 0] [--oracle-spp N] --out frame.npz
+                                    [--frame 0] [--oracle-spp N] [--render-seed N] --out frame.npz
 
 The npz holds ``radiance`` (float32, HWS3), ``features`` (float32, HWS17) with ``feature_names``,
 ``layers`` (float32, LHW3), ``reference`` and ``reference_stderr`` (float32, HW3), ``guides_albedo``,
@@ -37,15 +37,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also render plain mi.render at this spp as 'oracle' (default 0: none)")
     p.add_argument("--layers", type=int, default=6, help="sample layers of 1, 2, ... 2**(L-1) spp (default 6)")
     p.add_argument("--ref-passes", type=int, default=None,
-                   help="reference passes for the batch-means standard error (default: 32, or fewer for small --ref-spp)")
+                   help="reference passes (default: 32, or 16 for small --ref-spp): a stop lands on a whole pass; "
+                        "with --reference batch_means, the batches of the standard error")
     p.add_argument("--ref-target", type=float, default=None,
                    help="stop the reference early once its relative standard error is below this")
+    p.add_argument("--render-seed", type=int, default=0,
+                   help="the samples' seed, apart from the scene's: two renders of one scene with different "
+                        "render seeds are independent (default 0, the dataset's)")
+    from pipeline.render import REFERENCE_METHODS
+    p.add_argument("--reference", choices=REFERENCE_METHODS, default="moments",
+                   help="moments (default): per-pixel second moments in each launch, shutter times by the "
+                        "frame's motion; batch_means: --ref-passes passes and their batch means")
+    p.add_argument("--ref-times", type=int, default=0,
+                   help="distinct shutter times of a moving frame's reference (default 0: by its motion); "
+                        "e.g. 256 with --ref-passes 2 for a dense-time reference")
     p.add_argument("--threads", type=int, default=0, help="drjit threads (default: all cores)")
     p.add_argument("--out", required=True, help="output .npz path (a .png is written beside it)")
 
 
 def _config(args):
     from pipeline.render import RenderConfig
+    need(args.render_seed >= 0, "--render-seed", "an integer >= 0", args.render_seed, ConfigError)
     passes = args.ref_passes
     if passes is None:
         passes = 32 if args.ref_spp >= 32 * 16 else 16
@@ -54,7 +66,8 @@ def _config(args):
     return RenderConfig(res=(args.res, args.res) if args.res > 0 else args.res, spp=args.spp,
                         layer_levels=args.layers, ref_spp=args.ref_spp, ref_passes=passes,
                         ref_min_passes=min(16, passes), ref_target_rel_stderr=args.ref_target,
-                        threads=args.threads, oracle_spp=args.oracle_spp)
+                        threads=args.threads, oracle_spp=args.oracle_spp, seed_offset=args.render_seed,
+                        reference=args.reference, ref_times=args.ref_times)
 
 
 def panel_image(out: dict) -> np.ndarray:
@@ -104,7 +117,8 @@ def run(args) -> int:
     m = out["meta"]
     print(f"wrote {out_path} and {png}: {args.kind} seed {args.seed} frame {args.frame}, {args.res}x{args.res}, "
           f"{cfg.spp} spp, {len(spec.objects)} objects, motion={m['has_motion']}, defocus={m['has_defocus']}, "
-          f"reference {m['reference_spp']} spp (rel. stderr {m['reference_rel_stderr']:.4f}), "
+          f"reference {m['reference_spp']} spp (rel. stderr {m['reference_rel_stderr']:.4f}, "
+          f"ref_time_slices {m['ref_time_slices']}), "
           f"non-finite {m['nonfinite_inputs']}/{m['nonfinite_layers']}/{m['nonfinite_reference']}, "
           f"{m['render_seconds']:.1f} s")
     return 0

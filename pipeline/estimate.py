@@ -8,7 +8,10 @@ renderer settings and one drjit thread per worker thread (``cluster.threads_per_
 dataset worker runs): frame 0 of the first ``--scenes-per-group`` scenes of every scene group, each
 timed as the dataset's tasks spend it (scene load with mesh building and kernel compilation, the
 full per-sample inputs, the full sample layers) and the reference from ``--ref-passes`` passes of
-its production size (the rest of its passes are extrapolated: passes cost alike). Times are the CPU
+its production size (the rest is extrapolated: with ``reference: moments`` a launch's host cost and a
+sample's cost are fitted to the calibration's reference and layers, which share the kernel, and the
+frame's own shutter times and predicted rounds give the launches; with ``batch_means`` passes cost
+alike). Times are the CPU
 seconds of the calibrating process. The frames render ``--concurrent`` at a time in separate
 processes (default: as many as the workers that share one machine, i.e. this machine's cores /
 threads per worker, at most ``--workers``), as a machine's workers do, so that whatever they cost
@@ -107,11 +110,46 @@ def predicted_passes(rel: float, done: int, rc) -> int:
     Without a target (or a reference) every pass runs."""
     if rc.ref_target_rel_stderr is None or rc.ref_spp == 0:
         return rc.ref_passes
+    if rc.reference == "moments":
+        return predicted_rounds(rel, done, rc)[-1]
     sigma = rel / c4(done) * math.sqrt(done)
     for p in range(rc.ref_min_passes, rc.ref_passes):
         if sigma * c4(p) / math.sqrt(p) <= rc.ref_target_rel_stderr:
             return p
     return rc.ref_passes
+
+
+def predicted_rounds(rel: float, done: int, rc) -> list[int]:
+    """The passes after each round of a ``moments`` reference (``pipeline.render._reference_moments``)
+    whose relative standard error is ``rel`` after ``done`` passes: its error has thousands of degrees
+    of freedom, so it is taken as exact and falls as 1/sqrt(passes). Without a target: one round."""
+    if rc.ref_target_rel_stderr is None or rc.ref_spp == 0:
+        return [rc.ref_passes]
+    sigma, target = rel * math.sqrt(done), rc.ref_target_rel_stderr
+    out = [rc.ref_min_passes]
+    while out[-1] < rc.ref_passes:
+        r = sigma / math.sqrt(out[-1])
+        if r <= target:
+            break
+        out.append(min(rc.ref_passes, max(out[-1] + 1, math.ceil(out[-1] * (r / target) ** 2 * 1.05))))
+    return out
+
+
+def reference_seconds(t_cal: float, cal_spp: int, cal_launches: int, t_layers: float, layer_spp: int,
+                      layer_launches: int, spp: int, launches: int) -> float:
+    """Seconds of a ``moments`` reference of ``spp`` samples a pixel in ``launches`` launches, from the
+    calibration's reference (``cal_spp`` in ``cal_launches``) and layers (the same kernel: ``layer_spp``
+    in ``layer_launches``): ``t = launches * a + spp * b`` fitted to both. A launch costs the same
+    host work whatever its samples (``set_time``, tracing, the launch), so scaling the calibration by
+    samples alone would count its launches as often as its samples. Where the two points do not give
+    positive costs (noise), by samples alone."""
+    det = layer_launches * cal_spp - cal_launches * layer_spp
+    if det:
+        a = (t_layers * cal_spp - t_cal * layer_spp) / det
+        b = (layer_launches * t_cal - cal_launches * t_layers) / det
+        if a >= 0 and b > 0:
+            return launches * a + spp * b
+    return t_cal * spp / max(cal_spp, 1)
 
 
 def _warm_worker(threads: int, cache_dir: str | None = None) -> None:
@@ -158,8 +196,16 @@ def _calibrate_frame(cfg, gi: int, ref, rc, cal_rc) -> tuple[dict, dict]:
         fs.cfg = cal_rc
         ref_part = R.reference_part(fs)
         fs.cfg = rc
+        t_cal = time.process_time() - c
         passes = predicted_passes(ref_part["reference_rel_stderr"], cal_rc.ref_passes, rc)
-        cpu["reference_s"] = (time.process_time() - c) / cal_rc.ref_passes * passes
+        if rc.reference == "moments":
+            pass_spp, T = rc.ref_spp // rc.ref_passes, ref_part["ref_time_slices"]
+            rounds = len(predicted_rounds(ref_part["reference_rel_stderr"], cal_rc.ref_passes, rc))
+            lay = [fs.slices_for(2 ** n) for n in range(rc.layer_levels)]
+            cpu["reference_s"] = reference_seconds(t_cal, cal_rc.ref_spp, T, cpu["layers_s"], 2 ** rc.layer_levels - 1,
+                                                   sum(lay), passes * pass_spp, rounds * T)
+        else:
+            cpu["reference_s"] = t_cal / cal_rc.ref_passes * passes
     else:
         ref_part = R.reference_part(fs)
         cpu["reference_s"] = time.process_time() - c

@@ -24,14 +24,25 @@ roulette, box pixel filter, built by ``scene_gen.to_mitsuba``):
   depth, ``A W / (2 F tan(fov/2))``).
 - **Sample layers** (``layers`` float32 LHWC): ``mi.render(scene, spp=2**n)`` for n < L, one
   independent seed each.
-- **Reference** (``reference``, ``reference_stderr`` float32 HWC): ``cfg.ref_passes`` passes of
-  ``ref_spp / ref_passes`` spp, each ``mi.render`` with its own seed; the stored value is the mean
-  of the pass means and the standard error is the batch-means estimate ``sqrt(var(pass means) /
-  passes)`` (ddof 1), per pixel and channel. With ``ref_target_rel_stderr`` the passes stop once at
-  least ``ref_min_passes`` are done and the image's relative standard error (below) is under the
-  target; ``meta['reference_spp']`` and ``meta['reference_rel_stderr']`` record what was achieved.
-  Relative standard error of an image: the mean over pixels of ``stderr_Y / (mean_Y + 0.01)``, Y the
-  Rec. 709 luminance.
+- **Reference** (``reference``, ``reference_stderr`` float32 HWC), by ``cfg.reference``:
+
+  - ``moments`` (the default): one ``mi.render`` launch a shutter time with the scene's integrator
+    wrapped to add each sample's squared R, G, B (:func:`moment_integrator`), so each launch gives every
+    pixel's mean and sample variance; the launches are strata of one estimator and the standard error is
+    ``sqrt(sum(n_i var_i)) / N`` (:func:`_reference_moments`). A static frame is one launch; a moving
+    frame uses ``ref_time_slices`` = :func:`reference_time_count` of its shutter displacement distinct
+    times, at most ``ref_max_times`` (16), at the centres of equal strata (``ref_times`` > 0 sets it:
+    dense-time checks). ``ref_passes`` is the early stop's granularity: a stop lands on a whole number of
+    ``ref_spp / ref_passes`` samples.
+  - ``batch_means`` (stores made before ``reference`` existed resume with it): ``cfg.ref_passes`` passes
+    of ``ref_spp / ref_passes`` spp, each ``mi.render`` with its own seed at ``ref_time_slices`` times;
+    the standard error is the batch-means estimate ``sqrt(var(pass means) / passes)`` (ddof 1).
+
+  With ``ref_target_rel_stderr`` the reference stops once at least ``ref_min_passes`` passes' samples
+  are done and the image's relative standard error (below) is under the target;
+  ``meta['reference_spp']``, ``meta['reference_rel_stderr']`` and ``meta['ref_time_slices']`` record
+  what was achieved. Relative standard error of an image: the mean over pixels of
+  ``stderr_Y / (mean_Y + 0.01)``, Y the Rec. 709 luminance.
 - **Guides** (float32, HWC): per-pixel means of the input samples' albedo, normal (not
   renormalised), depth and motion; ``camera_to_world`` and ``world_to_clip`` (float64 4x4, see
   ``scene_gen.projection`` for the conventions).
@@ -42,10 +53,10 @@ render, so a scene with ``spec.has_motion`` is rendered in time *slices*: the ve
 each moving object are set for the slice's time (``mi.traverse`` + ``update``) and that slice's share
 of the samples is rendered. Inputs use ``g = gcd(cfg.time_slices, spp)`` slices with jittered
 stratified times ``t_k = (k + u_k) / g`` (samples ``s`` of every pixel in slice ``k = s // (S/g)``,
-so samples are ordered by time); each layer likewise with its own jitter (1 spp: one uniform time);
-the reference uses ``cfg.ref_time_slices`` times per pass, consecutive blocks of a randomly shifted
-van der Corput sequence (stratified for any prefix of passes, so an early stop stays unbiased; the
-batch-means standard error then includes the time variance and is slightly conservative). The ``time`` feature is the slice time ``t_k``, i.e.
+so samples are ordered by time); each layer likewise with its own jitter (1 spp: one uniform time), with
+fewer slices where :func:`reference_time_count` at the layer's samples needs fewer (``moments``);
+the reference as above (``batch_means``: ``cfg.ref_time_slices`` times per pass, consecutive blocks of
+a randomly shifted van der Corput sequence). The ``time`` feature is the slice time ``t_k``, i.e.
 the time the geometry was actually at. A scene without ``has_motion`` renders in one pass at
 ``tau = frame`` and its ``time`` feature is 0.
 
@@ -70,8 +81,9 @@ NaN and Inf rule (counted in ``meta``, never written silently):
   samples with any non-finite radiance or feature value.
 - layers: ``mi.render`` only returns pixel means, so a pixel with a NaN becomes 0 and Inf is
   clamped; ``nonfinite_layers`` counts such pixels over all layers.
-- reference: a pass's NaN pixel is left out of that pixel's batch means (the pixel keeps its other
-  passes), Inf is clamped; ``nonfinite_reference`` counts such pixel-passes.
+- reference: a launch's (``batch_means``: a pass's) NaN pixel is left out of that pixel (the pixel keeps
+  its other launches), Inf is clamped (``moments``: its variance taken as ``max_value**2``);
+  ``nonfinite_reference`` counts such pixel-launches.
 
 Seeds: every sampler seed is ``stream_seed(spec.seed, frame, stream, *index, cfg.seed_offset)``
 from ``np.random.SeedSequence``: inputs, each layer, each reference pass, time jitter and the oracle
@@ -97,6 +109,12 @@ from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS, FRAME_META, NUM_FEATUR
 # Sampler streams (the third entry of every seed's SeedSequence).
 STREAM_INPUTS, STREAM_LAYER, STREAM_REFERENCE, STREAM_ORACLE, STREAM_TIME = 1, 2, 3, 4, 5
 LUMA = np.array([0.2126, 0.7152, 0.0722])
+# ``moments`` (the default): per-sample second moments inside each launch, shutter times by the frame's
+# motion (:func:`reference_time_count`). ``batch_means``: ``ref_passes`` passes of ``ref_time_slices``
+# times each and the batch-means error (the method of stores made before ``reference`` existed).
+REFERENCE_METHODS = ("moments", "batch_means")
+# The motion rule's bound: rms banding at a moving edge over the reference's own noise there.
+BANDING_OVER_NOISE = 0.5
 REL_STDERR_EPS = 0.01
 
 
@@ -111,7 +129,10 @@ class RenderConfig:
     ref_min_passes: int = 16                 # passes before an early stop may happen
     ref_target_rel_stderr: float | None = None   # early stop once the relative standard error is below
     time_slices: int = 4                     # time slices per render for scenes with moving objects
-    ref_time_slices: int = 4                 # time slices per reference pass (moving objects only)
+    ref_time_slices: int = 4                 # batch_means only: time slices per reference pass
+    reference: str = "moments"               # how the reference and its error are made (REFERENCE_METHODS)
+    ref_max_times: int = 16                  # moments: at most this many distinct shutter times a frame
+    ref_times: int = 0                       # moments: > 0 sets a moving frame's times (dense checks)
     threads: int = 0                         # drjit threads (0 = leave as is)
     seed_offset: int = 0                     # extra SeedSequence entropy (0 = the dataset default)
     max_value: float = 1e8                   # +-Inf radiance is clamped to this
@@ -141,6 +162,17 @@ class RenderConfig:
         s = self.ref_time_slices
         need(is_int(s) and s >= 1 and s & (s - 1) == 0, "render.ref_time_slices", "a power of two >= 1", s,
              ConfigError)
+        need(self.reference in REFERENCE_METHODS, "render.reference", f"one of {', '.join(REFERENCE_METHODS)}",
+             self.reference, ConfigError)
+        s = self.ref_max_times
+        need(is_int(s) and 1 <= s <= 1024 and s & (s - 1) == 0, "render.ref_max_times",
+             "a power of two in [1, 1024]", s, ConfigError)
+        need_int("render.ref_times", self.ref_times, 0, 65536, ConfigError)
+        if self.ref_times and self.ref_spp:
+            half = self.ref_spp // self.ref_passes // 2
+            need(half >= 1 and half % self.ref_times == 0, "render.ref_times",
+                 f"0 or a divisor of half a pass's samples (ref_spp / ref_passes / 2 = {half})", self.ref_times,
+                 ConfigError)
         need(is_int(self.threads) and 0 <= self.threads <= 1024, "render.threads",
              "an integer in [0, 1024] (0 = default)", self.threads, ConfigError)
         need_int("render.seed_offset", self.seed_offset, 0, None, ConfigError)
@@ -194,6 +226,32 @@ def _van_der_corput(n: int) -> np.ndarray:
     return out
 
 
+def reference_time_count(displacement: float, spp: int, cap: int) -> int:
+    """Distinct shutter times a render of ``spp`` samples a pixel needs for a frame whose moving vertices
+    travel at most ``displacement`` pixels during the shutter: the least power of two ``T`` (at most
+    ``cap``; 1 for ``displacement`` 0) whose banding at a moving edge stays below
+    :data:`BANDING_OVER_NOISE` times the render's own noise there.
+
+    The derivation (docs/throughput.md, "Shutter times by motion"): with the box pixel filter, a pixel
+    that an edge of contrast ``c`` crosses sees a ramp of slope ``c d`` over the shutter (``d`` the
+    displacement). ``T`` times at the centres of equal strata (the midpoint rule) miss each of its two
+    kinks by ``c d / (T^2 sqrt(320))`` rms, ``c d / (12.65 T^2)`` for both. The render's noise at that
+    pixel is at least the coverage noise of its samples, ``c / sqrt(6 max(d, 1) N)`` for ``N`` samples.
+    Banding over noise at most ``r``: ``T^2 >= d sqrt(6 max(d, 1) N) / (12.65 r)``; at ``N`` = 1024 and
+    ``r`` = 1/2, ``T >= 3.52 d^(3/4)`` for ``d >= 1`` (``d`` = 1: 4; 4: 16; 8: 32 before the cap)."""
+    d = float(displacement)
+    if not d > 0.0:
+        return 1
+    if not math.isfinite(d):
+        t = math.inf
+    else:
+        t = math.sqrt(d * math.sqrt(6.0 * max(d, 1.0) * max(int(spp), 1)) / (math.sqrt(160.0) * BANDING_OVER_NOISE))
+    n = 1
+    while n < t and n < cap:
+        n *= 2
+    return min(n, int(cap))
+
+
 def slice_times(rng: np.random.Generator, slices: int) -> np.ndarray:
     """Jittered stratified times in [0, 1) (float64, ``slices``): ``(k + u_k) / slices``."""
     return np.minimum((np.arange(slices) + rng.random(slices)) / slices, np.nextafter(1.0, 0.0))
@@ -229,6 +287,8 @@ class FrameScene:
         self.integrator = self.scene.integrator()
         self.sampler = mi.load_dict({"type": "independent"})
         self.has_motion, self.has_defocus = ld.has_motion, ld.has_defocus
+        self.displacement = ld.shutter_displacement()       # pixels a moving vertex travels in the shutter
+        self._moments = None
         self.camera_to_world = ld.camera_to_world
         self.view_axis = self.camera_to_world[:3, 2]
         self.world_to_clip, self.prev_world_to_clip = ld.world_to_clip, ld.prev_world_to_clip
@@ -313,6 +373,40 @@ class FrameScene:
     def set_time(self, t: float) -> None:
         """Put the moving objects where they are at shutter fraction ``t`` (no-op without motion)."""
         self.loaded.set_time(t)
+
+    @property
+    def ref_time_slices(self) -> int:
+        """Distinct shutter times of this frame's reference: :func:`reference_time_count` of its motion
+        (``moments``), ``ref_time_slices`` a pass (``batch_means``); 1 without motion or reference."""
+        cfg = self.cfg
+        if not self.has_motion or cfg.ref_spp == 0:
+            return 1
+        pass_spp = cfg.ref_spp // cfg.ref_passes
+        if cfg.reference == "batch_means":
+            return math.gcd(cfg.ref_time_slices, pass_spp)
+        if cfg.ref_times:
+            return cfg.ref_times
+        # a power of two that leaves every launch of a pass at least 2 samples (its variance)
+        return math.gcd(reference_time_count(self.displacement, cfg.ref_spp, cfg.ref_max_times),
+                        max(1, pass_spp // 2))
+
+    def slices_for(self, spp: int) -> int:
+        """Time slices of an input or layer render of ``spp`` samples a pixel: :func:`reference_time_count`
+        of the frame's motion at those samples, at most ``time_slices`` (``moments``; ``batch_means``:
+        ``time_slices``), a divisor of ``spp``; 1 without motion."""
+        if not self.has_motion:
+            return 1
+        cap = self.cfg.time_slices
+        if self.cfg.reference == "moments":
+            cap = reference_time_count(self.displacement, spp, cap)
+        return math.gcd(cap, spp)
+
+    @property
+    def moment_integrator(self):
+        """The scene's integrator wrapped to add each pixel's second moment (``moments``; built once)."""
+        if self._moments is None:
+            self._moments = moment_integrator(self.mi, self.integrator)
+        return self._moments
 
     def shape_index(self, registry_ids: np.ndarray) -> np.ndarray:
         """Table index (int64, 0 = no hit) of drjit shape registry ids (0 = no hit)."""
@@ -803,37 +897,86 @@ def launch_seed(seed: int, i: int) -> int:
     return int(seed) if i == 0 else int(np.random.SeedSequence([int(seed), i]).generate_state(1)[0] >> 1)
 
 
-def _mi_render(fs: FrameScene, spp: int, seed: int) -> np.ndarray:
-    """``mi.render`` of ``spp`` samples (float64 HWC), in as many launches as :func:`launch_plan` says,
-    weighted by their samples."""
+def moment_integrator(mi, nested):
+    """``nested`` (a ``SamplingIntegrator``) wrapped to add four AOVs: the square of each sample's R, G
+    and B, and 1 for a sample with a NaN (whose value is then 0). The film's box filter averages them
+    per pixel, so ``mi.render`` returns each pixel's mean, second moment and share of NaN samples in one
+    launch (:data:`MOMENT_CHANNELS`: R, G, B, R², G², B², NaN share; :func:`valid_moments`). Mitsuba's
+    own ``moment`` integrator records the second moment of XYZ, from which per-channel RGB variances
+    cannot be had, and a film with AOVs sets a NaN sample to 0 without a word, hence the NaN share. The
+    wrapper draws nothing itself: the samples are the nested integrator's, and the first three channels
+    equal its render to float rounding where no sample is NaN."""
+    cls = _MOMENT_CLASSES.get(mi.variant())
+    if cls is None:
+        class RGBMoments(mi.SamplingIntegrator):
+            def __init__(self, inner):
+                super().__init__(mi.Properties())
+                self.inner = inner
+
+            def sample(self, scene, sampler, ray, medium=None, active=True):
+                import drjit as dr
+                spec, valid, _ = self.inner.sample(scene, sampler, ray, medium, active)
+                c = mi.Color3f(spec)
+                nan = dr.isnan(c.x) | dr.isnan(c.y) | dr.isnan(c.z)
+                c = dr.select(nan, 0.0, c)
+                return c, valid, [c.x * c.x, c.y * c.y, c.z * c.z, dr.select(nan, 1.0, 0.0)]
+
+            def aov_names(self):
+                return ["m2.R", "m2.G", "m2.B", "nan"]
+
+            def to_string(self):
+                return f"RGBMoments[{self.inner}]"
+        cls = _MOMENT_CLASSES[mi.variant()] = RGBMoments
+    return cls(nested)
+
+
+_MOMENT_CLASSES: dict = {}
+MOMENT_CHANNELS = 7
+
+
+def valid_moments(img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and second moment of each pixel's samples that were not NaN (HWC each), and the share of its
+    samples that were (HW1), from a :func:`moment_integrator` render (HW x :data:`MOMENT_CHANNELS`): the
+    NaN samples entered as 0, so the rest weigh ``1 / (1 - share)``. A pixel of NaN samples only is 0."""
+    f = np.clip(img[..., 6:7], 0.0, 1.0)
+    keep = np.where(f < 1.0, 1.0 / np.maximum(1.0 - f, 1e-300), 0.0)
+    return img[..., :3] * keep, img[..., 3:6] * keep, f
+
+
+def _mi_render(fs: FrameScene, spp: int, seed: int, *, integrator=None, channels: int = 3) -> np.ndarray:
+    """``mi.render`` of ``spp`` samples (float64 HW x ``channels``), in as many launches as :func:`launch_plan`
+    says, weighted by their samples; ``integrator`` in place of the scene's own."""
     W, H = fs.cfg.res
     plan = launch_plan(W * H, int(spp))
     acc = 0.0
     for i, n in enumerate(plan):
-        img = fs.mi.render(fs.scene, spp=int(n), seed=launch_seed(seed, i))
+        img = fs.mi.render(fs.scene, integrator=integrator, spp=int(n), seed=launch_seed(seed, i))
         if fs.scene.integrator().should_stop():
             # Mitsuba's SIGINT handler cancelled this render: what it returned may hold fewer samples than
             # asked for. Fail the task (it is retried) rather than store a frame that is not what it says.
             from pipeline.errors import RenderError
             raise RenderError(f"the render of {spp} spp (seed {seed}) was cancelled by an interrupt signal "
                               "before it finished; its result is not used")
-        part = np.asarray(img, np.float64)[..., :3]
+        part = np.asarray(img, np.float64)[..., :channels]
         if len(plan) == 1:
             return part
         acc = acc + part * (n / spp)
     return acc
 
 
-def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices: int | None = None) -> np.ndarray:
-    """Plain ``mi.render`` mean (float64, HWC) of ``spp`` samples, time-sliced when the scene moves."""
+def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices: int | None = None, *,
+                  integrator=None, channels: int = 3) -> np.ndarray:
+    """Plain ``mi.render`` mean (float64, HWC) of ``spp`` samples, time-sliced when the scene moves
+    (:meth:`FrameScene.slices_for`, or ``max_slices``); ``integrator`` in place of the scene's own."""
     cfg = fs.cfg
-    slices = math.gcd(max_slices or cfg.time_slices, spp) if fs.has_motion else 1
+    slices = (math.gcd(max_slices, spp) if max_slices else fs.slices_for(spp)) if fs.has_motion else 1
     times = slice_times(_rng(fs.seed, fs.frame, cfg, stream, index), slices) if fs.has_motion else np.zeros(1)
     acc = 0.0
     for k, t in enumerate(times):
         fs.set_time(float(t))
         acc = acc + _mi_render(fs, spp // slices, stream_seed(fs.seed, fs.frame, stream, index, k,
-                                                                offset=cfg.seed_offset))
+                                                                offset=cfg.seed_offset),
+                               integrator=integrator, channels=channels)
     return acc / slices
 
 
@@ -841,11 +984,19 @@ def render_layers(fs: FrameScene) -> tuple[np.ndarray, int]:
     """Sample layers (float32, LHWC): layer n is the mean of 2**n independent samples; non-finite count."""
     W, H = fs.cfg.res
     out = np.zeros((fs.cfg.layer_levels, H, W, 3), np.float32)
+    # the reference's kernel (one compilation a scene for both); batch_means renders as it always did
+    integrator = fs.moment_integrator if fs.cfg.reference == "moments" and fs.cfg.ref_spp else None
     bad = 0
     for lvl in range(fs.cfg.layer_levels):
-        img, b = _sanitize_image(render_sliced(fs, 2 ** lvl, STREAM_LAYER, lvl), fs.cfg.max_value)
+        img = render_sliced(fs, 2 ** lvl, STREAM_LAYER, lvl, integrator=integrator,
+                            channels=MOMENT_CHANNELS if integrator else 3)
+        nan = np.zeros(img.shape[:2], bool)
+        if integrator is not None:          # the mean of the pixel's samples that were not NaN
+            img, _, f = valid_moments(img)
+            nan = f[..., 0] > 0
+        img, b = _sanitize_image(img, fs.cfg.max_value)
         out[lvl] = img
-        bad += b
+        bad += int((nan | ~np.isfinite(out[lvl]).all(axis=-1)).sum()) if nan.any() else b
     return out, bad
 
 
@@ -856,16 +1007,105 @@ def rel_stderr(mean: np.ndarray, stderr: np.ndarray) -> float:
     return float(np.mean(e / (y + REL_STDERR_EPS))) if y.size else 0.0
 
 
-def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float, int]:
-    """Reference mean and standard error (float32, HWC each), spp taken, relative stderr, non-finite count."""
+def render_reference(fs: FrameScene) -> dict:
+    """The frame's reference: ``reference`` and ``reference_stderr`` (float64, HWC), ``reference_spp``
+    (samples taken), ``reference_rel_stderr``, ``nonfinite_reference`` and ``ref_time_slices`` (distinct
+    shutter times), by ``cfg.reference``."""
     cfg = fs.cfg
     W, H = cfg.res
     if cfg.ref_spp == 0:
-        z = np.zeros((H, W, 3), np.float32)
-        return z, z.copy(), 0, 0.0, 0
+        z = np.zeros((H, W, 3))
+        return _reference(z, z.copy(), 0, 0, 1)
+    if cfg.reference == "batch_means":
+        return _reference_batch_means(fs)
+    return _reference_moments(fs)
+
+
+def _reference(mean, stderr, spp: int, bad: int, times: int) -> dict:
+    return {"reference": mean, "reference_stderr": stderr, "reference_spp": int(spp),
+            "reference_rel_stderr": rel_stderr(mean, stderr) if spp else 0.0, "nonfinite_reference": int(bad),
+            "ref_time_slices": int(times)}
+
+
+def reference_times(times: int) -> np.ndarray:
+    """Shutter fractions of a ``moments`` reference with ``times`` distinct times: the centres of equal
+    strata (the midpoint rule of :func:`reference_time_count`'s derivation)."""
+    return (np.arange(times) + 0.5) / times
+
+
+def _reference_moments(fs: FrameScene) -> dict:
+    """``moments``: each launch renders one shutter time with the moment integrator, so every launch
+    gives each pixel's mean and sample variance. The launches are strata of one estimator: the mean
+    weighs each by its samples, and its variance is ``sum(n_i var_i) / N^2`` (``N`` samples in all), an
+    unbiased estimate with ``N - launches`` degrees of freedom. A launch's NaN pixel is left out of that
+    pixel (counted); ``+-Inf`` is clamped to ``max_value`` and its variance taken as ``max_value^2``.
+
+    Without ``ref_target_rel_stderr`` the reference is one round: one launch a time. With it, a first
+    round of ``ref_min_passes`` passes' samples, then rounds predicted from the measured error (it falls
+    as 1/sqrt(samples)) until the target or ``ref_spp``; a stop lands on a whole number of passes."""
+    cfg = fs.cfg
+    W, H = cfg.res
+    pass_spp = cfg.ref_spp // cfg.ref_passes
+    T = fs.ref_time_slices
+    times = reference_times(T) if fs.has_motion else np.zeros(1)
+    acc = {"A": np.zeros((H, W, 3)), "B": np.zeros((H, W, 3)), "N": np.zeros((H, W, 1)), "bad": 0}
+    target = cfg.ref_target_rel_stderr
+    done, want, rnd = 0, (cfg.ref_min_passes if target is not None else cfg.ref_passes), 0
+    while True:
+        n = (want - done) * pass_spp // T
+        for k, t in enumerate(times):
+            fs.set_time(float(t))
+            img = _mi_render(fs, n, stream_seed(fs.seed, fs.frame, STREAM_REFERENCE, rnd, k, offset=cfg.seed_offset),
+                             integrator=fs.moment_integrator, channels=MOMENT_CHANNELS)
+            _add_launch(acc, img, n, cfg.max_value)
+        done, rnd = want, rnd + 1
+        if target is None or done >= cfg.ref_passes:
+            break
+        mean, err = _moment_stats(acc)
+        rel = rel_stderr(mean, err)
+        if rel <= target:
+            break
+        # the passes the measured error predicts, 5% over (the estimate itself is noisy), at least one more
+        want = min(cfg.ref_passes, max(done + 1, math.ceil(done * (rel / target) ** 2 * 1.05)))
+    mean, err = _moment_stats(acc)
+    return _reference(mean, err, done * pass_spp, acc["bad"], T)
+
+
+def _add_launch(acc: dict, img: np.ndarray, n: int, max_value: float) -> None:
+    """Fold one launch (:func:`moment_integrator`'s channels of ``n`` samples a pixel) into ``acc``: a
+    pixel weighs as its samples that were not NaN (:func:`valid_moments`); a pixel whose mean is still
+    not finite (an Inf sample, or Inf times 0) is left out if NaN, else clamped with variance
+    ``max_value**2``. Pixels with any non-finite sample are counted."""
+    m, q, f = valid_moments(img)
+    nv = n * (1.0 - f)                          # the samples that count, per pixel
+    nan = np.isnan(m).any(axis=-1, keepdims=True) | np.isnan(q).any(axis=-1, keepdims=True) | (nv <= 0)
+    inf = ~nan & ~(np.isfinite(m).all(axis=-1, keepdims=True) & np.isfinite(q).all(axis=-1, keepdims=True))
+    acc["bad"] += int(((f > 0) | ~np.isfinite(img[..., :6]).all(axis=-1, keepdims=True)).sum())
+    m = np.where(nan, 0.0, np.clip(m, -max_value, max_value))
+    var = np.where(nv > 1, np.maximum(np.where(nan | inf, 0.0, q) - m * m, 0.0) * nv / np.maximum(nv - 1, 1e-300), 0.0)
+    var = np.where(inf, max_value * max_value, var)
+    w = np.where(nan, 0.0, nv)
+    acc["A"] += w * m
+    acc["B"] += w * var
+    acc["N"] += w
+
+
+def _moment_stats(acc: dict) -> tuple[np.ndarray, np.ndarray]:
+    N = acc["N"]
+    has = N > 0
+    Nn = np.where(has, N, 1.0)
+    return np.where(has, acc["A"] / Nn, 0.0), np.where(has, np.sqrt(acc["B"]) / Nn, 0.0)
+
+
+def _reference_batch_means(fs: FrameScene) -> dict:
+    """``batch_means`` (stores made before ``reference`` existed resume with it): ``ref_passes`` passes,
+    each of ``ref_time_slices`` times, consecutive blocks of a shifted van der Corput sequence; the error
+    is the batch-means estimate from the pass means."""
+    cfg = fs.cfg
+    W, H = cfg.res
     passes = cfg.ref_passes
     pass_spp = cfg.ref_spp // passes
-    k = math.gcd(cfg.ref_time_slices, pass_spp) if fs.has_motion else 1
+    k = fs.ref_time_slices
     shift = _rng(fs.seed, fs.frame, cfg, STREAM_REFERENCE).random()
     times = np.minimum((_van_der_corput(passes * k) + shift) % 1.0, np.nextafter(1.0, 0.0)).reshape(passes, k)
     cnt = np.zeros((H, W, 1))
@@ -895,7 +1135,7 @@ def render_reference(fs: FrameScene) -> tuple[np.ndarray, np.ndarray, int, float
             if rel_stderr(mean, std) <= cfg.ref_target_rel_stderr:
                 break
     mean, std = _batch_stats(cnt, s1, s2)
-    return (mean.astype(np.float32), std.astype(np.float32), done * pass_spp, rel_stderr(mean, std), bad)
+    return _reference(mean, std, done * pass_spp, bad, k * done if fs.has_motion else 1)
 
 
 def _batch_stats(cnt, s1, s2):
@@ -955,13 +1195,11 @@ def layers_part(fs: FrameScene) -> dict:
 
 def reference_part(fs: FrameScene) -> dict:
     """Reference of a frame: ``reference`` and ``reference_stderr`` (float32, HW3), ``reference_spp``,
-    ``reference_rel_stderr``, ``nonfinite_reference``, ``seconds``."""
+    ``reference_rel_stderr``, ``nonfinite_reference``, ``ref_time_slices``, ``seconds``."""
     t0 = _time.perf_counter()
-    ref, err, spp, rel, bad = render_reference(fs)
+    out = render_reference(fs)
     fs.set_time(0.0)
-    return {**_contiguous({"reference": ref, "reference_stderr": err}, REFERENCE_KEYS),
-            "reference_spp": int(spp), "reference_rel_stderr": float(rel), "nonfinite_reference": int(bad),
-            "seconds": _time.perf_counter() - t0}
+    return {**_contiguous(out, REFERENCE_KEYS), "seconds": _time.perf_counter() - t0}
 
 
 def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: dict) -> dict:
@@ -985,6 +1223,7 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "reference_rel_stderr": float(reference["reference_rel_stderr"]),
         "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
         "case": str(inputs["case"]),    # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
+        "ref_time_slices": int(reference["ref_time_slices"]),   # distinct shutter times of the reference
     }
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")

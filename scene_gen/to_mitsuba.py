@@ -367,6 +367,29 @@ class LoadedScene:
                     self._normals[o.name] = np.array(self._params[normals], np.float32)
         return self
 
+    def shutter_displacement(self) -> float:
+        """The largest screen-space distance, in pixels of this frame, that a vertex of a moving object
+        travels during the shutter (0.0 for a frame without motion; ``inf`` where a moving vertex
+        crosses the camera's near plane). Only paths that touch the image count. Objects move linearly
+        in world space; the path's two ends are compared (a projected straight path is straight)."""
+        if not self.has_motion:
+            return 0.0
+        W, H = self.res
+        m = self.world_to_clip
+        far = 0.0
+        for o in self.moving:
+            p0 = self._base[o.name]
+            p1 = p0 + np.asarray(o.velocity, np.float64) * self.shutter
+            a, b = projection.project_pixels(m, p0, self.res), projection.project_pixels(m, p1, self.res)
+            ok_a, ok_b = np.isfinite(a).all(-1), np.isfinite(b).all(-1)
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            seen = ok_a & ok_b & (hi[:, 0] >= 0) & (lo[:, 0] <= W) & (hi[:, 1] >= 0) & (lo[:, 1] <= H)
+            if np.any(ok_a != ok_b):
+                return math.inf
+            if seen.any():
+                far = max(far, float(np.max(np.hypot(*(b[seen] - a[seen]).T))))
+        return far
+
     def tau(self, t) -> np.ndarray | float:
         """Scene time in frames of shutter fraction(s) ``t``."""
         return self.frame + self.shutter * np.asarray(t, np.float64)

@@ -58,4 +58,5 @@ FRAME_META = {
     "reference_rel_stderr": float,  # achieved mean relative standard error of the reference
     "render_seconds": float,
     "case": str,                # hard cases of the scene (scene_gen.cases), comma-separated; '' for ordinary frames
+    "ref_time_slices": int,     # distinct shutter times of the reference (1: static; 0: not recorded, older stores)
 }

@@ -79,7 +79,7 @@ def fake_reference(spec_json, frame, render):
     r = _rng(spec_json, frame, "reference")
     return {"reference": r.random((H, W, 3), dtype=np.float32) + 0.5,
             "reference_stderr": np.full((H, W, 3), 0.01, np.float32), "reference_spp": render["ref_spp"],
-            "reference_rel_stderr": 0.02, "nonfinite_reference": 0, "seconds": 0.01}
+            "reference_rel_stderr": 0.02, "nonfinite_reference": 0, "ref_time_slices": 1, "seconds": 0.01}
 
 
 def fake_functions(reference=fake_reference):

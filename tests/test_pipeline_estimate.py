@@ -119,7 +119,8 @@ def test_predicted_passes_match_the_stopping_rule():
     from pipeline.estimate import c4, predicted_passes
     from pipeline.render import RenderConfig, _batch_stats, rel_stderr
     assert c4(2) == pytest.approx(np.sqrt(2 / np.pi)) and c4(1000) == pytest.approx(1.0, abs=1e-3)
-    rc = RenderConfig(res=(16, 16), ref_spp=4096, ref_passes=32, ref_min_passes=8, ref_target_rel_stderr=0.03)
+    rc = RenderConfig(res=(16, 16), ref_spp=4096, ref_passes=32, ref_min_passes=8, ref_target_rel_stderr=0.03,
+                      reference="batch_means")
     assert predicted_passes(0.5, 4, dataclasses.replace(rc, ref_target_rel_stderr=None)) == 32
     assert predicted_passes(1e-6, 4, rc) == 8 and predicted_passes(10.0, 4, rc) == 32
     rng = np.random.default_rng(0)
@@ -140,6 +141,21 @@ def test_predicted_passes_match_the_stopping_rule():
             actual.append(stop)
             predicted.append(predicted_passes(rel_stderr(m, s), 4, rc))
         assert abs(np.mean(predicted) - np.mean(actual)) <= 0.05 * np.mean(actual) + 0.5, (sigma, predicted, actual)
+
+
+def test_a_moments_reference_is_predicted_round_by_round():
+    """``moments``: the rounds the renderer takes (a first of ref_min_passes, then what the error predicts)
+    and the cost fit of launches and samples."""
+    from pipeline.estimate import predicted_passes, predicted_rounds, reference_seconds
+    from pipeline.render import RenderConfig
+    rc = RenderConfig(res=(16, 16), ref_spp=4096, ref_passes=32, ref_min_passes=8, ref_target_rel_stderr=0.03)
+    assert predicted_rounds(0.01, 4, rc) == [8]                      # converged at the first round
+    assert predicted_rounds(0.064, 2, rc) == [8, 10]                 # 0.032 at 8: 8 * (0.032/0.03)^2 * 1.05 -> 10
+    assert predicted_rounds(1.0, 2, rc) == [8, 32] and predicted_passes(1.0, 2, rc) == 32
+    # t = 0.02 s a launch + 1e-4 s a sample a pixel, recovered from two points
+    t = lambda launches, spp: 0.02 * launches + 1e-4 * spp         # noqa: E731
+    assert reference_seconds(t(16, 256), 256, 16, t(19, 63), 63, 19, 4096, 16) == pytest.approx(t(16, 4096))
+    assert reference_seconds(1.0, 256, 16, 0.1, 63, 19, 512, 16) == pytest.approx(2.0)   # no positive fit
 
 
 def _kernel_files() -> list[str]:
