@@ -206,14 +206,16 @@ def _print_counts(c: dict) -> None:
                   f"kernels, mi.render {b['own_kernels']}", flush=True)
 
 
-def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: str | None = None) -> dict:
-    """Wall time and samples of ``python -m pipeline dataset`` on four stills (a child process)."""
+def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: str | None = None,
+               render: dict | None = None) -> dict:
+    """Wall time and samples of ``python -m pipeline dataset`` on four stills (a child process);
+    ``render``: settings over the bench's (e.g. ``{"reference": "batch_means"}``, the method before)."""
     import yaml
     passes = 32 if ref_spp >= 32 * 16 else 8
     cfg = {"name": "bench-e2e", "seed": 4242, "resolution": [res, res],
            "scenes": [{"kind": "indoor", "count": 2}, {"kind": "outdoor", "count": 2}],
            "render": {"spp": 8, "layer_levels": 6, "ref_spp": ref_spp, "ref_passes": passes,
-                      "ref_min_passes": passes // 2},
+                      "ref_min_passes": passes // 2, **(render or {})},
            "scene_gen": scene_gen, "tasks": {"retries": 0},
            "cluster": {"kind": "local", "workers": workers, "threads_per_worker": 1, "dashboard_address": None}}
     with tempfile.TemporaryDirectory(prefix="bench-e2e-", dir=scratch_dir()) as tmp:
