@@ -202,7 +202,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
 
     from pipeline import cluster as cl
     from pipeline.graph import build_graph
-    from stores.writer import generation, open_or_create
+    from stores.writer import generation
 
     t0 = time.perf_counter()
     cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
@@ -223,17 +223,8 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
                + (f" (one per GPU: {', '.join(gpus)})" if gpus else ""))
         _print(f"dashboard: {dashboard or 'none'}")
         _check_worker_memory(cfg, conn)
-        try:
-            writer = open_or_create(store, cfg.store_layout(), cfg.content_dict(), overwrite=overwrite)
-        except OSError as e:
-            if is_disk_full(e):
-                raise store_full(store, "creating the store", space_needed(cfg, store, cfg.num_frames)) from None
-            raise
-        todo = set(writer.incomplete_frames())
-        frames = [f for f in cfg.frames() if f.index in todo]
+        writer, frames = _open_writer(cfg, store, overwrite)
         skipped = cfg.num_frames - len(frames)
-        if skipped:
-            _print(f"resume: {skipped} frame(s) already complete, {len(frames)} to render")
         tb = time.perf_counter()
         graph = build_graph(cfg, store, frames, functions=functions, generation=generation(store))
         timings["build_graph_s"] = time.perf_counter() - tb
@@ -258,15 +249,37 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
     timings["validate_s"] = time.perf_counter() - tv
     summary = _summary(cfg, store, t0, results=results, failed=failed, skipped=skipped, dashboard=dashboard,
                        cluster=conn.kind, validation=validation)
+    summary["timings"] = _timings(timings, results, summary["render_s"])
+    return summary
+
+
+def _open_writer(cfg: DatasetConfig, store: str, overwrite: bool) -> tuple:
+    """The store's writer (created or resumed) and the frames of ``cfg`` it still lacks."""
+    from stores.writer import open_or_create
+    try:
+        writer = open_or_create(store, cfg.store_layout(), cfg.content_dict(), overwrite=overwrite)
+    except OSError as e:
+        if is_disk_full(e):
+            raise store_full(store, "creating the store", space_needed(cfg, store, cfg.num_frames)) from None
+        raise
+    todo = set(writer.incomplete_frames())
+    frames = [f for f in cfg.frames() if f.index in todo]
+    if cfg.num_frames - len(frames):
+        _print(f"resume: {cfg.num_frames - len(frames)} frame(s) already complete, {len(frames)} to render")
+    return writer, frames
+
+
+def _timings(timings: dict, results: list, render_s: float) -> dict:
+    """The run's ``timings`` summary, printed as its ``time:`` line: where the run's time went."""
     lat = timings.pop("commit_latency_s", [])
-    summary["timings"] = tm = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
-                               "commit_latency_max_s": float(np.max(lat)) if lat else None,
-                               "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
+    tm = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
+          "commit_latency_max_s": float(np.max(lat)) if lat else None,
+          "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
     _print(f"time:       start {tm['start_s']:.1f} s, cluster {tm['cluster_start_s']:.1f} s up and "
            f"{tm['cluster_close_s']:.1f} s down, frames {tm.get('frames_s', 0.0):.1f} s (render "
-           f"{summary['render_s']:.1f} s and writes {tm['write_s']:.1f} s summed over tasks), validation "
+           f"{render_s:.1f} s and writes {tm['write_s']:.1f} s summed over tasks), validation "
            f"{tm['validate_s']:.1f} s")
-    return summary
+    return tm
 
 
 def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
