@@ -200,24 +200,43 @@ def test_evaluate_times_only_warm_calls_of_each_shape(probes, clip_store, monkey
 
     from training import evaluate as ev
     from training.models import build
-    seen, real = set(), ev.runner
+    model = build(probes["clips"])
+    kind = type(model.input_spec().input_kind)
+    seen, real = set(), kind.stream
 
-    def compiling_runner(m, dev, precision):
-        run = real(m, dev, precision)
-
-        def slow_first(item, state=None):
-            sig = (tuple(tuple(v.shape) for v in item.values()), state is None)
-            if sig not in seen:
-                seen.add(sig)
-                _time.sleep(0.3)
-            return run(item, state)
-        return slow_first
-    monkeypatch.setattr(ev, "runner", compiling_runner)
-    res = ev.evaluate(build(probes["clips"]), clip_store, split="test", with_flip=False, device="cpu")
+    def slow_first(self, net, batch, state=None):       # inside the timed step, as a compilation is
+        sig = (tuple(tuple(v.shape) for v in batch.values()), state is None)
+        if sig not in seen:
+            seen.add(sig)
+            _time.sleep(0.3)
+        return real(self, net, batch, state)
+    monkeypatch.setattr(kind, "stream", slow_first)
+    res = ev.evaluate(model, clip_store, split="test", with_flip=False, device="cpu")
     assert len(seen) == 2                                   # a clip's first step, and steps with a state
     assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
     assert res["timing"]["frames_timed"] == len(res["frames"]) == TEST_FRAMES
     assert res["timing"]["untimed_warmups"] == 2
+
+
+def test_evaluate_times_the_model_step_without_the_read_back(probes, clip_store, monkeypatch):
+    """A frame's time is the model's step alone: a slow read-back of its output (0.3 s here; on a GPU the
+    copy to pageable memory) is not in it, and the JSON says what the time measures."""
+    import time as _time
+
+    from training import evaluate as ev
+    from training.models import build
+    real = ev._hwc
+
+    def slow_read_back(x):
+        if isinstance(x, ev.torch.Tensor) and x.dim() == 3 and x.shape[0] == 3:     # the model's output, CHW
+            _time.sleep(0.3)
+        return real(x)
+    monkeypatch.setattr(ev, "_hwc", slow_read_back)
+    t = _time.perf_counter()
+    res = ev.evaluate(build(probes["clips"]), clip_store, split="test", with_flip=False, device="cpu")
+    assert _time.perf_counter() - t > 0.3 * TEST_FRAMES                      # the read-backs did happen
+    assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
+    assert "read-back" in res["timing"]["measures"]
 
 
 def test_evaluate_leaves_two_calls_a_signature_untimed_where_cuda_graphs_record(probes, clip_store, monkeypatch):
@@ -230,26 +249,23 @@ def test_evaluate_leaves_two_calls_a_signature_untimed_where_cuda_graphs_record(
     from training import accel
     from training import evaluate as ev
     from training.models import build
-    calls, real = {}, ev.runner
+    model = build(probes["clips"])
+    kind = type(model.input_spec().input_kind)
+    calls, real = {}, kind.stream
 
     def as_if_graphed(model):
         model.warmup_calls = 2
         return model
 
-    def recording_runner(m, dev, precision):
-        run = real(m, dev, precision)
-
-        def slow_twice(item, state=None):
-            sig = (tuple(tuple(v.shape) for v in item.values()), state is None)
-            calls[sig] = calls.get(sig, 0) + 1
-            if calls[sig] <= 2:
-                _time.sleep(0.3)
-            return run(item, state)
-        return slow_twice
+    def slow_twice(self, net, batch, state=None):       # inside the timed step, as compiling and recording are
+        sig = (tuple(tuple(v.shape) for v in batch.values()), state is None)
+        calls[sig] = calls.get(sig, 0) + 1
+        if calls[sig] <= 2:
+            _time.sleep(0.3)
+        return real(self, net, batch, state)
     monkeypatch.setattr(accel, "compile_model", as_if_graphed)
-    monkeypatch.setattr(ev, "runner", recording_runner)
-    res = ev.evaluate(build(probes["clips"]), clip_store, split="test", with_flip=False, device="cpu",
-                      compile=True)
+    monkeypatch.setattr(kind, "stream", slow_twice)
+    res = ev.evaluate(model, clip_store, split="test", with_flip=False, device="cpu", compile=True)
     assert all(f["ms"] < 250 for f in res["frames"]), [f["ms"] for f in res["frames"]]
     assert {k: res["timing"][k] for k in ("frames_timed", "untimed_warmups", "call_signatures")} == \
         {"frames_timed": TEST_FRAMES, "untimed_warmups": 4, "call_signatures": 2}

@@ -228,6 +228,23 @@ def test_stability_forward_and_backward(case):
         assert (extra["counts"] == 0).float().mean() > 0.5
 
 
+def test_a_forward_makes_no_tensor_from_host_values(monkeypatch):
+    """No tensor is built from Python values inside the model: on a GPU each would be a host-to-device
+    copy at every call (the grey weights were one)."""
+    m = tiny()
+    batch = layer_batch(T=3)
+
+    def refusing(real):
+        def make(data, *a, **k):
+            if not isinstance(data, torch.Tensor):
+                raise AssertionError(f"a tensor made from host values {data!r} inside the model's forward")
+            return real(data, *a, **k)
+        return make
+    for name in ("tensor", "as_tensor"):
+        monkeypatch.setattr(torch, name, refusing(getattr(torch, name)))
+    assert torch.isfinite(m(batch)).all()
+
+
 # ------------------------------------------------------------------------------------ real store
 def make_clip_store(path, clips=(2, 1, 1), frames=4, h=16, w=16):
     from stores.schema import StoreLayout

@@ -175,27 +175,39 @@ def load_method(method, st, spp: int | None, device: str, compile: bool, baselin
     return Method(info["method"], accel.compile_model(fast) if compile else fast, spec, int(spp), info)
 
 
+def _sync(dev: torch.device) -> None:
+    """Wait for ``dev``'s queued work (a CUDA device's own stream; nothing to wait for on the CPU)."""
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
 def runner(m: Method, dev: torch.device, precision: str):
-    """``run(item, state) -> (output HW3, new state, achieved mean spp, counts HW or None)`` for one item
-    (no batch axis). A baseline sees the kind's ``noisy_image``; a recurrent model steps once, carrying
-    ``state``; ``counts`` is an adaptive sampler's count image (``extra["counts"]`` of its step)."""
+    """``run(item, state) -> (output HW3, new state, achieved mean spp, counts HW or None, ms)`` for one
+    item (no batch axis). A baseline sees the kind's ``noisy_image``; a recurrent model steps once,
+    carrying ``state``; ``counts`` is an adaptive sampler's count image (``extra["counts"]`` of its step).
+    ``ms``: the model's step alone, from its inputs on ``dev`` to its output there (``dev`` synchronized
+    on both sides): the upload before and the read-back after are not in it (a baseline: the whole call,
+    which has no transfer)."""
     kind = m.spec.input_kind
 
     def run(item, state=None):
         if m.model is None:
+            t = time.perf_counter()
             im = {k: _hwc(v) for k, v in kind.noisy_image(item, m.spp).items()}
             out = im["radiance"] if m.name == "input" else oidn_denoise(im["radiance"], im.get("albedo"), im.get("normal"))
-            return out, None, float(m.spp), None
+            return out, None, float(m.spp), None, (time.perf_counter() - t) * 1e3
+        batch = {k: v.unsqueeze(0).to(dev) for k, v in item.items()}
+        _sync(dev)
+        t = time.perf_counter()
         with torch.no_grad(), accel.autocast(dev, precision):
-            batch = {k: v.unsqueeze(0).to(dev) for k, v in item.items()}
             out, state, extra = kind.stream(m.model, batch, state)
-            counts = extra.get("counts")
-            if out.is_cuda:
-                torch.cuda.synchronize()
+        _sync(dev)
+        ms = (time.perf_counter() - t) * 1e3
+        counts = extra.get("counts")
         if counts is None:
-            return _hwc(out[0]), state, float(m.spp), None
+            return _hwc(out[0]), state, float(m.spp), None, ms
         counts = counts[0, 0]
-        return _hwc(out[0]), state, float(counts.float().mean()), counts.cpu().numpy()
+        return _hwc(out[0]), state, float(counts.float().mean()), counts.cpu().numpy(), ms
     return run
 
 
@@ -227,9 +239,7 @@ def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> di
             for _ in range(warmup_calls):
                 run(item, state)
                 warmups += 1
-        t = time.perf_counter()
-        out, state, achieved, counts = run(item, state)
-        ms = (time.perf_counter() - t) * 1e3
+        out, state, achieved, counts, ms = run(item, state)
         ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
         rows.append(frame_row(st, idx, int(clip_of[idx]), out, ref, item.get("stderr"), ms, achieved, with_flip))
         current.append((out, ref, idx))
@@ -240,7 +250,13 @@ def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> di
         prev = idx
     runs = [r for r in runs + [current] if len(r) >= 2]
     return {"frames": rows, "runs": runs, "images": images, "sample_map": sample_map,
-            "timing": {"frames_timed": len(rows), "untimed_warmups": warmups, "call_signatures": len(warmed)}}
+            "timing": {"frames_timed": len(rows), "untimed_warmups": warmups, "call_signatures": len(warmed),
+                       "measures": TIMING_MEASURES}}
+
+
+TIMING_MEASURES = ("a frame's ms: the model's step from its inputs on the device to its output there, the device "
+                   "synchronized on both sides; the upload before and the read-back after are not in it (baselines: "
+                   "the whole call)")
 
 
 def call_signature(item: dict, state) -> tuple:

@@ -49,10 +49,9 @@ def check_outliers(k) -> float:
 
 def luminance(x: torch.Tensor, dim: int) -> torch.Tensor:
     """Rec. 709 luminance of non-negative radiance ``x`` along its channel axis ``dim`` (kept, size 1)."""
-    w = torch.tensor(LUMA, dtype=x.dtype, device=x.device)
-    shape = [1] * x.dim()
-    shape[dim] = 3
-    return (x * w.view(shape)).sum(dim=dim, keepdim=True)
+    # the weights as Python numbers (kernel arguments): a tensor made from them at every call was a
+    # host-to-device copy each time on a GPU
+    return x.narrow(dim, 0, 1) * LUMA[0] + x.narrow(dim, 1, 1) * LUMA[1] + x.narrow(dim, 2, 1) * LUMA[2]
 
 
 def neighbourhood_level(lum: torch.Tensor) -> torch.Tensor:

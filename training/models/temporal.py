@@ -75,8 +75,9 @@ SIZES = {
 
 
 def grey(x: torch.Tensor) -> torch.Tensor:
-    w = torch.tensor(GREY, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    return (x * w).sum(dim=1, keepdim=True)
+    """CCIR 601 grey of B3HW: the weights are Python numbers, kernel arguments, where a tensor made from
+    them at every call was a host-to-device copy (a sync point on a GPU) each time."""
+    return x[:, 0:1] * GREY[0] + x[:, 1:2] * GREY[1] + x[:, 2:3] * GREY[2]
 
 
 def apply_kernel(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
@@ -187,11 +188,12 @@ class TemporalDenoiser(Denoiser):
 
     def budget(self, frame: dict) -> torch.Tensor:
         """The average budget ``n`` per pixel of each item (B,): the dataset's ``spp``."""
-        b = frame["layers"].shape[0]
+        b, dev = frame["layers"].shape[0], frame["layers"].device
         n = frame.get("spp")
-        if n is None:
-            return torch.full((b,), float(self.inputs.default_spp), device=frame["layers"].device)
-        return torch.as_tensor(n, dtype=torch.float32, device=frame["layers"].device).reshape(-1).expand(b)
+        if isinstance(n, torch.Tensor):
+            return n.to(device=dev, dtype=torch.float32).reshape(-1).expand(b)
+        # a number is the fill value of a kernel, not a tensor copied from the host at every call
+        return torch.full((b,), float(self.inputs.default_spp if n is None else n), device=dev)
 
     # ------------------------------------------------------------------ recurrence
     def step(self, frame: dict, state: dict | None):
