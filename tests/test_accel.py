@@ -298,6 +298,57 @@ def test_training_steps_read_the_device_only_when_the_loss_is_read(name, monkeyp
         assert value == pytest.approx(float(loss_fn(model(batch).float(), target)), rel=0.5)
 
 
+class _Items(torch.utils.data.Dataset):
+    """Held-out items of a model's input kind (the kind's example batch, one item each), with references."""
+
+    def __init__(self, model, n: int, size: int = 16):
+        spec = model.input_spec()
+        g = torch.Generator().manual_seed(1)
+        b = spec.input_kind.example_batch(n, spec.default_spp, size, size, spec.frames, g)
+        with torch.no_grad():
+            b["reference"] = torch.rand(model(b).float().shape, generator=g)
+        self.items = [{k: v[i] for k, v in b.items()} for i in range(n)]
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, i):
+        return self.items[i]
+
+
+@pytest.mark.parametrize("name", ["layer", "temporal"])
+def test_validation_reads_the_device_once_and_agrees_with_the_metrics(name, monkeypatch, one_thread):
+    """A validation pass over 6 items runs them in batches and reads its figures back once (it read five
+    values an item); its figures are those of ``training.metrics`` (numpy, float64) and of the loss, item
+    by item."""
+    import numpy as np
+
+    from training import metrics
+    from training.loop import validate
+    torch.manual_seed(0)
+    model = build(name, **get(name).tiny)
+    ds = _Items(model, 6)
+    loss_fn = build_loss(model.train_defaults.get("loss", "smape"))
+    reads = _HostReads(monkeypatch)
+    reads.on = True
+    got = validate(model, ds, loss_fn, "cpu", kind=model.input_spec().input_kind)
+    reads.on = False
+    assert len(reads.seen) <= 2 and reads.seen.count("cpu") == 1, reads.seen        # the .cpu() and its .numpy()
+    kind, want = model.input_spec().input_kind, {"loss": [], "relmse": [], "smape": [], "psnr": []}
+    for item in ds.items:
+        b = {k: v.unsqueeze(0) for k, v in item.items()}
+        with torch.no_grad():
+            out, ref = model.eval()(b).float(), kind.target(b).float()
+        if out.dim() == 5:                     # a window: its last frame is judged
+            out, ref = out[:, -1], ref[:, -1]
+        want["loss"].append(float(loss_fn(out, ref)))
+        d, r = out[0].permute(1, 2, 0).numpy(), ref[0].permute(1, 2, 0).numpy()
+        for k in ("relmse", "smape", "psnr"):
+            want[k].append(getattr(metrics, k)(d, r))
+    for k, v in want.items():
+        assert got[k] == pytest.approx(float(np.mean(v)), rel=1e-5), k
+
+
 def test_the_losses_are_read_together_and_a_nan_names_its_step():
     from training.errors import NonFiniteError
     from training.loop import LossReader

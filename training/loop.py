@@ -171,34 +171,71 @@ def _clamp(model, clip_norm: float, clip_value: float) -> None:
         torch.nn.utils.clip_grad_value_(model.parameters(), clip_value)
 
 
+VAL_BATCH = 4          # held-out items a validation forward takes at once
+
+
 @torch.no_grad()
 def validate(model, dataset, loss_fn, device, max_frames: int = 0, kind=None,
-             dist: distributed.Dist = distributed.SINGLE, precision: str = "fp32") -> dict:
+             dist: distributed.Dist = distributed.SINGLE, precision: str = "fp32", batch: int = VAL_BATCH) -> dict:
     """Mean loss, relMSE, SMAPE and PSNR over (up to ``max_frames``) held-out items, the model run in
-    ``precision`` (as trained) and every figure computed in fp32. ``kind``:
+    ``precision`` (as trained) and every figure computed in float64 on the device. ``kind``:
     the model's input kind (its ``target``); default: the item's ``reference``. ``dist``: under
     torchrun item i is judged on rank ``i mod N`` and the rows gathered in item order, so every rank
-    returns the one-process figures (``model``: the unwrapped module)."""
+    returns the one-process figures (``model``: the unwrapped module). Items of one shape run ``batch``
+    at a time, and the figures stay on the device until one read at the end (a host read waits for the
+    device: one per item kept a GPU idle between items)."""
+    from torch.utils.data import default_collate
     model.eval()
     n = len(dataset) if not max_frames else min(max_frames, len(dataset))
-    rows = []
-    for i in range(dist.rank, n, dist.world):
-        item = to_device({k: v.unsqueeze(0) for k, v in dataset[i].items()}, device)
+    mine = list(range(dist.rank, n, dist.world))
+    parts = []
+    for group, got in _same_shape_runs(dataset, mine, max(1, int(batch))):
+        items = to_device(default_collate(got), device)
         with accel.autocast(torch.device(device), precision):
-            out = model(item)
+            out = model(items)
         out = out.float()
-        ref = (item["reference"] if kind is None else kind.target(item)).float()
+        ref = (items["reference"] if kind is None else kind.target(items)).float()
         check_output(out, ref)
         if out.dim() == 5:                           # a recurrent model's window: judge its last frame
             out, ref = out[:, -1], ref[:, -1]
-        d = out[0].permute(1, 2, 0).cpu().numpy()
-        r = ref[0].permute(1, 2, 0).cpu().numpy()
-        rows.append({"i": i, "loss": float(loss_fn(out, ref)), "relmse": metrics.relmse(d, r),
-                     "smape": metrics.smape(d, r), "psnr": metrics.psnr(d, r)})
+        losses = torch.stack([loss_fn(out[j:j + 1], ref[j:j + 1]).float() for j in range(len(group))])
+        parts.append(torch.cat([losses.double()[:, None], image_metrics(out, ref)], dim=1))
+    values = torch.cat(parts).cpu().numpy() if parts else np.zeros((0, 4))
+    rows = [{"i": i, **dict(zip(("loss", "relmse", "smape", "psnr"), map(float, v)))} for i, v in zip(mine, values)]
     if dist.enabled:
         rows = sorted((r for part in dist.gather(rows) for r in part), key=lambda r: r["i"])
     rows = [{k: v for k, v in r.items() if k != "i"} for r in rows]
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+
+
+def _same_shape_runs(dataset, indices: list[int], size: int):
+    """``(indices, items)`` of ``dataset`` in order, in runs of at most ``size`` items whose tensors have
+    the same shapes (they stack)."""
+    run, items, shape = [], [], None
+    for i in indices:
+        item = dataset[i]
+        s = tuple((k, tuple(v.shape)) for k, v in sorted(item.items()) if isinstance(v, torch.Tensor))
+        if run and (len(run) == size or s != shape):
+            yield run, items
+            run, items = [], []
+        run.append(i)
+        items.append(item)
+        shape = s
+    if run:
+        yield run, items
+
+
+def image_metrics(out: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """relMSE, SMAPE and PSNR of each image of a batch (B 3 H W, linear radiance) as ``training.metrics``
+    computes them (its numpy functions are the oracle), in float64 on the images' device: (B, 3)."""
+    from core.images import tonemap
+    d, r = out.double(), ref.double()
+    dims = tuple(range(1, d.dim()))
+    relmse = ((d - r) ** 2 / (r ** 2 + metrics.RELMSE_EPS)).mean(dim=dims)
+    smape = ((d - r).abs() / (d.abs() + r.abs() + metrics.SMAPE_EPS)).mean(dim=dims)
+    mse = ((tonemap(d) - tonemap(r)) ** 2).mean(dim=dims)
+    psnr = 10.0 * torch.log10(1.0 / mse)
+    return torch.stack([relmse, smape, psnr], dim=1)
 
 
 class _Feed:
