@@ -77,13 +77,12 @@ def keep_clips(ds, store, split: str, clips) -> None:
         raise DataError(f"split {split!r} of {store.path!s} has no clip {absent[:8]}{more} "
                         f"({len(absent)} of the {len(want)} clip ids asked for)")
     clip_of = store.meta_column("clip_id")
-    attr = "frames" if hasattr(ds, "frames") else "windows"
-    items = list(getattr(ds, attr))
-    keep = [it for it in items if all(int(clip_of[int(i)]) in want for i in (it if isinstance(it, tuple) else (it,)))]
+    items = list(ds.windows)
+    keep = [w for w in items if all(int(clip_of[int(i)]) in want for i in w)]
     if not keep:
         raise DataError(f"none of the {len(items)} items of split {split!r} of {store.path!s} lies in the "
                         f"{len(want)} clip(s) asked for (a model that reads windows needs clips at least that long)")
-    setattr(ds, attr, keep)
+    ds.windows = keep
 
 
 def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> dict[int, list[str]]:
@@ -94,12 +93,11 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
     store (a frame not yet written, failed, or unflagged: the datasets hold complete frames only, so
     without this a partial store would be used without a word; an unwritten frame's split is not known,
     so any incomplete frame counts). Returns the frames left out, frame -> problems, also kept as
-    ``ds.left_out``. The store datasets list their frames in ``frames`` (one per item) or ``windows``
-    (tuples)."""
+    ``ds.left_out``. Every store dataset lists its items' frames in ``windows`` (a tuple of frame
+    indices an item, ``training.datasets.FrameWindows``)."""
     from stores.fitness import describe
-    attr = "frames" if hasattr(ds, "frames") else "windows"
-    items = list(getattr(ds, attr))
-    used = sorted({int(i) for it in items for i in (it if isinstance(it, tuple) else (it,))})
+    items = list(ds.windows)
+    used = sorted({int(i) for w in items for i in w})
     bad = store.check_frames(sorted(set(used) | set(store.incomplete_frames())), progress=progress)
     ds.left_out = bad
     if not bad:
@@ -111,10 +109,10 @@ def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> 
         raise DataError(f"{len(bad)} frames of {store.path!s} would be flagged by validate ({inside} of the "
                         f"{len(used)} of split {split!r}{rest}): {listed}; re-render them (python -m pipeline "
                         "dataset resumes and finishes a partial store), or pass --skip-bad-frames to leave them out")
-    keep = [it for it in items if not any(int(i) in bad for i in (it if isinstance(it, tuple) else (it,)))]
+    keep = [w for w in items if not any(int(i) in bad for i in w)]
     if not keep:
         raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}")
-    setattr(ds, attr, keep)
+    ds.windows = keep
     warnings.warn(f"skipping {len(bad)} flagged frames of {store.path!s} ({len(items) - len(keep)} items of split "
                   f"{split!r}): {listed}", stacklevel=3)
     return bad

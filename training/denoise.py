@@ -209,8 +209,7 @@ def items_from_store(spec, store: str, frame: int, spp: int, stepwise: bool) -> 
     if stepwise or spec.frames == 1:
         spec = replace(spec, frames=1)                  # single frames, the model's features kept
     ds = model_dataset(spec, st, split, spp, None, augment=False, seed=0, full_windows=False)
-    attr = "frames" if hasattr(ds, "frames") else "windows"
-    ends = [int(w[-1]) if isinstance(w, tuple) else int(w) for w in getattr(ds, attr)]
+    ends = [int(w[-1]) for w in ds.windows]
     if frame not in ends:
         raise DataError(f"frame {frame} of {st.path} is not usable ({split} split)")
     pos = ends.index(frame)
