@@ -391,9 +391,10 @@ class FrameScene:
                         max(1, pass_spp // 2))
 
     def slices_for(self, spp: int) -> int:
-        """Time slices of an input or layer render of ``spp`` samples a pixel: :func:`reference_time_count`
-        of the frame's motion at those samples, at most ``time_slices`` (``moments``; ``batch_means``:
-        ``time_slices``), a divisor of ``spp``; 1 without motion."""
+        """Time slices of a layer render of ``spp`` samples a pixel (:func:`render_sliced`; the inputs keep
+        ``time_slices``): :func:`reference_time_count` of the frame's motion at those samples, at most
+        ``time_slices`` (``moments``; ``batch_means``: ``time_slices``), a divisor of ``spp``; 1 without
+        motion."""
         if not self.has_motion:
             return 1
         cap = self.cfg.time_slices
