@@ -281,7 +281,7 @@ class FrameScene:
         # the one call from spec to scene: nothing below reads the spec
         self.loaded = ld = to_mitsuba.load_frame(spec, frame, cfg.res, merge=merge, on_loaded=on_scene_loaded)
         self.scene, self.cam, self.prev_cam = ld.scene, ld.camera, ld.prev_camera
-        self.seed, self.num_frames, self.case = ld.seed, ld.num_frames, ld.case
+        self.seed, self.num_frames, self.case, self.kind = ld.seed, ld.num_frames, ld.case, ld.kind
         self.merged = bool(merge)
         self.sensor = self.scene.sensors()[0]
         self.integrator = self.scene.integrator()
@@ -1171,7 +1171,7 @@ def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     """Per-sample inputs of a frame: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17),
     guides (float32, HWC: per-pixel sample means of albedo, normal, depth, motion), ``camera_to_world``
     and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``,
-    the scene's ``scene_seed``, ``num_frames`` and ``case`` (what :func:`assemble` records of it) and
+    the scene's ``scene_seed``, ``num_frames``, ``case`` and ``kind`` (what :func:`assemble` records of it) and
     ``seconds``."""
     t0 = _time.perf_counter()
     out = input_samples(fs, sample_hook)
@@ -1180,7 +1180,7 @@ def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     _contiguous(out, INPUT_KEYS)
     fs.set_time(0.0)
     out.update(nonfinite_inputs=int(bad), has_motion=bool(fs.has_motion), has_defocus=bool(fs.has_defocus),
-               scene_seed=int(fs.seed), num_frames=int(fs.num_frames), case=str(fs.case),
+               scene_seed=int(fs.seed), num_frames=int(fs.num_frames), case=str(fs.case), kind=str(fs.kind),
                seconds=_time.perf_counter() - t0)
     return out
 
@@ -1225,6 +1225,7 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "render_seconds": float(inputs["seconds"] + layers["seconds"] + reference["seconds"]),
         "case": str(inputs["case"]),    # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
         "ref_time_slices": int(reference["ref_time_slices"]),   # distinct shutter times of the reference
+        "kind": str(inputs["kind"]),    # frames/kind: the scene family, so that no reader parses the JSON
     }
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")

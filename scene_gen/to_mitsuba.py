@@ -320,6 +320,7 @@ class LoadedScene:
     frame: int
     num_frames: int
     case: str
+    kind: str
     shutter: float
     res: tuple[int, int]
     camera: CameraSpec
@@ -427,7 +428,7 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge
         on_loaded(scene)
     cam = spec.camera(frame)
     return LoadedScene(scene=scene, seed=int(spec.seed), frame=int(frame), num_frames=spec.num_frames,
-                       case=spec.case, shutter=float(spec.shutter), res=res, camera=cam,
+                       case=spec.case, kind=spec.kind, shutter=float(spec.shutter), res=res, camera=cam,
                        prev_camera=spec.camera(frame - 1) if frame > 0 else cam,
                        shapes=dict(shape_groups(spec, merge)), integrator=integrator_dict(spec),
                        moving=tuple(o for o in spec.objects if o.moving))._moving_objects()

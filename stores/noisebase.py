@@ -374,7 +374,7 @@ class NoisebaseStore:
         """``clip_id`` (the sequence), ``frame`` (index in it), ``num_frames``; ``has_motion`` (the camera
         moves in the sequence, or its last frame's samples have non-zero world motion: a moving object
         moves in every frame after the first; :meth:`_sequence_moves`), ``has_defocus`` (False: the
-        format has no lens), ``scene_json`` ('') and ``case`` ('')."""
+        format has no lens), ``scene_json``, ``case`` and ``kind`` ('': the format has no scene family)."""
         seq = np.repeat(np.arange(len(self.files)), self.frames_per_sequence)
         if key == "clip_id":
             return seq.astype(np.int64)
@@ -386,7 +386,7 @@ class NoisebaseStore:
             return np.array([self._sequence_moves(n) for n in range(len(self.files))], bool)[seq]
         if key == "has_defocus":
             return np.zeros(self.num_frames, bool)
-        if key in ("scene_json", "case"):
+        if key in ("scene_json", "case", "kind"):
             return np.array([""] * self.num_frames)
         raise KeyError(f"{self.path} (Noisebase) has no frame column {key!r}")
 

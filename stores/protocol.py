@@ -66,10 +66,33 @@ class TrainingStore(Protocol):
 
     def meta_column(self, key: str) -> np.ndarray:
         """A per-frame column: ``clip_id``, ``frame`` (index in the clip), ``num_frames``, ``has_motion``,
-        ``has_defocus``, ``scene_json``, ``case``."""
+        ``has_defocus``, ``scene_json``, ``case``, ``kind`` (the scene family; '' where unknown)."""
 
     def check_frames(self, frames, *, progress: bool = False) -> dict[int, list[str]]:
         """The frames of ``frames`` that are unfit to use, frame -> problems (``stores.fitness``)."""
 
 
-__all__ = ["TrainingStore"]
+def scene_kinds(store) -> np.ndarray:
+    """Every frame's scene family (str, one a frame; '' where unknown) from ``frames/kind``. A store made
+    before that column existed reads '' there; for its frames the family is taken from the scene's JSON,
+    parsed once a clip (its ``kind`` key): the one place a reader of the stores looks inside it."""
+    import json
+    try:
+        kinds = np.array([str(k) for k in store.meta_column("kind")], dtype=object)
+    except KeyError:
+        kinds = np.array([""] * store.num_frames, dtype=object)
+    missing = np.nonzero(kinds == "")[0]
+    if len(missing) == 0:
+        return kinds.astype(str)
+    clip_of, texts, done = store.meta_column("clip_id"), store.meta_column("scene_json"), {}
+    for i in missing:
+        clip = int(clip_of[i])
+        if clip not in done:
+            try:
+                done[clip] = str(json.loads(str(texts[i]) or "{}").get("kind", ""))
+            except (ValueError, AttributeError):      # a synthetic store's placeholder, or not a spec
+                done[clip] = ""
+        kinds[i] = done[clip]
+    return kinds.astype(str)
+
+__all__ = ["TrainingStore", "scene_kinds"]

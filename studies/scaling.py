@@ -313,19 +313,17 @@ def hard_subsets(clip_frames: dict, clip_case: dict, frames: int, shares, seed: 
 
 def clip_table(store, split: str) -> dict[int, dict]:
     """clip id -> ``{"frames": [store frame indices], "family": scene family, "case": hard-case tag}`` of a
-    store split (the family from the clip's SceneSpec JSON, '' where there is none; the case from
+    store split (the family from ``frames/kind``, :func:`stores.protocol.scene_kinds`, '' where there is none; the case from
     ``frames/case``, '' for ordinary clips and stores without the column)."""
     try:
         cases = [str(c) for c in store.meta_column("case")]
     except KeyError:
         cases = None
-    out = {}
+    from stores.protocol import scene_kinds
+    kinds, out = scene_kinds(store), {}
     for clip, idx in store.clips(split).items():
-        try:
-            fam = str(json.loads(store.scene_json(idx[0]) or "{}").get("kind", ""))
-        except ValueError:
-            fam = ""
-        out[int(clip)] = {"frames": [int(i) for i in idx], "family": fam, "case": cases[idx[0]] if cases else ""}
+        out[int(clip)] = {"frames": [int(i) for i in idx], "family": str(kinds[idx[0]]),
+                          "case": cases[idx[0]] if cases else ""}
     return out
 
 

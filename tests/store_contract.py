@@ -13,7 +13,7 @@ from stores.protocol import DTYPES, TrainingStore
 
 IMAGES = {"reference/radiance": 3, "reference/stderr": 3, "guides/albedo": 3, "guides/normal": 3,
           "guides/motion": 2}
-COLUMNS = ("clip_id", "frame", "num_frames", "has_motion", "has_defocus", "scene_json", "case")
+COLUMNS = ("clip_id", "frame", "num_frames", "has_motion", "has_defocus", "scene_json", "case", "kind")
 
 
 def check_dtypes(st) -> None:
@@ -62,6 +62,8 @@ class StoreContract:
         for key in COLUMNS:
             assert len(st.meta_column(key)) == st.num_frames, key
         assert (st.meta_column("num_frames")[st.frames_in_split(None)] >= 1).all()
+        from stores.protocol import scene_kinds
+        assert len(scene_kinds(st)) == st.num_frames and all(isinstance(k, str) for k in scene_kinds(st))
         with pytest.raises(KeyError):
             st.meta_column("no-such-column")
 

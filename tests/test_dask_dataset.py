@@ -237,6 +237,7 @@ SMOKE_PINS = {
     'frames/frame': 'a1e03200f1f82ad2',
     'frames/frame_in_clip': '013f21dd7052786e',
     'frames/has_defocus': '4afc7d9851818033',
+    'frames/kind': '0afbfb19eaed686e',
     'frames/has_motion': '27ecd0a598e76f8a',
     'frames/nonfinite_inputs': '66687aadf862bd77',
     'frames/nonfinite_layers': '66687aadf862bd77',
@@ -293,6 +294,37 @@ def store_digests(store) -> dict:
             else:
                 out[key] = hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()[:16]
     return out
+
+
+def test_frames_kind_is_each_frame_scene_family_and_older_stores_fall_back_once_a_clip(local_store, tmp_path,
+                                                                                        monkeypatch):
+    """``frames/kind`` holds each frame's scene family, so a reader needs no scene JSON
+    (``stores.protocol.scene_kinds`` with ``json.loads`` refused); a store made before the column reads it
+    from each clip's JSON, once a clip, to the same families."""
+    import json as _json
+    import shutil
+
+    from scene_gen.spec import SceneSpec
+    from stores.protocol import scene_kinds
+    from stores.reader import open_store
+    st = open_store(str(local_store["out"]))
+    want = [SceneSpec.from_json(st.scene_json(i)).kind for i in range(st.num_frames)]
+    assert sorted(set(want)) == ["indoor", "outdoor"]
+    parsed = []
+    real = _json.loads
+
+    def counting(text, *a, **k):
+        if '"objects"' in str(text):                 # a SceneSpec (zarr's own metadata is JSON too)
+            parsed.append(1)
+        return real(text, *a, **k)
+    monkeypatch.setattr(_json, "loads", counting)
+    assert list(scene_kinds(st)) == want and parsed == []
+    old = tmp_path / "old.zarr"
+    shutil.copytree(local_store["out"], old)
+    shutil.rmtree(old / "frames" / "kind")
+    st_old = open_store(str(old))
+    assert list(st_old.meta_column("kind")) == [""] * st.num_frames
+    assert list(scene_kinds(st_old)) == want and len(parsed) == len(st.clips(None))
 
 
 def test_the_smoke_store_is_pinned(local_store):

@@ -24,7 +24,6 @@ cannot be known (one clip, or a non-finite figure).
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -112,21 +111,26 @@ def baseline_groups(evaluated: list[dict], default_spp: int) -> list[tuple[int, 
             for n, b in groups]
 
 
-def frame_tags(store, idx: int) -> dict:
+def frame_columns(store) -> dict:
+    """The per-frame columns :func:`frame_tags` needs, read once for a whole evaluation: the scene family
+    (``frames/kind``, :func:`stores.protocol.scene_kinds`; '' outside the families the store's config
+    names), defocus and motion."""
+    from stores.protocol import scene_kinds
+    families = set(scene_families(store))
+    return {"scene_kind": [k if k in families else "" for k in scene_kinds(store)],
+            "has_defocus": store.meta_column("has_defocus"), "has_motion": store.meta_column("has_motion")}
+
+
+def frame_tags(store, idx: int, columns: dict | None = None) -> dict:
     """Kinds of store frame ``idx``, whatever the model reads: the scene family, defocus and motion from
-    the frame's metadata, fireflies from all of its stored input samples against its reference."""
+    the frame's metadata (``columns``: :func:`frame_columns` of the store, read once), fireflies from all
+    of its stored input samples against its reference."""
+    cols = frame_columns(store) if columns is None else columns
     rad = torch.from_numpy(np.ascontiguousarray(store.read_array("inputs/radiance", idx)))
     ref = torch.from_numpy(np.ascontiguousarray(store.read_array("reference/radiance", idx)))
     share = firefly_share(rad, ref)
-    try:
-        scene_kind = str(json.loads(str(store.meta_column("scene_json")[idx]) or "{}").get("kind", ""))
-    except ValueError:                       # a synthetic store's placeholder: no family
-        scene_kind = ""
-    if scene_kind not in scene_families(store):
-        scene_kind = ""
-    return {"scene_kind": scene_kind, "has_defocus": bool(store.meta_column("has_defocus")[idx]),
-            "has_motion": bool(store.meta_column("has_motion")[idx]),
-            "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
+    return {"scene_kind": str(cols["scene_kind"][idx]), "has_defocus": bool(cols["has_defocus"][idx]),
+            "has_motion": bool(cols["has_motion"][idx]), "firefly_share": share, "has_fireflies": share >= FIREFLY_SHARE}
 
 
 # --------------------------------------------------------------------------------------------
@@ -221,7 +225,7 @@ def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> di
     tPSNR), the kept images and a sampler's count image (the last frame of the first clip). A clip's
     first frame, or a frame after a gap, starts a recurrent model without history."""
     kind = m.spec.input_kind
-    clip_of, in_clip = st.meta_column("clip_id"), st.meta_column("frame")
+    clip_of, in_clip, columns = st.meta_column("clip_id"), st.meta_column("frame"), frame_columns(st)
     rows, runs, images, sample_map = [], [], {}, None
     state, prev, current, warmed, warmups = None, None, [], set(), 0
     warmup_calls = int(getattr(m.model, "warmup_calls", 1))    # 2 where CUDA graphs record on the 2nd call
@@ -241,7 +245,8 @@ def evaluate_frames(m: Method, ds, st, n: int, run, with_flip: bool, keep) -> di
                 warmups += 1
         out, state, achieved, counts, ms = run(item, state)
         ref = _hwc(kind.target({k: v.unsqueeze(0) for k, v in item.items()})[0])
-        rows.append(frame_row(st, idx, int(clip_of[idx]), out, ref, item.get("stderr"), ms, achieved, with_flip))
+        rows.append(frame_row(st, idx, int(clip_of[idx]), out, ref, item.get("stderr"), ms, achieved, with_flip,
+                              columns))
         current.append((out, ref, idx))
         if counts is not None and (sample_map is None or (follows and sample_map["clip"] == int(clip_of[idx]))):
             sample_map = {"index": idx, "clip": int(clip_of[idx]), "counts": counts}
@@ -273,10 +278,11 @@ def call_signature(item: dict, state) -> tuple:
     return shapes(item), shapes(state)
 
 
-def frame_row(st, idx: int, clip: int, out, ref, stderr, ms: float, achieved: float, with_flip: bool) -> dict:
+def frame_row(st, idx: int, clip: int, out, ref, stderr, ms: float, achieved: float, with_flip: bool,
+              columns: dict | None = None) -> dict:
     h, w = ref.shape[:2]
     row = {"index": idx, "clip": clip, "ms": ms, "ms_per_megapixel": ms / (h * w / 1e6), "spp": achieved,
-           **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx)}
+           **metrics.all_metrics(out, ref, with_flip=with_flip), **frame_tags(st, idx, columns)}
     if stderr is not None:                        # what the reference's own noise lets a metric resolve
         ceiling, floor = reference_limits(ref, _hwc(stderr[-1] if stderr.dim() == 4 else stderr))
         row.update(ref_psnr_ceiling=ceiling, ref_relmse_floor=floor)
