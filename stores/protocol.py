@@ -73,26 +73,42 @@ class TrainingStore(Protocol):
 
 
 def scene_kinds(store) -> np.ndarray:
-    """Every frame's scene family (str, one a frame; '' where unknown) from ``frames/kind``. A store made
-    before that column existed reads '' there; for its frames the family is taken from the scene's JSON,
-    parsed once a clip (its ``kind`` key): the one place a reader of the stores looks inside it."""
+    """Every frame's scene family (str, one a frame; '' where unknown) from ``frames/kind``; for a store
+    made before that column, from each clip's scene JSON (:func:`_column_or_spec`)."""
+    return _column_or_spec(store, "kind")
+
+
+def scene_cases(store) -> np.ndarray:
+    """Every frame's hard-case tag (str; '' for ordinary frames) from ``frames/case``; for a store made
+    before that column, from each clip's scene JSON (:func:`_column_or_spec`)."""
+    return _column_or_spec(store, "case")
+
+
+def _column_or_spec(store, key: str) -> np.ndarray:
+    """The ``frames/<key>`` column, and for the frames where it is '' (a store made before the column
+    existed reads '' there) the ``key`` of the scene's JSON, parsed once for each distinct text (once a
+    clip) and only where the text names the key: the one place a reader of the stores looks inside the
+    generator's JSON."""
     import json
     try:
-        kinds = np.array([str(k) for k in store.meta_column("kind")], dtype=object)
+        col = np.array([str(k) for k in store.meta_column(key)], dtype=object)
     except KeyError:
-        kinds = np.array([""] * store.num_frames, dtype=object)
-    missing = np.nonzero(kinds == "")[0]
+        col = np.array([""] * store.num_frames, dtype=object)
+    missing = np.nonzero(col == "")[0]
     if len(missing) == 0:
-        return kinds.astype(str)
-    clip_of, texts, done = store.meta_column("clip_id"), store.meta_column("scene_json"), {}
+        return col.astype(str)
+    texts, done = store.meta_column("scene_json"), {}
     for i in missing:
-        clip = int(clip_of[i])
-        if clip not in done:
-            try:
-                done[clip] = str(json.loads(str(texts[i]) or "{}").get("kind", ""))
-            except (ValueError, AttributeError):      # a synthetic store's placeholder, or not a spec
-                done[clip] = ""
-        kinds[i] = done[clip]
-    return kinds.astype(str)
+        text = str(texts[i])                    # a clip's frames share their scene's text: parsed once
+        if text not in done:
+            done[text] = ""
+            if f'"{key}"' in text:
+                try:
+                    d = json.loads(text)
+                    done[text] = str(d.get(key, "")) if isinstance(d, dict) else ""
+                except ValueError:                 # a synthetic store's placeholder
+                    pass
+        col[i] = done[text]
+    return col.astype(str)
 
-__all__ = ["TrainingStore", "scene_kinds"]
+__all__ = ["TrainingStore", "scene_kinds", "scene_cases"]

@@ -30,7 +30,6 @@ score, not a non-finite output.
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings
@@ -56,24 +55,10 @@ STAGE_ARRAYS = {"inputs": ("inputs/radiance", "inputs/features", "guides/albedo"
 
 
 def frame_cases(store) -> list[str]:
-    """The hard-case tag of every frame of ``store`` ('' for ordinary frames): ``frames/case`` when the
-    store has that column, else the ``case`` of the frame's SceneSpec (stores made before ``frames/case``
-    existed, or before cases existed at all, read as '')."""
-    st = open_store(store)
-    try:
-        column = [str(c) for c in st.meta_column("case")]
-    except KeyError:                            # stores.contract.FRAME_META without "case"
-        column = [""] * st.num_frames
-    out = []
-    for tag, text in zip(column, st.meta_column("scene_json")):
-        if not tag and '"case"' in str(text):      # a spec writes "case" only when it has one: parse only those
-            try:
-                d = json.loads(str(text) or "{}")
-            except ValueError:                 # a synthetic store's placeholder
-                d = {}
-            tag = str(d.get("case", "")) if isinstance(d, dict) else ""
-        out.append(tag)
-    return out
+    """The hard-case tag of every frame of ``store`` ('' for ordinary frames): ``frames/case``, or for a
+    store made before it the ``case`` of each clip's SceneSpec (:func:`stores.protocol.scene_cases`)."""
+    from stores.protocol import scene_cases
+    return [str(c) for c in scene_cases(open_store(store))]
 
 
 def store_flags(store) -> list[dict]:
