@@ -995,9 +995,8 @@ def render_layers(fs: FrameScene) -> tuple[np.ndarray, int]:
         if integrator is not None:          # the mean of the pixel's samples that were not NaN
             img, _, f = valid_moments(img)
             nan = f[..., 0] > 0
-        img, b = _sanitize_image(img, fs.cfg.max_value)
-        out[lvl] = img
-        bad += int((nan | ~np.isfinite(out[lvl]).all(axis=-1)).sum()) if nan.any() else b
+        bad += int((nan | ~np.isfinite(img).all(axis=-1)).sum())     # a NaN sample, or Inf in the mean
+        out[lvl] = _sanitize_image(img, fs.cfg.max_value)[0]
     return out, bad
 
 

@@ -136,3 +136,22 @@ def test_configs_naming_the_old_settings_still_load():
         RenderConfig(reference="passes")
     with pytest.raises(Exception, match="render.ref_times"):
         RenderConfig(ref_spp=256, ref_passes=16, ref_times=16)                 # 8 samples a half pass
+
+
+def test_layers_count_a_pixel_with_a_nan_sample_and_a_pixel_with_inf_alike(mi, monkeypatch):
+    """A layer pixel whose samples held a NaN (the moment integrator's NaN share) and one whose mean is Inf
+    are both counted in ``nonfinite_layers``, each once, and both stored finite."""
+    from pipeline import render as R
+    fs = R.FrameScene(ball_scene(), 0, cfg(**{**REF, "layer_levels": 1}))
+    W, H = fs.cfg.res
+
+    def fake(fs_, spp, stream, index, max_slices=None, *, integrator=None, channels=3):
+        img = np.zeros((H, W, channels))
+        img[0, 0, 6] = 0.5                      # half its samples were NaN
+        img[1, 1, 0] = np.inf                   # an Inf mean
+        img[2, 2, 6] = 0.25
+        img[2, 2, 1] = np.inf                   # both: one pixel
+        return img
+    monkeypatch.setattr(R, "render_sliced", fake)
+    layers, bad = R.render_layers(fs)
+    assert bad == 3 and np.isfinite(layers).all()
