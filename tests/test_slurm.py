@@ -19,6 +19,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.request
 import uuid
@@ -40,6 +41,7 @@ PY = sys.executable
 # a test that needs both its jobs running would wait on another test's jobs holding them.
 pytestmark = pytest.mark.xdist_group("slurm")
 TIMING = {"frames/render_seconds"}           # a clock reading, not data
+KEEPER_EVERY = 2.0                           # pipeline.cluster.JobKeeper's check interval (s)
 
 
 def _env() -> dict:
@@ -325,6 +327,17 @@ def _wait_for_frames(store: Path, proc: subprocess.Popen, n: int, timeout: float
     raise TimeoutError(f"no {n} complete frame(s) in {store} after {timeout} s")
 
 
+def _printed(lines: list[str], proc: subprocess.Popen, pattern: str, timeout: float = 120) -> str:
+    """The first of ``lines`` (what a reader thread has collected of ``proc``'s output) matching ``pattern``."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout and proc.poll() is None:
+        hit = next((ln for ln in list(lines) if re.search(pattern, ln)), None)
+        if hit:
+            return hit
+        time.sleep(0.2)
+    raise TimeoutError(f"no line matching {pattern!r} after {time.monotonic() - t0:.0f} s:\n{''.join(lines)[-3000:]}")
+
+
 def _joined(logs: Path, name: str, n: int, timeout: float = 120) -> list[str]:
     """The ids of ``n`` jobs named ``name`` whose workers have registered with the scheduler (their job
     logs say so)."""
@@ -445,17 +458,34 @@ def test_a_job_slurm_can_never_run_is_refused_before_anything_is_submitted(slurm
 
 def test_cancelled_jobs_are_replaced_and_no_frame_is_lost(slurm_config, local_store, tmp_path):
     """Every job of the run is ``scancel``ed mid-run: the run can only finish if new jobs are submitted
-    (``pipeline.cluster.JobKeeper``); the frames the cancelled workers held are rendered by the new ones."""
+    (``pipeline.cluster.JobKeeper``); the frames the cancelled workers held are rendered by the new ones.
+
+    Each job is stopped (SIGSTOP) the moment its worker has joined, so it holds the tasks the scheduler
+    gave it and the run cannot end before the cancel (waiting for a frame instead raced: a 16-px frame
+    takes under a second, and one worker once finished all four before the second job joined). The
+    cancel waits until the run has seen both workers: its keeper replaces jobs whose workers it saw."""
     config, name = slurm_config
     out = tmp_path / "slurm.zarr"
     p = subprocess.Popen(_cli(config, out), env=_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True, start_new_session=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: [lines.append(ln) for ln in p.stdout], daemon=True)
+    reader.start()
     try:
-        jobs = _joined(tmp_path / "slurm-logs", name, 2)      # (a job cancelled before its worker joined is
-        done = _wait_for_frames(out, p, 1)                     # not the case tested here)
-        assert p.poll() is None and done.sum() < 4, "the run ended before its jobs could be cancelled"
+        jobs: list[str] = []
+        for n in (1, 2):                        # (a job cancelled before its worker joined is not the case here)
+            new = [j for j in _joined(tmp_path / "slurm-logs", name, n) if j not in jobs]
+            if new:
+                subprocess.run(["scancel", "--signal=STOP", "--full", *new], check=True)
+            jobs += new
+        _printed(lines, p, r"^cluster: slurm at ")
+        time.sleep(3 * KEEPER_EVERY)            # the keeper's checks see both workers
+        done = _complete(out)
+        assert len(jobs) == 2 and p.poll() is None and done.sum() < 4, "the run ended before its jobs could be cancelled"
         subprocess.run(["scancel", *jobs], check=True)
-        log, _ = p.communicate(timeout=400)
+        p.wait(timeout=400)
+        reader.join(timeout=30)
+        log = "".join(lines)
     finally:
         if p.poll() is None:
             kill_group(p)
@@ -469,8 +499,8 @@ def test_cancelled_jobs_are_replaced_and_no_frame_is_lost(slurm_config, local_st
 
 @pytest.mark.slow
 def test_a_job_that_reaches_its_walltime_loses_no_frame(slurm_config, local_store, tmp_path):
-    """One job is stopped mid-frame (SIGSTOP through ``scancel --signal``, so it still holds that frame's
-    tasks when its limit comes, as a long render would) and its limit set to one minute (SLURM's
+    """One job is stopped as its worker joins (SIGSTOP through ``scancel --signal``, so it still holds its
+    frames' tasks when its limit comes, as a long render would) and its limit set to one minute (SLURM's
     smallest): SLURM ends it (TIMEOUT) a minute after it started, and its frames are rendered by the
     other job. Slow: the minute has to pass."""
     config, name = slurm_config
@@ -478,10 +508,9 @@ def test_a_job_that_reaches_its_walltime_loses_no_frame(slurm_config, local_stor
     p = subprocess.Popen(_cli(config, out), env=_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True, start_new_session=True)
     try:
-        done = _wait_for_frames(out, p, 1)
-        assert p.poll() is None and done.sum() < 4, "the run ended before a job could be stopped"
-        job = _queue(name)[0][0]
-        subprocess.run(["scancel", "--signal=STOP", "--full", job], check=True)
+        job = _joined(tmp_path / "slurm-logs", name, 1)[0]   # stopped as it joins: it holds the tasks it
+        subprocess.run(["scancel", "--signal=STOP", "--full", job], check=True)      # was given
+        assert p.poll() is None and _complete(out).sum() < 4, "the run ended before a job could be stopped"
         subprocess.run(["scontrol", "update", f"JobId={job}", "TimeLimit=1"], check=True)
         log, _ = p.communicate(timeout=400)
     finally:
