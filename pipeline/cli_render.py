@@ -25,8 +25,8 @@ from core.checks import need
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, required=True, help="scene seed (scene_gen.sampling.sample_scene)")
-    from scene_gen.spec import SCENE_KINDS
-    p.add_argument("--kind", choices=SCENE_KINDS, required=True, help="scene family")
+    from scene_gen.families import family_names
+    p.add_argument("--kind", choices=family_names(), required=True, help="scene family")
     p.add_argument("--res", type=int, required=True, help="image width and height in pixels")
     p.add_argument("--spp", type=int, default=8, help="input samples per pixel (default 8)")
     p.add_argument("--ref-spp", type=int, default=4096, help="reference samples per pixel (default 4096)")

@@ -65,7 +65,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from core.checks import is_int, is_number, known_keys, need, need_int
-from scene_gen.spec import SCENE_KINDS
+from scene_gen.families import family_names
 from stores.schema import StoreLayout
 
 CLIP_ID_SCHEMES = ("balanced", "scene_seed")
@@ -119,7 +119,8 @@ class SceneGroup:
     cases: dict | None = None
 
     def validate(self, where: str) -> None:
-        need(self.kind in SCENE_KINDS, f"{where}.kind", f"one of {SCENE_KINDS}", self.kind, ConfigError)
+        kinds = family_names()
+        need(self.kind in kinds, f"{where}.kind", f"one of {kinds}", self.kind, ConfigError)
         need_int(f"{where}.count", self.count, 1, 10_000_000, ConfigError, numpy=True)
         need_int(f"{where}.frames", self.frames, 1, 10_000, ConfigError, numpy=True)
         if self.case is not None and self.cases is not None:

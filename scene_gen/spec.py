@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, get_type_hints
 
 from scene_gen.errors import SpecError
-from scene_gen.families import family_names
 
 SPEC_VERSION = 1
 
@@ -30,14 +29,6 @@ TEXTURE_KINDS = ("checker", "noise", "stripes", "cells")
 LIGHT_KINDS = ("area", "point", "envmap", "sunsky", "constant")
 
 Vec3 = tuple[float, float, float]
-
-
-def __getattr__(name: str):
-    """``SCENE_KINDS``: the registered scene families, ``("indoor", "outdoor")`` and any added since
-    (``scene_gen.families.family_names()``, found when first asked for)."""
-    if name == "SCENE_KINDS":
-        return family_names()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -271,7 +262,13 @@ class CameraSpec(_Spec):
 
 @dataclass(frozen=True)
 class SceneSpec(_Spec):
-    """A whole scene: objects, lights, one camera per frame, and render-relevant settings."""
+    """A whole scene: objects, lights, one camera per frame, and render-relevant settings.
+
+    ``kind`` names the scene family that drew it, checked here as a family's name is (a lower-case
+    identifier), not against the registry: a spec holds all it needs to render, whatever families this
+    install has, and this module sits below the families (they build specs). Where a family is used,
+    the registry checks the name (``scene_gen.families.get_family``: sampling, the dataset config, the
+    command lines)."""
     kind: str
     seed: int
     objects: tuple[ObjectSpec, ...]
@@ -283,8 +280,8 @@ class SceneSpec(_Spec):
     case: str = ""                    # hard cases applied (scene_gen.cases), comma-separated; '' = none
 
     def __post_init__(self):
-        kinds = family_names()
-        _check(self.kind in kinds, f"scene.kind must be one of {kinds}, got {self.kind!r}")
+        _check(isinstance(self.kind, str) and self.kind.isidentifier() and self.kind == self.kind.lower(),
+               f"scene.kind must be a scene family's name (a lower-case identifier), got {self.kind!r}")
         _check(isinstance(self.seed, int) and self.seed >= 0, f"scene.seed must be an integer >= 0, got {self.seed!r}")
         _check(len(self.cameras) >= 1, "scene.cameras needs at least one camera (one per frame)")
         _check(0.0 <= self.shutter <= 1.0, f"scene.shutter must lie in [0, 1], got {self.shutter}")

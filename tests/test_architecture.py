@@ -3,10 +3,13 @@ every stage and importing none; ``scene_gen`` and ``stores`` on it; ``pipeline``
 stores) and ``training`` (reads stores) side by side above those, neither importing the other and training
 never reaching into the scene generator; ``studies`` (what both renders and trains: the scaling study) on
 top of both, imported by neither; and no cycle between modules,
-imports inside functions and modules named as strings (``importlib.import_module``) included."""
+imports inside functions and modules named as strings (``importlib.import_module``) included, and those
+built from f-strings: ``f"{__name__}.{m.name}"`` (a registry that imports every module of its folder)
+stands for every module of the folder."""
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -26,13 +29,33 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _pattern(node: ast.JoinedStr, mod: str, package: str) -> str | None:
+    """A module name built from an f-string as a pattern (``*``: any one name), ``__name__`` and
+    ``__package__`` filled in; None when it names no project package."""
+    parts = []
+    for v in node.values:
+        if isinstance(v, ast.Constant):
+            parts.append(str(v.value))
+        elif isinstance(v.value, ast.Name) and v.value.id in ("__name__", "__package__"):
+            parts.append(mod if v.value.id == "__name__" else package)
+        else:
+            parts.append("*")
+    name = "".join(parts)
+    ok = all(p == "*" or p.isidentifier() for p in name.split("."))
+    return name if ok and "*" in name and name.split(".")[0] in PACKAGES else None
+
+
 def _imports(path: Path) -> set[str]:
-    """Every project module ``path`` imports, anywhere in the file (relative imports resolved)."""
+    """Every project module ``path`` imports, anywhere in the file (relative imports resolved); a name
+    holding ``*`` is a pattern (:func:`_pattern`)."""
     mod = _module_name(path)
     package = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
     out = set()
     for node in ast.walk(ast.parse(path.read_text())):
         names = []
+        if isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.JoinedStr) and \
+                getattr(node.func, "attr", getattr(node.func, "id", "")) in ("import_module", "__import__"):
+            names = [n for n in [_pattern(node.args[0], mod, package)] if n]
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -48,13 +71,22 @@ def _imports(path: Path) -> set[str]:
     return out
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(plugins: set | None = None) -> dict[str, set[str]]:
+    """Module -> the project modules it imports. ``plugins`` (when given) collects ``(plugin, registry)``:
+    a module that ``registry`` imports through a pattern (it finds the modules of its folder)."""
     files = [p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")]
     mods = {_module_name(p): p for p in files}
     graph = {}
     for m, p in mods.items():
         deps = set()
         for name in _imports(p):        # ``from a.b import c``: the module a.b.c where it is one, else a.b
+            if "*" in name:
+                rx = re.compile(re.escape(name).replace(r"\*", r"[^.]+") + "$")
+                found = {n for n in mods if rx.match(n) and n != m}
+                deps |= found
+                if plugins is not None:
+                    plugins |= {(n, m) for n in found}
+                continue
             while name and name not in mods:
                 name = name.rpartition(".")[0]
             if name and name != m:
@@ -70,7 +102,12 @@ def test_packages_import_only_what_sits_below_them():
 
 
 def test_no_module_imports_itself_back():
-    graph = _graph()
+    """No cycle, but a plugin's import of the registry that finds it (the registry's decorator): the
+    registry imports its plugins only when first asked, and nothing else may lead back through them."""
+    plugins: set = set()
+    graph = _graph(plugins)
+    for plugin, registry in plugins:
+        graph[plugin].discard(registry)
     index, low, stack, on, cycles = {}, {}, [], set(), []
 
     def visit(v):                                       # Tarjan's strongly connected components
@@ -97,6 +134,23 @@ def test_no_module_imports_itself_back():
         if v not in index:
             visit(v)
     assert not cycles, f"import cycles: {cycles}"
+
+
+def test_imports_built_from_f_strings_are_followed():
+    """A registry that imports its folder's modules by an f-string imports each of them here, and they
+    are its plugins; the scene spec imports no family (it sat in a cycle through them: spec ->
+    families -> indoor -> layout -> spec)."""
+    plugins: set = set()
+    graph = _graph(plugins)
+    assert {"scene_gen.families.indoor", "scene_gen.families.outdoor"} <= graph["scene_gen.families"]
+    assert {"training.models.layer", "training.models.nbg"} <= graph["training.models.registry"]
+    assert ("scene_gen.families.indoor", "scene_gen.families") in plugins
+    assert ("training.models.wskpn", "training.models.registry") in plugins
+    assert not {d for d in graph["scene_gen.spec"] if d.startswith("scene_gen.families")}
+    tree = ast.parse('import importlib\nimportlib.import_module(f"{__name__}.{m}")\nprint(f"{x}.y")')
+    call, fmt = tree.body[1].value, tree.body[2].value.args[0]
+    assert _pattern(call.args[0], "training.models", "training.models") == "training.models.*"
+    assert _pattern(fmt, "training.models", "training.models") is None       # not a project module
 
 
 def test_no_function_is_over_60_lines():

@@ -1,13 +1,14 @@
 """Scene families as plugins (scene_gen.families) and the shape of scene_gen's imports.
 
 A family is one file in ``scene_gen/families/``: its name, seed index, layout function and settings
-reach the scene kinds, SceneSpec validation, SceneGenConfig, the seeds and the command line from
+reach the scene kinds, SceneGenConfig, the seeds and the command line from
 there. scene_gen's modules import each other at module level without cycles, and never import the
 packages built on it (stores, pipeline, training).
 """
 from __future__ import annotations
 
 import ast
+import dataclasses
 import json
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from scene_gen import families
 from scene_gen.config import ConfigError, SceneGenConfig
 from scene_gen.families import Setting, family_names, get_family, register_family
 from scene_gen.sampling import sample_scene
+from scene_gen.spec import SpecError
 
 ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "scene_gen"
@@ -38,7 +40,10 @@ def test_families_are_registered_in_seed_order():
     import scene_gen.families.outdoor as outdoor
     from scene_gen import spec
     assert family_names() == ("indoor", "outdoor") and family_names() is family_names()
-    assert spec.SCENE_KINDS == ("indoor", "outdoor") and spec.SCENE_KINDS is family_names()
+    # a spec names its family; it is checked as a name, not against the registry (it renders anywhere)
+    with pytest.raises(SpecError, match=r"scene.kind must be a scene family's name \(a lower-case identifier\), got 'Under Water'"):
+        dataclasses.replace(sample_scene(3, "indoor"), kind="Under Water")
+    assert dataclasses.replace(sample_scene(3, "indoor"), kind="underwater").kind == "underwater"
     assert get_family("indoor").layout is indoor.layout_indoor and get_family("indoor").seed_index == 0
     assert get_family("outdoor").layout is outdoor.layout_outdoor and get_family("outdoor").seed_index == 1
     assert list(families.family_settings()) == ["indoor_objects", "p_lamps", "outdoor_objects", "p_sunsky",
@@ -136,7 +141,7 @@ def test_a_family_is_one_file(tmp_path):
         assert spec.SceneSpec.from_json(s.to_json()) == s
         assert sample_scene(4, "lab", config=SceneGenConfig(lab_spheres=2)) == s
         args = build_parser().parse_args(["spec", "--kind", "lab"])
-        print(json.dumps({{"kinds": spec.SCENE_KINDS, "objects": [o.name for o in s.objects],
+        print(json.dumps({{"kinds": F.family_names(), "objects": [o.name for o in s.objects],
                           "default": SceneGenConfig().lab_spheres, "seed_index": F.get_family("lab").seed_index,
                           "kind": args.kind}}))
     """)

@@ -7,9 +7,9 @@ A family is a module here (``indoor.py``, ``outdoor.py``) whose layout function 
         "p_sunsky": Setting(0.5, "probability", doc="Mitsuba sunsky, else a procedural HDR probe")})
     def layout_outdoor(rng, r_cam, cfg, fov, res, user_models) -> Layout: ...
 
-Everything else comes from here: the scene kinds (:func:`family_names`, also
-``scene_gen.spec.SCENE_KINDS``) that ``SceneSpec.kind``, the dataset config and the command lines
-accept; the seed of a scene, ``SeedSequence([seed, family.seed_index])``
+Everything else comes from here: the scene kinds (:func:`family_names`) that the dataset config and
+the command lines accept (``SceneSpec.kind`` is checked as a family's name only: the spec module sits
+below the families, which build specs); the seed of a scene, ``SeedSequence([seed, family.seed_index])``
 (``scene_gen.sampling.sample_scene``); and the family's own settings, fields of
 ``scene_gen.config.SceneGenConfig`` with their defaults and allowed values. Adding a family is adding
 a file here (docs/scene-families.md).
