@@ -217,25 +217,40 @@ def describe(bad: dict[int, list[str]], limit: int = 5) -> str:
 
 
 def screen(store, frames, *, skip: bool, what: str, progress: bool = False) -> list[int]:
-    """``frames`` that are fit (:func:`check_frames`). Unfit ones raise :class:`UnfitFrameError` naming
-    each (``what`` says whose frames: ``"split 'train' of STORE"``), unless ``skip``: then they are left
-    out with one warning naming them. Every frame unfit is an error even with ``skip``."""
-    frames = [int(i) for i in frames]
-    bad = check_frames(store, frames, progress=progress)
+    """``frames`` that are fit (:func:`screen_items` of single frames)."""
+    return screen_items(store, [int(i) for i in frames], skip=skip, what=what, progress=progress)[0]
+
+
+def screen_items(store, items, *, skip: bool, what: str, also=(), progress: bool = False) -> tuple[list, dict]:
+    """The one screen of every consumer: ``items`` (frames, or tuples of frames such as a training item's
+    window) whose frames are all fit, and the unfit frames, frame -> problems, through the store's own
+    ``check_frames`` (``stores.protocol.TrainingStore``: :func:`check_frames` on a Zarr store, what the
+    format holds on a Noisebase folder). ``also``: frames no item uses that count all the same (a
+    store's incomplete frames: an unwritten frame's split is not known). Unfit frames raise
+    :class:`UnfitFrameError` naming each (``what`` says whose frames: ``"split 'train' of STORE"``),
+    unless ``skip``: then the items using them are left out with one warning naming them. Every item
+    left out is an error even with ``skip``."""
+    items = list(items)
+    frames_of = [tuple(int(i) for i in it) if isinstance(it, (tuple, list)) else (int(it),) for it in items]
+    used = {i for fr in frames_of for i in fr}
+    bad = store.check_frames(sorted(used | {int(i) for i in also}), progress=progress)
     if not bad:
-        return frames
+        return items, bad
     listed = describe(bad)
+    inside = len(used & set(bad))
+    rest = f"; {len(bad) - inside} more incomplete" if len(bad) > inside else ""
     if not skip:
         raise UnfitFrameError(
-            f"{len(bad)} of the {len(set(frames))} frames of {what} would be flagged by validate: {listed}; "
-            "re-render them (python -m pipeline dataset resumes; validate --mark-damaged marks damaged ones), "
-            "or pass --skip-bad-frames to leave them out", frames=bad)
-    keep = [i for i in frames if i not in bad]
+            f"{len(bad)} frames of {what} would be flagged by validate ({inside} of the {len(used)} used{rest}): "
+            f"{listed}; re-render them (python -m pipeline dataset resumes and finishes a partial store; validate "
+            "--mark-damaged marks damaged ones), or pass --skip-bad-frames to leave them out", frames=bad)
+    keep = [it for it, fr in zip(items, frames_of) if not any(i in bad for i in fr)]
     if not keep:
         raise UnfitFrameError(f"every frame of {what} is flagged by validate: {listed}", frames=bad)
-    warnings.warn(f"skipping {len(bad)} flagged frames of {what}: {listed}", stacklevel=3)
-    return keep
+    dropped = "" if all(len(fr) == 1 for fr in frames_of) else f" ({len(items) - len(keep)} items)"
+    warnings.warn(f"skipping {len(bad)} flagged frames of {what}{dropped}: {listed}", stacklevel=3)
+    return keep, bad
 
 
 __all__ = ["ValueCheck", "check_values", "reference_limits", "rounding_tols", "renderer_findings",
-           "frame_problems", "check_frames", "screen", "describe", "FRAME_KEYS"]
+           "frame_problems", "check_frames", "screen", "screen_items", "describe", "FRAME_KEYS"]

@@ -14,7 +14,6 @@ the ranks' crops in a step together are exactly the one-process batch, whatever 
 """
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import torch
@@ -87,34 +86,21 @@ def keep_clips(ds, store, split: str, clips) -> None:
 
 def screen_frames(ds, store, split: str, skip: bool, progress: bool = False) -> dict[int, list[str]]:
     """Refuse (or, with ``skip``, drop with one warning naming them) the items of ``ds`` that use a frame
-    ``validate`` flags: :func:`stores.fitness.check_frames`, the one fitness check (NaN/Inf or
-    out-of-range values in any stored array, negative references or standard errors, an all-zero
-    reference under a non-zero input, NaN/Inf the renderer replaced), and every incomplete frame of the
-    store (a frame not yet written, failed, or unflagged: the datasets hold complete frames only, so
-    without this a partial store would be used without a word; an unwritten frame's split is not known,
-    so any incomplete frame counts). Returns the frames left out, frame -> problems, also kept as
-    ``ds.left_out``. Every store dataset lists its items' frames in ``windows`` (a tuple of frame
-    indices an item, ``training.datasets.FrameWindows``)."""
-    from stores.fitness import describe
-    items = list(ds.windows)
-    used = sorted({int(i) for w in items for i in w})
-    bad = store.check_frames(sorted(set(used) | set(store.incomplete_frames())), progress=progress)
+    ``validate`` flags, and every incomplete frame of the store (a frame not yet written, failed, or
+    unflagged: the datasets hold complete frames only, so without this a partial store would be used
+    without a word): :func:`stores.fitness.screen_items`, the one screen, on the items' frame windows
+    (``training.datasets.FrameWindows``). Returns the frames left out, frame -> problems, also kept as
+    ``ds.left_out``; an unfit store is a :class:`DataError`."""
+    from stores.errors import UnfitFrameError
+    from stores.fitness import screen_items
+    try:
+        keep, bad = screen_items(store, list(ds.windows), skip=skip, what=f"split {split!r} of {store.path!s}",
+                                 also=store.incomplete_frames(), progress=progress)
+    except UnfitFrameError as e:
+        raise DataError(str(e)) from None
+    if bad:
+        ds.windows = keep
     ds.left_out = bad
-    if not bad:
-        return bad
-    listed = describe(bad)
-    if not skip:
-        inside = len(set(used) & set(bad))
-        rest = f"; {len(bad) - inside} more incomplete" if len(bad) > inside else ""
-        raise DataError(f"{len(bad)} frames of {store.path!s} would be flagged by validate ({inside} of the "
-                        f"{len(used)} of split {split!r}{rest}): {listed}; re-render them (python -m pipeline "
-                        "dataset resumes and finishes a partial store), or pass --skip-bad-frames to leave them out")
-    keep = [w for w in items if not any(int(i) in bad for i in w)]
-    if not keep:
-        raise DataError(f"every frame of split {split!r} of {store.path!s} is flagged: {listed}")
-    ds.windows = keep
-    warnings.warn(f"skipping {len(bad)} flagged frames of {store.path!s} ({len(items) - len(keep)} items of split "
-                  f"{split!r}): {listed}", stacklevel=3)
     return bad
 
 
