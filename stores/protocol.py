@@ -72,6 +72,18 @@ class TrainingStore(Protocol):
         """The frames of ``frames`` that are unfit to use, frame -> problems (``stores.fitness``)."""
 
 
+def open_training_store(store) -> TrainingStore:
+    """The one opener of every consumer (training's datasets and commands, the studies): the
+    :class:`TrainingStore` at a path, or ``store`` itself when it is one: a :class:`stores.reader.Store`,
+    or for a folder of Noisebase sequences a :class:`stores.noisebase.NoisebaseStore`, which every
+    consumer reads alike. Raises the stores' own errors (``StoreError``, ``FileNotFoundError``)."""
+    if isinstance(store, TrainingStore):
+        return store
+    from stores import noisebase
+    from stores.reader import open_store
+    return noisebase.NoisebaseStore(store) if noisebase.is_noisebase(store) else open_store(store)
+
+
 def scene_kinds(store) -> np.ndarray:
     """Every frame's scene family (str, one a frame; '' where unknown) from ``frames/kind``; for a store
     made before that column, from each clip's scene JSON (:func:`_column_or_spec`)."""
@@ -111,4 +123,4 @@ def _column_or_spec(store, key: str) -> np.ndarray:
         col[i] = done[text]
     return col.astype(str)
 
-__all__ = ["TrainingStore", "scene_kinds", "scene_cases"]
+__all__ = ["TrainingStore", "open_training_store", "scene_kinds", "scene_cases"]

@@ -183,6 +183,19 @@ def test_reader_round_trip(store, exported):
         np.testing.assert_allclose(nb.read_array("guides/albedo", i), feat_mean(st, i, "albedo"), atol=1e-3)
 
 
+def test_one_opener_reads_either_format(store, exported):
+    """stores.protocol.open_training_store is every consumer's opener: a Zarr store or a Noisebase folder
+    by what the path holds, a store passed through; a dataset built on a path takes the same way."""
+    from stores.noisebase import NoisebaseStore
+    from stores.protocol import open_training_store
+    from stores.reader import Store
+    from training.datasets import StoreDataset
+    nb, st = open_training_store(exported), open_training_store(store)
+    assert isinstance(nb, NoisebaseStore) and isinstance(st, Store) and open_training_store(nb) is nb
+    ds = StoreDataset(str(exported), None, 8, False, 0)
+    assert isinstance(ds.store, NoisebaseStore) and ds.store.num_frames == nb.num_frames
+
+
 def feat_mean(st, i, group):
     return st.read_array("inputs/features", i)[:, G[group]].astype(np.float32).mean(axis=0)
 

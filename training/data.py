@@ -26,17 +26,11 @@ ORDER_SALT = 0x0DE7
 
 
 def open_store(store):
-    """The :class:`stores.protocol.TrainingStore` at a path (or the store itself): a
-    :class:`stores.reader.Store`, or for a folder of Noisebase sequences a
-    :class:`stores.noisebase.NoisebaseStore`, which every kind reads alike."""
-    from stores import noisebase
+    """:func:`stores.protocol.open_training_store` (the one opener), its errors as :class:`DataError`."""
     from stores.errors import StoreError
-    from stores.protocol import TrainingStore
-    from stores.reader import open_store as _open
-    if isinstance(store, TrainingStore):
-        return store
+    from stores.protocol import open_training_store
     try:
-        return noisebase.NoisebaseStore(store) if noisebase.is_noisebase(store) else _open(store)
+        return open_training_store(store)
     except (StoreError, FileNotFoundError) as e:
         raise DataError(f"cannot open store {store!s}: {e}") from e
 

@@ -40,8 +40,7 @@ import torch
 
 from stores.contract import FEATURE_GROUPS
 from stores.errors import CropSizeError, SampleCountError, SplitError
-from stores.protocol import TrainingStore
-from stores.reader import open_store
+from stores.protocol import TrainingStore, open_training_store
 
 _MOTION = FEATURE_GROUPS["motion"]
 _LENS = FEATURE_GROUPS["lens"]
@@ -113,7 +112,7 @@ class StoreDataset(torch.utils.data.Dataset):
 
     def __init__(self, store, split: str | None, crop: int | tuple[int, int] | None, augment: bool, seed: int,
                  crop_align: int = 1):
-        self.store: TrainingStore = store if isinstance(store, TrainingStore) else open_store(store)
+        self.store: TrainingStore = open_training_store(store)
         if int(crop_align) < 1:
             raise CropSizeError(f"crop_align must be >= 1, got {crop_align}")
         self.crop_align = int(crop_align)
