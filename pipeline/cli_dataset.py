@@ -274,10 +274,12 @@ def _timings(timings: dict, results: list, render_s: float) -> dict:
     lat = timings.pop("commit_latency_s", [])
     tm = {**timings, "commit_latency_mean_s": float(np.mean(lat)) if lat else None,
           "commit_latency_max_s": float(np.max(lat)) if lat else None,
-          "write_s": sum(r.get("write_seconds", 0.0) for r in results)}
+          "write_s": sum(r.get("write_seconds", 0.0) for r in results),
+          "load_s": sum(r.get("load_seconds", 0.0) for r in results)}
     _print(f"time:       start {tm['start_s']:.1f} s, cluster {tm['cluster_start_s']:.1f} s up and "
            f"{tm['cluster_close_s']:.1f} s down, frames {tm.get('frames_s', 0.0):.1f} s (render "
-           f"{render_s:.1f} s and writes {tm['write_s']:.1f} s summed over tasks), validation "
+           f"{render_s:.1f} s, of which scene loads {tm['load_s']:.1f} s, and writes {tm['write_s']:.1f} s "
+           f"summed over tasks), validation "
            f"{tm['validate_s']:.1f} s")
     return tm
 

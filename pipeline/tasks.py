@@ -191,6 +191,7 @@ def _part(fn, spec_json: str, frame: int, render: dict) -> dict:
     with frame_scene(spec_json, frame, render) as fs:
         out = fn(fs)
         out["seconds"] += fs.load_seconds
+        out["load_seconds"] = fs.load_seconds      # for the run's time line (not stored)
     return out
 
 
@@ -218,6 +219,7 @@ def render_whole_frame(spec_json: str, frame: int, render: dict) -> dict:
     with frame_scene(spec_json, frame, render) as fs:
         out = render_loaded(fs, spec_json)
         out["meta"]["render_seconds"] += fs.load_seconds
+        out["load_seconds"] = fs.load_seconds      # for the run's time line (not stored)
     del out["meta"]["scene_json"]       # the write task has it (its spec argument): not sent along a frame
     return out
 
@@ -272,6 +274,8 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
     of what was written) with the frame's ``record``, which the client commits (``StoreWriter.commit``:
     metadata, then ``status/complete``). In a schema v2 store the task commits the frame itself."""
     from stores.fitness import check_values
+    load_s = sum(float(p.get("load_seconds", 0.0)) for p in parts)
+    parts = tuple({k: v for k, v in p.items() if k != "load_seconds"} for p in parts)
     if len(parts) == 1:
         arrays = {**parts[0], "meta": {"scene_json": spec_json, **parts[0]["meta"]}}
     elif len(parts) == 3:
@@ -287,7 +291,7 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
     meta = arrays["meta"]
     problems = check_values({k: v for k, v in arrays.items() if k != "meta"}, w.layout).problems
     return {"index": int(index), "frame": int(frame), "scene_seed": int(meta["scene_seed"]),
-            "render_seconds": float(meta["render_seconds"]), "write_seconds": write_s,
+            "render_seconds": float(meta["render_seconds"]), "write_seconds": write_s, "load_seconds": load_s,
             "reference_spp": int(meta["reference_spp"]), "reference_rel_stderr": float(meta["reference_rel_stderr"]),
             "nonfinite": int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"]),
             "checked": problems, "record": record if w.version >= 3 else None, "done_at": time.time()}

@@ -110,6 +110,10 @@ def test_resume_after_kill_renders_only_the_missing_frames(local_store):
         assert files and _frame_files(local_store["out"], i) == files
     assert f"resume: {int(before.sum())} frame(s) already complete" in r.stdout
     assert "dashboard:  http://127.0.0.1:" in r.stdout and "elapsed:" in r.stdout
+    # the time line parts the render time: the scene loads of the rendering tasks (split streams here)
+    t = s["timings"]
+    assert 0 < t["load_s"] <= s["render_s"] and t["write_s"] > 0, t
+    assert f"of which scene loads {t['load_s']:.1f} s" in r.stdout, r.stdout
 
 
 def test_store_contents_are_real_frames(local_store):
