@@ -77,7 +77,7 @@ def test_derived_flags():
     (lambda: MeshSpec("teapot"), "mesh.kind"),
     (lambda: MeshSpec("sphere", triangle_budget=-3), "mesh.triangle_budget"),
     (lambda: Transform(scale=(1, 0, 1)), "transform.scale"),
-    (lambda: SceneSpec("moon", 0, (), (), (CameraSpec((0, 0, 1), (0, 0, 0)),)), "scene.kind"),
+    (lambda: SceneSpec("Moon base", 0, (), (), (CameraSpec((0, 0, 1), (0, 0, 0)),)), "scene.kind"),
     (lambda: SceneSpec("indoor", -1, (), (), (CameraSpec((0, 0, 1), (0, 0, 0)),)), "scene.seed"),
     (lambda: SceneSpec("indoor", 0, (), (), ()), "scene.cameras"),
     (lambda: LightSpec("laser"), "light.kind"),
