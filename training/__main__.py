@@ -58,7 +58,11 @@ def _report(a) -> int:
 
 
 def _bench(a) -> int:
-    if a.train:
+    if a.scale:
+        from .bench_scale import DEFAULT_FRAMES, markdown, run as scale_run
+        res = scale_run(frames=tuple(a.frames or DEFAULT_FRAMES), source=a.source)
+        print(markdown(res))
+    elif a.train:
         from .accel import pick_device, precision_for
         from .bench import train_run
         res = train_run(models=a.models or None, seconds=a.seconds, device=a.device,
@@ -193,6 +197,14 @@ def _bench_parser(sub) -> None:
                    help="with --train: crop edge for every model (default: the paper's)")
     b.add_argument("--batch", type=int, default=None,
                    help="with --train: at most this batch (default: the paper's)")
+    b.add_argument("--scale", action="store_true",
+                   help="what a frame costs evaluate, hard-cases, report, export and the training datasets as a "
+                        "store grows (stills, clips; training.bench_scale), instead of the models' speed")
+    b.add_argument("--frames", nargs="+", type=int, default=None,
+                   help="with --scale: the store sizes to measure (default 100 1000 10000)")
+    b.add_argument("--source", default=None,
+                   help="with --scale: the rendered store whose frames are written again (default: "
+                        "configs/smoke.yaml, rendered first)")
     b.set_defaults(fn=_bench)
 
 
