@@ -542,6 +542,33 @@ HOPELESS = ("PartitionConfig", "PartitionNodeLimit", "PartitionTimeLimit", "BadC
             "InvalidQOS", "DependencyNeverSatisfied")
 
 
+KEEPER_EVERY_ENV = "DENOISE_TEST_KEEPER_EVERY"    # tests: seconds between the keeper's checks (default 2)
+
+
+def _join_log_class():
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    class JoinLog(SchedulerPlugin):
+        """The names of every worker that has joined the scheduler: a worker may join and leave between
+        two looks at who is there (a job cancelled, killed or out of memory right after its start)."""
+        name = "denoise-join-log"
+
+        def __init__(self, on_join=None):
+            self.names: set = set()
+            self.on_join = on_join
+
+        async def start(self, scheduler):
+            self.names |= {str(ws.name) for ws in scheduler.workers.values()}
+
+        def add_worker(self, scheduler, worker):
+            ws = scheduler.workers.get(worker)
+            if ws is not None:
+                self.names.add(str(ws.name))
+                if self.on_join is not None:
+                    self.on_join(str(ws.name))
+    return JoinLog
+
+
 class JobKeeper:
     """Keep ``jobs`` worker jobs in the queue for the whole run. dask-jobqueue submits a job once: one
     that ends (``scancel``, its walltime, a lost node, a worker's ``--lifetime``) is not submitted again
@@ -549,18 +576,41 @@ class JobKeeper:
     unchanged). So every ``every`` seconds, on the cluster's event loop: a job whose workers joined the
     scheduler and have all been gone for :data:`JOB_GONE_GRACE` seconds is dropped from the cluster's
     spec (closing it, a harmless ``scancel`` of a finished job) and ``scale(jobs=jobs)`` submits a new
-    one; the scheduler had already given its tasks to the other workers. Jobs that never had a worker
-    are left to :func:`wait_for_jobs`. ``replaced`` lists ``(worker name, job id)`` of each ended job."""
+    one; the scheduler had already given its tasks to the other workers. Whether a job's worker joined
+    is what the scheduler saw (``joined``, a scheduler plugin), not only who is there at a check: a job
+    that joins and ends between two checks is replaced too. Jobs that never had a worker are left to
+    :func:`wait_for_jobs`. ``replaced`` lists ``(worker name, job id)`` of each ended job."""
 
-    def __init__(self, cluster, jobs: int, *, every: float = 2.0, grace: float = JOB_GONE_GRACE, say=print):
+    def __init__(self, cluster, jobs: int, *, every: float | None = None, grace: float = JOB_GONE_GRACE, say=print):
+        import os
+
         from tornado.ioloop import PeriodicCallback
         self.cluster, self.jobs, self.grace, self.say = cluster, jobs, grace, say
         self.seen: set = set()
         self.gone: dict = {}
         self.replaced: list = []
         self.used: set = set()          # every job (worker spec) name this cluster has had
+        self.job_ids: dict = {}         # job (worker spec) name -> its batch job id, noted when a worker joins
+        self.joined = _join_log_class()(on_join=self._note_job)
+        every = float(os.environ.get(KEEPER_EVERY_ENV) or 2.0) if every is None else every
         self._pc = PeriodicCallback(self.check, every * 1000)
-        cluster.loop.add_callback(self._pc.start)
+        cluster.loop.add_callback(self._start)
+
+    def _note_job(self, worker: str) -> None:
+        """Note the batch job id of the job that ``worker`` belongs to (its Job object may be gone by the
+        time the job's end is noticed: SpecCluster drops a lost worker's after a timeout)."""
+        for name, spec in self.cluster.worker_spec.items():
+            names = {f"{name}{s}" for s in spec["group"]} if "group" in spec else {str(name)}
+            job_id = getattr(self.cluster.workers.get(name), "job_id", None)
+            if worker in names and job_id:
+                self.job_ids[name] = job_id
+
+    def _start(self) -> None:
+        scheduler = getattr(self.cluster, "scheduler", None)
+        if hasattr(scheduler, "add_plugin"):    # the scheduler runs in this process (dask-jobqueue's default)
+            scheduler.add_plugin(self.joined)
+            self.joined.names |= {str(ws.name) for ws in scheduler.workers.values()}
+        self._pc.start()
 
     def check(self) -> None:
         import time
@@ -578,13 +628,16 @@ class JobKeeper:
             if names & present:
                 self.seen.add(name)
                 self.gone.pop(name, None)
-            elif name in self.seen and now - self.gone.setdefault(name, now) >= self.grace:
+                continue
+            if names & self.joined.names:       # joined, and gone before this check saw it
+                self.seen.add(name)
+            if name in self.seen and now - self.gone.setdefault(name, now) >= self.grace:
                 ended.append(name)
         self.used.update(c.worker_spec)
         if not ended:
             return
         for name in ended:
-            job_id = getattr(c.workers.get(name), "job_id", None)
+            job_id = getattr(c.workers.get(name), "job_id", None) or self.job_ids.get(name)
             del c.worker_spec[name]
             self.seen.discard(name)
             self.gone.pop(name, None)
@@ -622,7 +675,8 @@ def slurm_queue(job_ids) -> dict | None:
 
 
 def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
-    """Return once a worker of the batch jobs has joined the scheduler, noting every :data:`JOB_WAIT_NOTE`
+    """Return once a worker of the batch jobs has joined the scheduler (one that joined and has gone
+    since counts: the keeper submits its job again), noting every :data:`JOB_WAIT_NOTE`
     seconds what the queue says of the jobs. Jobs may wait in a queue for hours, so there is no time
     limit, but ClusterError (exit 2) when the jobs cannot bring workers: not submitted within
     :data:`JOB_SUBMIT_TIMEOUT` s, pending for a reason that never clears (:data:`HOPELESS`), or all ended
@@ -630,8 +684,10 @@ def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
     ``slurm-<id>.out`` in the submitting directory)."""
     import time
     cluster = conn.cluster
+    keeper = getattr(cluster, "denoise_keeper", None)
     t0 = last = time.monotonic()
-    while not conn.n_workers():
+    # a worker that joined and has gone since counts: the keeper replaces its job
+    while not conn.n_workers() and not (keeper is not None and keeper.joined.names):
         now = time.monotonic()
         ids = [getattr(j, "job_id", None) for j in list(cluster.workers.values())]
         submitted = [j for j in ids if j]
@@ -645,7 +701,8 @@ def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
             if stuck and len(stuck) == len(queue):
                 raise ClusterError(f"the worker jobs can never start: squeue says {', '.join(stuck)}; ask "
                                    f"dataset.cluster.jobqueue for what the partition allows ({job_request(cluster)})")
-            if not queue and len(submitted) >= min(jobs, len(ids)) and not conn.n_workers():
+            if not queue and len(submitted) >= min(jobs, len(ids)) and not conn.n_workers() \
+                    and not (keeper is not None and keeper.joined.names):
                 logs = (getattr(getattr(cluster, "_dummy_job", None), "log_directory", None)
                         or "slurm-<job id>.out in the submitting directory")
                 raise ClusterError(f"the worker job(s) {', '.join(submitted)} ended before a worker joined; the "

@@ -22,11 +22,13 @@ from __future__ import annotations
 import os
 import signal
 
+from pipeline.errors import PipelineError
+
 LOCAL_WORKER_ENV = "DENOISE_LOCAL_WORKER"
 GPU_SPLIT_ENV = "DENOISE_GPU_PER_WORKER"    # job scripts of jobqueue.gpus_per_job: the job's workers (= GPUs)
 
 
-class GPUShortageError(RuntimeError):
+class GPUShortageError(PipelineError, RuntimeError):
     """A GPU job's worker would share a GPU with another worker of its job: the job sees fewer GPUs than it
     has workers. The worker does not start; the message names the job's GPUs and workers."""
 

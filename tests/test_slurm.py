@@ -497,6 +497,35 @@ def test_cancelled_jobs_are_replaced_and_no_frame_is_lost(slurm_config, local_st
     _assert_same_store(local_store, out)
 
 
+def test_jobs_that_end_right_after_joining_are_replaced(slurm_config, local_store, tmp_path):
+    """Both jobs are cancelled the moment their workers have joined, long before the keeper's next look
+    (its checks 20 s apart here): what the scheduler saw join counts, so the run neither says the jobs
+    ended before a worker joined nor waits forever for jobs it never saw; it submits new ones and loses
+    no frame."""
+    config, name = slurm_config
+    out = tmp_path / "slurm.zarr"
+    p = subprocess.Popen(_cli(config, out), env={**_env(), "DENOISE_TEST_KEEPER_EVERY": "20"}, cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        jobs: list[str] = []
+        for n in (1, 2):
+            new = [j for j in _joined(tmp_path / "slurm-logs", name, n) if j not in jobs]
+            if new:
+                subprocess.run(["scancel", "--signal=STOP", "--full", *new], check=True)   # it holds its tasks
+            jobs += new
+        subprocess.run(["scancel", *jobs], check=True)
+        log, _ = p.communicate(timeout=400)
+    finally:
+        if p.poll() is None:
+            kill_group(p)
+    assert p.returncode == 0, log[-4000:]
+    assert "ended before a worker joined" not in log
+    for j in jobs:
+        assert re.search(rf"^cluster: job {j} \(\S+\) ended", log, re.M), log
+    assert "frames:     4/4 complete (4 rendered now, 0 skipped, 0 failed)" in log and "validation: ok" in log
+    _assert_same_store(local_store, out)
+
+
 @pytest.mark.slow
 def test_a_job_that_reaches_its_walltime_loses_no_frame(slurm_config, local_store, tmp_path):
     """One job is stopped as its worker joins (SIGSTOP through ``scancel --signal``, so it still holds its
