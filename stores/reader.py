@@ -484,10 +484,16 @@ class Store:
         ``frames/frame`` in v1 and ``frames/frame_in_clip`` in v2. ``scene_json`` of a v3 store, kept once
         a clip, is read clip by clip (:meth:`scene_json` reads one frame's)."""
         t = self._meta_table()
-        if key == "scene_json" and key not in t:
-            out = [self.scene_json(i) for i in range(self.num_frames)]
-            return np.array(out, dtype=object).astype(str)
+        if key == "scene_json" and key not in t:     # objects: a clip's frames share its one string (a
+            out = np.empty(self.num_frames, dtype=object)      # fixed-width str array of a long clip's
+            out[:] = [self.scene_json(i) for i in range(self.num_frames)]    # JSON was GiBs)
+            return out
         return t[key].copy()
+
+    def unrecorded_columns(self) -> tuple[str, ...]:
+        """The ``FRAME_META`` keys whose ``frames/*`` array this store lacks: it was made before the key
+        existed, and reads its fill value for every frame (``stores.schema.absent_arrays``)."""
+        return tuple(sorted(key for key in FRAME_META if _meta_path_or_none(key, self.version) in self._absent))
 
     def complete_flags(self) -> np.ndarray:
         """``status/complete`` of every frame (bool): a flag whose chunk is damaged reads False
@@ -698,6 +704,13 @@ class Store:
             return True
         except KeyError:
             return False
+
+
+def _meta_path_or_none(key: str, version: int) -> str | None:
+    try:
+        return schema.meta_path(key, version)
+    except KeyError:
+        return None
 
 
 def frame_problems(store, i: int) -> list[str]:
