@@ -3,8 +3,8 @@
 
 ``python -m training bench --scale [--frames 100 1000 10000] [--json FILE]`` builds, at each size F, two
 stores of F frames: **stills** (each frame its own scene, so its own clip and scene JSON) and **clips**
-(two clips of F/2 frames, one in the train split and one in the test split, their JSON a camera a
-frame, as a rendered clip's). Their frames are the frames
+(two clips of F/2 frames, one in the train split and one in the test split, their JSON the generator's
+for a clip of that length: a camera a frame, ``python -m scene_gen spec --frames``). Their frames are the frames
 of a small rendered store (``configs/smoke.yaml``, made by ``python -m pipeline dataset`` as a new
 program: training does not import the pipeline), written again and again through ``stores.writer`` (the
 pipeline's writer) under new scene seeds and clip ids, so the splits hold 80/10/10% of the scenes and
@@ -64,13 +64,15 @@ def source_store(tmp: Path) -> str:
     return str(out)
 
 
-def _clip_json(text: str, seed: int, frames: int) -> str:
-    """A clip's scene JSON under scene seed ``seed`` with a camera for each of its ``frames`` frames (the
-    source's cameras in turn): as long as a rendered clip's of that length."""
-    d = json.loads(text)
-    cams = d["cameras"]
-    d.update(seed=int(seed), cameras=[cams[j % len(cams)] for j in range(frames)])
-    return json.dumps(d)
+def _clip_json(kind: str, seed: int, frames: int) -> str:
+    """A clip's scene JSON of ``frames`` frames (a camera a frame), as the scene generator writes it:
+    ``python -m scene_gen spec`` as a new program (training does not read the generator's JSON)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run([sys.executable, "-m", "scene_gen", "spec", "--kind", kind, "--seed", str(seed),
+                        "--frames", str(frames), "--res", "16"], capture_output=True, text=True, cwd=ROOT, env=env)
+    if r.returncode != 0:
+        raise RuntimeError("python -m scene_gen spec failed: " + r.stderr[-1000:])
+    return r.stdout
 
 
 def _scene_of(i: int, frames: int, layout: str) -> tuple[int, int, int]:
@@ -101,11 +103,11 @@ def build_store(source: str, path: str, frames: int, layout: str) -> str:
         scene, j, n = _scene_of(i, frames, layout)
         fr = cache[picks[(i if layout == "stills" else j) % len(picks)]]
         clip_id = long_ids[scene] if layout == "clips" else 100_000 + scene
-        # a pair is the source clip itself (its samples re-trace: the noisebase export checks them)
+        # a pair is the source clip itself (its seed: the noisebase export re-traces its samples)
         seed = fr["meta"]["scene_seed"] if layout == "pairs" else clip_id
-        if scene not in texts:
-            texts[scene] = (fr["meta"]["scene_json"] if layout == "pairs"
-                            else _clip_json(fr["meta"]["scene_json"], seed, n))
+        if scene not in texts:          # stills and pairs: the source's own JSON
+            texts[scene] = (_clip_json(str(fr["meta"]["kind"]), clip_id, n) if layout == "clips"
+                            else fr["meta"]["scene_json"])
         meta = {**{k: fr["meta"][k] for k in FRAME_META}, "scene_json": texts[scene], "scene_seed": seed,
                 "clip_id": clip_id, "frame": j, "num_frames": n,
                 "case": CASES[(i // 10) % 2] if i % 10 == 0 else ""}
