@@ -9,7 +9,10 @@ stands for every module of the folder."""
 from __future__ import annotations
 
 import ast
+import builtins
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -151,6 +154,62 @@ def test_imports_built_from_f_strings_are_followed():
     call, fmt = tree.body[1].value, tree.body[2].value.args[0]
     assert _pattern(call.args[0], "training.models", "training.models") == "training.models.*"
     assert _pattern(fmt, "training.models", "training.models") is None       # not a project module
+
+
+def test_every_error_class_derives_from_the_projects_base():
+    """docs/architecture.md: core.errors holds the base classes every stage's errors derive from. A class
+    whose bases are Python's exceptions only (``class X(RuntimeError)``) escapes the exit-code mapping."""
+    # warnings are no errors, and an interrupt stays one (exit 130), so those keep Python's bases
+    plain = {n for n in dir(builtins) if isinstance(getattr(builtins, n), type)
+             and issubclass(getattr(builtins, n), BaseException)
+             and not issubclass(getattr(builtins, n), (Warning, KeyboardInterrupt))}
+    stray = []
+    for pkg in PACKAGES:
+        for p in (ROOT / pkg).rglob("*.py"):
+            for node in ast.walk(ast.parse(p.read_text())):
+                if isinstance(node, ast.ClassDef) and node.bases and node.name != "ProjectError":
+                    bases = [b.id if isinstance(b, ast.Name) else getattr(b, "attr", "") for b in node.bases]
+                    if bases and all(b in plain for b in bases):
+                        stray.append(f"{p.relative_to(ROOT)}: {node.name}({', '.join(bases)})")
+    assert not stray, "error classes outside the project's hierarchy:\n" + "\n".join(stray)
+
+
+def test_stores_import_no_torch():
+    """docs/architecture.md: the stores' readers and writers import no torch (the store benchmark does)."""
+    torch_users = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "stores").rglob("*.py")
+                         if any(n.split(".")[0] == "torch" for n in _all_imports(p)))
+    assert torch_users == ["stores/bench.py"], torch_users
+
+
+def _all_imports(path: Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            out.add(node.module or "")
+    return out
+
+
+def _fresh(code: str) -> str:
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout.strip()
+
+
+def test_registries_import_their_plugins_only_when_asked():
+    """docs/architecture.md: a registry imports its plugins when first asked, not when imported (so a
+    plugin's import of its registry is no cycle), and the export formats are listed without importing
+    the pipeline that holds the noisebase writer (an entry point, loaded when the format is used)."""
+    out = _fresh("import sys, scene_gen.families as F, training.models.registry as R\n"
+                 "before = [m for m in sys.modules if m.startswith(('scene_gen.families.', 'training.models.'))"
+                 " and m not in ('training.models.registry', 'training.models.common')]\n"
+                 "F.family_names(); R.names()\n"
+                 "print(before, 'scene_gen.families.indoor' in sys.modules, 'training.models.nbg' in sys.modules)")
+    assert out == "[] True True", out
+    out = _fresh("import sys\nfrom stores.export import writers\nw = writers()\n"
+                 "print('noisebase' in w, sorted(m for m in sys.modules if m.split('.')[0] == 'pipeline'))")
+    assert out == "True []", out
 
 
 def test_no_function_is_over_60_lines():

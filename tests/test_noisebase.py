@@ -194,6 +194,10 @@ def test_one_opener_reads_either_format(store, exported):
     assert isinstance(nb, NoisebaseStore) and isinstance(st, Store) and open_training_store(nb) is nb
     ds = StoreDataset(str(exported), None, 8, False, 0)
     assert isinstance(ds.store, NoisebaseStore) and ds.store.num_frames == nb.num_frames
+    from training.data import open_store
+    from training.errors import DataError
+    with pytest.raises(DataError, match=r"cannot open store .*nothing-here"):      # training words the error
+        open_store(str(exported) + "-nothing-here")
 
 
 def feat_mean(st, i, group):
