@@ -370,10 +370,6 @@ class NoisebaseStore:
     def incomplete_frames(self) -> list[int]:
         return []
 
-    def unrecorded_columns(self) -> tuple[str, ...]:
-        """None: what the format lacks (scene family, hard cases, scene JSON) reads '' by the format itself."""
-        return ()
-
     def meta_column(self, key: str) -> np.ndarray:
         """``clip_id`` (the sequence), ``frame`` (index in it), ``num_frames``; ``has_motion`` (the camera
         moves in the sequence, or its last frame's samples have non-zero world motion: a moving object

@@ -68,10 +68,6 @@ class TrainingStore(Protocol):
         """A per-frame column: ``clip_id``, ``frame`` (index in the clip), ``num_frames``, ``has_motion``,
         ``has_defocus``, ``scene_json``, ``case``, ``kind`` (the scene family; '' where unknown)."""
 
-    def unrecorded_columns(self) -> tuple[str, ...]:
-        """The per-frame columns (``FRAME_META`` keys) this store was made without: a store made before the
-        column existed reads its fill value ('' or 0) for every frame, which then says nothing."""
-
     def check_frames(self, frames, *, progress: bool = False) -> dict[int, list[str]]:
         """The frames of ``frames`` that are unfit to use, frame -> problems (``stores.fitness``)."""
 
@@ -101,13 +97,14 @@ def scene_cases(store) -> np.ndarray:
 
 
 def _column_or_spec(store, key: str) -> np.ndarray:
-    """The ``frames/<key>`` column; for a store made without it (:meth:`TrainingStore.unrecorded_columns`)
-    the ``key`` of each scene's JSON, parsed once for each distinct text (once a clip) and only where the
-    text names the key: the one place a reader of the stores looks inside the generator's JSON. Where the
-    store records the column, '' is a value (an ordinary frame's case), and no JSON is read."""
+    """The ``frames/<key>`` column, and for the frames where it is '' (a store made before the column
+    existed reads '' there, and so do the frames made before it of such a store resumed since) the
+    ``key`` of the scene's JSON, parsed once for each distinct text (once a clip) and only where the text
+    names the key: the one place a reader of the stores looks inside the generator's JSON. Its cost is a
+    clip's: a still's JSON read (about 2 ms), a long clip's once (``training bench --scale``)."""
     import json
     col = np.array([str(k) for k in store.meta_column(key)], dtype=object)
-    missing = np.nonzero(col == "")[0] if key in store.unrecorded_columns() else []
+    missing = np.nonzero(col == "")[0]
     if len(missing) == 0:
         return col.astype(str)
     texts, done = store.meta_column("scene_json"), {}

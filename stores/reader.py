@@ -490,11 +490,6 @@ class Store:
             return out
         return t[key].copy()
 
-    def unrecorded_columns(self) -> tuple[str, ...]:
-        """The ``FRAME_META`` keys whose ``frames/*`` array this store lacks: it was made before the key
-        existed, and reads its fill value for every frame (``stores.schema.absent_arrays``)."""
-        return tuple(sorted(key for key in FRAME_META if _meta_path_or_none(key, self.version) in self._absent))
-
     def complete_flags(self) -> np.ndarray:
         """``status/complete`` of every frame (bool): a flag whose chunk is damaged reads False
         (:meth:`metadata_damage` lists it); nothing is raised."""
@@ -704,13 +699,6 @@ class Store:
             return True
         except KeyError:
             return False
-
-
-def _meta_path_or_none(key: str, version: int) -> str | None:
-    try:
-        return schema.meta_path(key, version)
-    except KeyError:
-        return None
 
 
 def frame_problems(store, i: int) -> list[str]:

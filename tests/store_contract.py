@@ -62,10 +62,8 @@ class StoreContract:
         for key in COLUMNS:
             assert len(st.meta_column(key)) == st.num_frames, key
         assert (st.meta_column("num_frames")[st.frames_in_split(None)] >= 1).all()
-        from stores.contract import FRAME_META
         from stores.protocol import scene_kinds
         assert len(scene_kinds(st)) == st.num_frames and all(isinstance(k, str) for k in scene_kinds(st))
-        assert isinstance(st.unrecorded_columns(), tuple) and set(st.unrecorded_columns()) <= set(FRAME_META)
         with pytest.raises(KeyError):
             st.meta_column("no-such-column")
 

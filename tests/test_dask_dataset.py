@@ -323,10 +323,8 @@ def test_frames_kind_is_each_frame_scene_family_and_older_stores_fall_back_once_
         return real(text, *a, **k)
     monkeypatch.setattr(_json, "loads", counting)
     assert list(scene_kinds(st)) == want and parsed == []
-    # '' is an ordinary frame's case where the store records the column: no JSON is read for it either
-    # (a 10,000-frame store of long clips once read every frame's clip JSON into one 53 GiB str array)
-    from stores.protocol import scene_cases
-    assert st.unrecorded_columns() == () and list(scene_cases(st)) == [""] * st.num_frames and parsed == []
+    # the scene JSON column shares a clip's one string (a 10,000-frame store of long clips, whose ordinary
+    # frames' case '' sends scene_cases to the JSON, once asked for a 53 GiB fixed-width str array)
     texts = st.meta_column("scene_json")
     clip = next(c for c in st.clips(None).values() if len(c) > 1)
     assert texts.dtype == object and texts[clip[0]] is texts[clip[1]]      # a clip's one string, shared
@@ -334,7 +332,7 @@ def test_frames_kind_is_each_frame_scene_family_and_older_stores_fall_back_once_
     shutil.copytree(local_store["out"], old)
     shutil.rmtree(old / "frames" / "kind")
     st_old = open_store(str(old))
-    assert st_old.unrecorded_columns() == ("kind",) and list(st_old.meta_column("kind")) == [""] * st.num_frames
+    assert list(st_old.meta_column("kind")) == [""] * st.num_frames
     assert list(scene_kinds(st_old)) == want and len(parsed) == len(st.clips(None))
 
 
