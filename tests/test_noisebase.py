@@ -259,6 +259,11 @@ def test_our_kinds_train_on_noisebase_data(exported, tmp_path, capsys):
                "--out", tmp_path / "e.json") == 0
     res = json.loads((tmp_path / "e.json").read_text())
     assert np.isfinite(res["mean"]["psnr"]) and "ci95" in res
+    # the report reads the folder through the same door: the run, the input and OIDN, its tables and figures
+    assert cli("report", "--runs", tmp_path / "r1", "--store", exported, "--split", "train", "--out",
+               tmp_path / "rep", "--no-flip") == 0
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "r1" in md and "input" in md and (tmp_path / "rep" / "speed_vs_error.png").exists()
     # a clips model (windows of per-sample frames, stepped through them) trains on the sequences too
     register_probes()
     try:

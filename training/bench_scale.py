@@ -22,10 +22,11 @@ Per frame (milliseconds), at each size and layout:
   per frame of the store;
 - ``report``: ``training.report.report`` of a 2-step ``nbg`` run (the run, the input and OIDN on the test
   split, FLIP off), per test frame;
-- ``export_<format>``: ``stores.export.export`` of the first 40 frames in each format, per exported
-  frame. ``noisebase`` exports whole clips and re-traces their samples with the renderer (it checks
-  them against the stored ones), so it is measured on a third layout, **pairs**: F/2 clips of two
-  frames, each the source store's clip itself (its seed and JSON), of which it exports 20 whole clips.
+- ``export_<format>``: ``stores.export.export`` of the test split (whole clips) in each format, per
+  exported frame. ``noisebase`` re-traces the samples with the renderer (it checks them against the
+  stored ones), so it is measured on a third layout, **pairs**: F/2 clips of two frames, each the
+  source store's clip itself (its seed and JSON). (A few frames of a long clip cost more a frame:
+  ``layerdenoise`` scales depth by the clip's largest, so it reads every frame of the clip once.)
 
 The table gives each stage's largest size over its smallest (the target: at most 1.5).
 """
@@ -49,7 +50,6 @@ SMOKE = ROOT / "configs" / "smoke.yaml"
 DEFAULT_FRAMES = (100, 1000, 10000)
 LAYOUTS = ("stills", "clips", "pairs")
 KINDS = ("samples", "pixels", "clips", "sampled-layers")
-EXPORT_FRAMES = 40
 CASES = ("fireflies", "sun_in_view")
 
 
@@ -171,16 +171,16 @@ def measure(store: str, run_dir: Path, tmp: Path, layout: str) -> dict[str, floa
 
 
 def _exports(store: str, tmp: Path, formats) -> dict[str, float]:
-    """Milliseconds an exported frame of each of ``formats`` (``stores.export.writers``), on the first
-    :data:`EXPORT_FRAMES` frames of ``store``."""
+    """Milliseconds an exported frame of each of ``formats`` (``stores.export.writers``), exporting the
+    test split (whole clips: the ``layerdenoise`` depth scale and Noisebase's sequences are a clip's)."""
     from stores.export import export, writers
     from stores.reader import open_store
-    k = min(EXPORT_FRAMES, open_store(store).num_frames)
+    frames = sorted(open_store(store).frames_in_split("test"))
     out = {}
     for fmt in formats:
         assert fmt in writers(), fmt
         dest = tmp / f"export-{fmt}"
-        out[f"export_{fmt}"] = 1e3 * _timed(lambda: export(store, f"0-{k - 1}", fmt, str(dest))) / k
+        out[f"export_{fmt}"] = 1e3 * _timed(lambda: export(store, frames, fmt, str(dest))) / max(1, len(frames))
         shutil.rmtree(dest, ignore_errors=True)
     return out
 
