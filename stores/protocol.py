@@ -91,20 +91,23 @@ def scene_kinds(store) -> np.ndarray:
 
 
 def scene_cases(store) -> np.ndarray:
-    """Every frame's hard-case tag (str; '' for ordinary frames) from ``frames/case``; for a store made
-    before that column, from each clip's scene JSON (:func:`_column_or_spec`)."""
-    return _column_or_spec(store, "case")
+    """Every frame's hard-case tag (str; '' for ordinary frames) from ``frames/case``; for the frames of
+    a store made before that column, from each clip's scene JSON (:func:`_column_or_spec`). A frame whose
+    ``frames/kind`` is filled was written by a pipeline that records its case (``kind`` came after
+    ``case``), so its '' is an ordinary frame's, and no JSON is read for it."""
+    recorded = np.array([str(k) != "" for k in store.meta_column("kind")], bool)
+    return _column_or_spec(store, "case", recorded)
 
 
-def _column_or_spec(store, key: str) -> np.ndarray:
+def _column_or_spec(store, key: str, recorded: np.ndarray | None = None) -> np.ndarray:
     """The ``frames/<key>`` column, and for the frames where it is '' (a store made before the column
     existed reads '' there, and so do the frames made before it of such a store resumed since) the
     ``key`` of the scene's JSON, parsed once for each distinct text (once a clip) and only where the text
-    names the key: the one place a reader of the stores looks inside the generator's JSON. Its cost is a
-    clip's: a still's JSON read (about 2 ms), a long clip's once (``training bench --scale``)."""
+    names the key: the one place a reader of the stores looks inside the generator's JSON. ``recorded``:
+    the frames whose '' is a value, not a gap (never looked up)."""
     import json
     col = np.array([str(k) for k in store.meta_column(key)], dtype=object)
-    missing = np.nonzero(col == "")[0]
+    missing = np.nonzero((col == "") & (True if recorded is None else ~recorded))[0]
     if len(missing) == 0:
         return col.astype(str)
     texts, done = store.meta_column("scene_json"), {}

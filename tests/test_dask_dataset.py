@@ -323,8 +323,14 @@ def test_frames_kind_is_each_frame_scene_family_and_older_stores_fall_back_once_
         return real(text, *a, **k)
     monkeypatch.setattr(_json, "loads", counting)
     assert list(scene_kinds(st)) == want and parsed == []
-    # the scene JSON column shares a clip's one string (a 10,000-frame store of long clips, whose ordinary
-    # frames' case '' sends scene_cases to the JSON, once asked for a 53 GiB fixed-width str array)
+    # an ordinary frame's case '' in a store that records it reads no JSON either
+    from stores.protocol import scene_cases
+    asked, column = [], st.meta_column
+    monkeypatch.setattr(st, "meta_column", lambda key: asked.append(key) or column(key))
+    assert list(scene_cases(st)) == [""] * st.num_frames and "scene_json" not in asked and asked
+    monkeypatch.setattr(st, "meta_column", column)
+    # the scene JSON column shares a clip's one string (a 10,000-frame store of long clips once asked for
+    # a 53 GiB fixed-width str array of it)
     texts = st.meta_column("scene_json")
     clip = next(c for c in st.clips(None).values() if len(c) > 1)
     assert texts.dtype == object and texts[clip[0]] is texts[clip[1]]      # a clip's one string, shared
@@ -334,6 +340,7 @@ def test_frames_kind_is_each_frame_scene_family_and_older_stores_fall_back_once_
     st_old = open_store(str(old))
     assert list(st_old.meta_column("kind")) == [""] * st.num_frames
     assert list(scene_kinds(st_old)) == want and len(parsed) == len(st.clips(None))
+    assert list(scene_cases(st_old)) == [""] * st.num_frames     # without frames/kind: each clip's JSON says
 
 
 def test_the_smoke_store_is_pinned(local_store):

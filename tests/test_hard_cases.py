@@ -199,9 +199,10 @@ def test_frames_case_written_and_read_back(case_store, tmp_path):
     from training.hardcases import frame_cases
     assert list(open_store(case_store).meta_column("case")) == ["black", "thin", "nan", ""]    # frames/case
     assert frame_cases(case_store) == ["black", "thin", "nan", ""]
-    old = tmp_path / "old.zarr"                      # a store made before frames/case existed
-    shutil.copytree(case_store, old)
+    old = tmp_path / "old.zarr"                      # a store made before frames/case existed (and so
+    shutil.copytree(case_store, old)                 # before frames/kind, which came after it)
     shutil.rmtree(old / "frames" / "case")
+    shutil.rmtree(old / "frames" / "kind")
     assert list(open_store(str(old)).meta_column("case")) == [""] * 4
     assert frame_cases(str(old)) == ["black", "thin", "nan", ""]       # from the SceneSpec JSON
 
