@@ -685,9 +685,11 @@ def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
     import time
     cluster = conn.cluster
     keeper = getattr(cluster, "denoise_keeper", None)
+
+    def joined() -> bool:               # one there now, or one that joined and has gone (the keeper replaces it)
+        return bool(conn.n_workers() or (keeper is not None and keeper.joined.names))
     t0 = last = time.monotonic()
-    # a worker that joined and has gone since counts: the keeper replaces its job
-    while not conn.n_workers() and not (keeper is not None and keeper.joined.names):
+    while not joined():
         now = time.monotonic()
         ids = [getattr(j, "job_id", None) for j in list(cluster.workers.values())]
         submitted = [j for j in ids if j]
@@ -701,8 +703,7 @@ def wait_for_jobs(conn: Connection, jobs: int, *, say=print) -> None:
             if stuck and len(stuck) == len(queue):
                 raise ClusterError(f"the worker jobs can never start: squeue says {', '.join(stuck)}; ask "
                                    f"dataset.cluster.jobqueue for what the partition allows ({job_request(cluster)})")
-            if not queue and len(submitted) >= min(jobs, len(ids)) and not conn.n_workers() \
-                    and not (keeper is not None and keeper.joined.names):
+            if not queue and len(submitted) >= min(jobs, len(ids)) and not joined():
                 logs = (getattr(getattr(cluster, "_dummy_job", None), "log_directory", None)
                         or "slurm-<job id>.out in the submitting directory")
                 raise ClusterError(f"the worker job(s) {', '.join(submitted)} ended before a worker joined; the "

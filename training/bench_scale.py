@@ -1,7 +1,7 @@
 """What a frame costs the stages that read the stores, as a store grows: the downstream side of
 ``python -m pipeline bench --only scale`` (docs/cluster.md, "Cost per frame").
 
-``python -m training bench --scale [--frames 100 1000 10000] [--json FILE]`` builds, at each size F, two
+``python -m training bench --scale [--frames 100 1000 10000] [--json FILE]`` builds, at each size F,
 stores of F frames: **stills** (each frame its own scene, so its own clip and scene JSON) and **clips**
 (two clips of F/2 frames, one in the train split and one in the test split, their JSON the generator's
 for a clip of that length: a camera a frame, ``python -m scene_gen spec --frames``). Their frames are the frames
@@ -53,26 +53,26 @@ KINDS = ("samples", "pixels", "clips", "sampled-layers")
 CASES = ("fireflies", "sun_in_view")
 
 
+def _program(*args: str) -> str:
+    """``python -m ARGS`` of this checkout as a new program (its stdout; RuntimeError with its output)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, cwd=ROOT, env=env)
+    if r.returncode != 0:
+        raise RuntimeError(f"python -m {' '.join(args)} failed: " + (r.stdout + r.stderr)[-2000:])
+    return r.stdout
+
+
 def source_store(tmp: Path) -> str:
     """``configs/smoke.yaml`` rendered into ``tmp`` by ``python -m pipeline dataset`` (a new program)."""
     out = tmp / "source.zarr"
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    r = subprocess.run([sys.executable, "-m", "pipeline", "dataset", "--config", str(SMOKE), "--out", str(out),
-                        "--no-progress"], capture_output=True, text=True, cwd=ROOT, env=env)
-    if r.returncode != 0:
-        raise RuntimeError("rendering the source store failed: " + (r.stdout + r.stderr)[-2000:])
+    _program("pipeline", "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress")
     return str(out)
 
 
 def _clip_json(kind: str, seed: int, frames: int) -> str:
     """A clip's scene JSON of ``frames`` frames (a camera a frame), as the scene generator writes it:
     ``python -m scene_gen spec`` as a new program (training does not read the generator's JSON)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    r = subprocess.run([sys.executable, "-m", "scene_gen", "spec", "--kind", kind, "--seed", str(seed),
-                        "--frames", str(frames), "--res", "16"], capture_output=True, text=True, cwd=ROOT, env=env)
-    if r.returncode != 0:
-        raise RuntimeError("python -m scene_gen spec failed: " + r.stderr[-1000:])
-    return r.stdout
+    return _program("scene_gen", "spec", "--kind", kind, "--seed", str(seed), "--frames", str(frames), "--res", "16")
 
 
 def _scene_of(i: int, frames: int, layout: str) -> tuple[int, int, int]:
