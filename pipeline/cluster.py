@@ -326,7 +326,7 @@ def job_settings(cfg: ClusterConfig) -> dict:
       is refused (they would share a GPU);
     - the job script's prologue (``job_script_prologue``): ``cd`` to this directory (PBS starts jobs
       in $HOME; a relative ``--out`` must name the same store for the workers), BLAS/OpenMP pools of one
-      thread, drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
+      thread, glibc's allocator thresholds (``worker_init.MALLOC_ENV``), drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
       ``MI_VARIANT`` / ``DENOISE_FORCE_CPU`` when set here; then the config's own prologue lines, which
       may override any of them;
     - the dashboard at :func:`dashboard_bind` of ``cluster.dashboard_address`` (none when null) unless
@@ -465,8 +465,10 @@ def _job_prologue(kw: dict, extra_env: list[str]) -> list[str]:
 
     from core.errors import VariantError
     from core.variant import find_libllvm
+    from pipeline import worker_init
     lines = [f"cd {shlex.quote(os.getcwd())}"]
     lines += [f"export {k}=1" for k in JOB_THREAD_ENV]
+    lines += [f"export {k}={shlex.quote(os.environ.get(k) or v)}" for k, v in worker_init.MALLOC_ENV.items()]
     try:
         lib = find_libllvm()
     except VariantError:

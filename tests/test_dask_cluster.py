@@ -21,6 +21,27 @@ def _render_threads():
     return tasks.worker_threads(), cfg.threads, dr.thread_count()
 
 
+def _a_temporary_array_is_mmapped() -> bool:
+    """In a worker: whether glibc serves a 2 MiB allocation (a scene's temporary numpy arrays) by mmap,
+    faulting its pages in afresh, rather than from the heap (``pipeline.worker_init.MALLOC_ENV``). Dask's
+    MALLOC_TRIM_THRESHOLD_ alone pins the mmap threshold at 128 KiB for good (glibc's default starts there
+    too, and rises once it frees such a block)."""
+    import ctypes
+
+    import numpy as np
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
+    libc = ctypes.CDLL("libc.so.6")
+    libc.mallinfo2.restype = MallInfo2
+    before = libc.mallinfo2().hblks
+    a = np.empty(1 << 18)               # 2 MiB
+    mapped = libc.mallinfo2().hblks > before
+    del a
+    return mapped
+
+
 def test_local_cluster_is_sized_to_the_machine_and_drjit_to_the_worker():
     conn = cl.connect(ClusterConfig(dashboard_address=":0"))
     try:
@@ -31,6 +52,8 @@ def test_local_cluster_is_sized_to_the_machine_and_drjit_to_the_worker():
         assert conn.address.startswith("tcp://127.0.0.1:")
         got = [conn.client.submit(_render_threads, workers=[w], pure=False).result() for w in info]
         assert set(got) == {(1, 1, 1)}          # one drjit thread per single-threaded worker
+        # glibc's allocator as worker_init sets it, not as the nanny's MALLOC_TRIM_THRESHOLD_ leaves it
+        assert not any(conn.client.run(_a_temporary_array_is_mmapped).values())
     finally:
         conn.close()
 
@@ -67,7 +90,7 @@ def test_jobqueue_examples_make_job_scripts(name, needles):
         script = c.job_script()
     finally:
         c.close()
-    for n in needles:
+    for n in needles + ["export MALLOC_MMAP_THRESHOLD_=33554432", "export MALLOC_TRIM_THRESHOLD_=67108864"]:
         assert n in script, (n, script)
 
 
