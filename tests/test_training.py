@@ -445,23 +445,19 @@ def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):
     assert "Traceback" not in err and "interrupted" in err and "resumes" in err
 
 
-def test_a_ctrl_c_that_reaches_the_loader_workers_alone_does_not_stop_training(store, tmp_path):
-    """The loader's workers ignore SIGINT: a terminal's Ctrl-C reaches them as well as the training process,
-    and a worker that died of it before the training process shut the loader down ended the run in a
-    traceback ("DataLoader worker ... exited unexpectedly", or multiprocessing's resource_sharer when it
-    died mid-transfer). Deterministic here: SIGINT to the workers only, then training goes on; a Ctrl-C to
-    the training process afterwards is the usual clean exit 130."""
+def _train_until_ctrl_c(store, tmp_path, workers: int, before_ctrl_c=None) -> tuple[int, str, Path]:
+    """``train`` (tiny layer model, a step a metrics line) in its own process group: once a few steps are
+    logged, ``before_ctrl_c(proc, steps)`` if given, then SIGINT to the group (a terminal's Ctrl-C).
+    Returns the exit code, stderr and the run's folder."""
     import json
     import signal
     import subprocess
     import sys
     import time
-
-    import psutil
     out = tmp_path / "r"
     argv = [sys.executable, "-m", "training", "train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
             store, "--out", str(out), "--steps", "100000", "--crop", "16", "--batch", "2", "--spp", "2", "--workers",
-            "2", "--checkpoint-every", "100000", "--log-every", "1", "--no-progress"]
+            str(workers), "--checkpoint-every", "100000", "--log-every", "1", "--no-progress"]
 
     def steps():
         return len((out / "metrics.csv").read_text().splitlines()) if (out / "metrics.csv").exists() else 0
@@ -470,23 +466,40 @@ def test_a_ctrl_c_that_reaches_the_loader_workers_alone_does_not_stop_training(s
                                 stderr=err_file, text=True, start_new_session=True)
         try:
             t0 = time.monotonic()
-            while time.monotonic() - t0 < 120 and steps() < 3:
-                time.sleep(0.1)
-            loaders = psutil.Process(proc.pid).children()
-            assert len(loaders) == 2, loaders
-            for w in loaders:
-                os.kill(w.pid, signal.SIGINT)
-            done = steps()
-            while time.monotonic() - t0 < 120 and steps() < done + 3 and proc.poll() is None:
-                time.sleep(0.1)
-            assert proc.poll() is None and all(w.is_running() for w in loaders)   # training went on
+            while time.monotonic() - t0 < 120 and steps() < 4:
+                time.sleep(0.1)                           # a few steps logged (one a step): training is under way
+            if before_ctrl_c:
+                before_ctrl_c(proc, steps)
             os.killpg(proc.pid, signal.SIGINT)
             proc.wait(timeout=60)
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
-    err = (tmp_path / "err.txt").read_text()
-    assert proc.returncode == 130 and "Traceback" not in err, err
+    return proc.returncode, (tmp_path / "err.txt").read_text(), out
+
+
+def test_a_ctrl_c_that_reaches_the_loader_workers_alone_does_not_stop_training(store, tmp_path):
+    """The loader's workers ignore SIGINT: a terminal's Ctrl-C reaches them as well as the training process,
+    and a worker that died of it before the training process shut the loader down ended the run in a
+    traceback ("DataLoader worker ... exited unexpectedly", or multiprocessing's resource_sharer when it
+    died mid-transfer). Deterministic here: SIGINT to the workers only, then training goes on; a Ctrl-C to
+    the training process afterwards is the usual clean exit 130."""
+    import signal
+    import time
+
+    import psutil
+
+    def ctrl_c_to_the_loader_workers(proc, steps):
+        loaders = psutil.Process(proc.pid).children()
+        assert len(loaders) == 2, loaders
+        for w in loaders:
+            os.kill(w.pid, signal.SIGINT)
+        t0, done = time.monotonic(), steps()
+        while time.monotonic() - t0 < 60 and steps() < done + 3 and proc.poll() is None:
+            time.sleep(0.1)
+        assert proc.poll() is None and all(w.is_running() for w in loaders)   # training went on
+    code, err, _ = _train_until_ctrl_c(store, tmp_path, 2, ctrl_c_to_the_loader_workers)
+    assert code == 130 and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("workers", [0, 1])
@@ -494,33 +507,9 @@ def test_ctrl_c_before_the_first_checkpoint_keeps_the_steps_done(store, tmp_path
     """Ctrl-C long before the first --checkpoint-every step: the step under way finishes, checkpoint.pt is
     written at it and the line says so (exit 130, no traceback, the loader's workers' included); the same
     command resumes from that step. Before, the line promised a checkpoint that did not exist."""
-    import json
-    import signal
-    import subprocess
-    import sys
-    import time
-
     import torch
-    out = tmp_path / "r"
-    argv = [sys.executable, "-m", "training", "train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
-            store, "--out", str(out), "--steps", "100000", "--crop", "16", "--batch", "2", "--spp", "2", "--workers",
-            str(workers), "--checkpoint-every", "100000", "--log-every", "1", "--no-progress"]
-    with open(tmp_path / "err.txt", "w") as err_file:
-        proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], stdout=subprocess.DEVNULL,
-                                stderr=err_file, text=True, start_new_session=True)
-        try:
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 120 and not (out / "metrics.csv").exists():
-                time.sleep(0.1)
-            while time.monotonic() - t0 < 120 and len((out / "metrics.csv").read_text().splitlines()) < 4:
-                time.sleep(0.1)                           # a few steps logged (one a step): training is under way
-            os.killpg(proc.pid, signal.SIGINT)
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-    err = (tmp_path / "err.txt").read_text()
-    assert proc.returncode == 130, err
+    code, err, out = _train_until_ctrl_c(store, tmp_path, workers)
+    assert code == 130, err
     assert "Traceback" not in err and "leaked semaphore" not in err, err
     line = [ln for ln in err.splitlines() if ln.startswith("interrupted")]
     assert len(line) == 1 and "checkpoint.pt holds it" in line[0] and "resumes" in line[0], err
