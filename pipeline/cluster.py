@@ -326,7 +326,8 @@ def job_settings(cfg: ClusterConfig) -> dict:
       is refused (they would share a GPU);
     - the job script's prologue (``job_script_prologue``): ``cd`` to this directory (PBS starts jobs
       in $HOME; a relative ``--out`` must name the same store for the workers), BLAS/OpenMP pools of one
-      thread, glibc's allocator thresholds (``worker_init.MALLOC_ENV``), drjit's libLLVM (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
+      thread, glibc's allocator thresholds (``worker_init.MALLOC_ENV``), drjit's libLLVM
+      (``DRJIT_LIBLLVM_PATH``, exported where that file exists on the node),
       ``MI_VARIANT`` / ``DENOISE_FORCE_CPU`` when set here; then the config's own prologue lines, which
       may override any of them;
     - the dashboard at :func:`dashboard_bind` of ``cluster.dashboard_address`` (none when null) unless

@@ -28,7 +28,7 @@ LOCAL_WORKER_ENV = "DENOISE_LOCAL_WORKER"
 # glibc's allocator for the worker processes, read when a process starts (so set in the environment they are
 # spawned with). Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 for its workers, and setting any of these
 # turns off glibc's dynamic mmap threshold: it stays at 128 KiB, so every temporary numpy array above that
-# is mmapped, faulted in and unmapped afresh. The bench's four scene loads took 3.3-3.6 s so against
+# is mmapped, faulted in and unmapped afresh. The bench's four scene loads took 3.3-3.6 s with it against
 # 2.6-2.7 s with glibc's defaults (docs/throughput.md). These are the defaults' own ceilings on 64-bit
 # (the mmap threshold grows to 32 MiB, the trim threshold to twice that); a value set here already wins.
 MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "33554432", "MALLOC_TRIM_THRESHOLD_": "67108864"}
