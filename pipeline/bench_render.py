@@ -143,7 +143,7 @@ def launch_counts(spec, cfg) -> dict:
     and, where objects move, ``moving`` (``mi.render`` at the same slice times as
     ``pipeline.render.render_sliced``; ``set_time``: what moving the objects costs a slice, and each
     side's kernels without it). Reads are counted at the input loop's one read function
-    (``pipeline.render._read``) and at ``mi.render``'s image (one a call). One scene alive at a time."""
+    (``pipeline.render.inputs._read``) and at ``mi.render``'s image (one a call). One scene alive at a time."""
     import dataclasses
     from pipeline import render as R
     out = {}
@@ -158,20 +158,21 @@ def launch_counts(spec, cfg) -> dict:
 
 
 def _frame_counts(R, fs) -> dict:
+    from pipeline.render import inputs as I
     dr, spp = fs.dr, fs.cfg.spp
-    reads, read = [0], R._read
+    reads, read = [0], I._read
 
     def counted(buf):
         reads[0] += 1
         return read(buf)
 
     R.inputs_part(fs)                           # compile (or load) the kernels first; counts are the same
-    R._read = counted
+    I._read = counted
     try:
         ours = launches(dr, lambda: R.inputs_part(fs))
     finally:
-        R._read = read
-    ours.update(reads=reads[0], wavefronts=len(list(R._input_wavefronts(fs))))
+        I._read = read
+    ours.update(reads=reads[0], wavefronts=len(list(I._input_wavefronts(fs))))
     theirs = launches(dr, lambda: R.render_sliced(fs, spp, R.STREAM_ORACLE, 0, max_slices=fs.cfg.time_slices))
     g = math.gcd(fs.cfg.time_slices, spp) if fs.has_motion else 1
     theirs["reads"] = g

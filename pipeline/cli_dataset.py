@@ -111,6 +111,7 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     if have != want and (have.get("render") or {}).get("reference", "batch_means") == "batch_means":
         cfg, want = _legacy_reference(cfg, have, want)
     if have != want:
+        _refuse_changed_files(store, have, want)
         keys = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
         raise StoreMismatchError(
             f"the store at {store} was made from a different dataset config (differs in: {', '.join(keys)}); "
@@ -120,6 +121,37 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
         raise StoreMismatchError(f"the store at {store} has layout {layout.to_dict()}, the config needs "
                                  f"{want_layout.to_dict()}")
     return cfg
+
+
+def _refuse_changed_files(store: str, have: dict, want: dict) -> None:
+    """Raise the one line that says which scene file changed, where a store's config and the run's differ
+    only in the content hashes of a file group (``pipeline.groups.SceneGroup.to_dict``)."""
+    a, b = have.get("scenes") or [], want.get("scenes") or []
+    strip = lambda d: {**d, "scenes": [{k: v for k, v in g.items() if k != "sha256"} for g in d.get("scenes") or []]}  # noqa: E731
+    if len(a) != len(b) or strip(have) != strip(want):
+        return
+    for i, (ga, gb) in enumerate(zip(a, b)):
+        if ga.get("sha256") != gb.get("sha256"):
+            raise StoreMismatchError(
+                f"the store at {store} was made from other content of dataset.scenes[{i}].file {gb.get('file')!r}: "
+                "a scene file (or a file it names) changed since; render it into another --out, or --overwrite "
+                "to start again")
+
+
+def check_scene_files(cfg: DatasetConfig) -> int:
+    """Load every scene file of ``cfg``'s file groups once (``scene_gen.scene_files.inspect``) before a
+    cluster starts, so a file that does not load, lacks a sensor and a camera, or needs a plugin the
+    variant lacks is one line (``SceneFileError``, exit 2) rather than failed frames. Returns the count."""
+    from scene_gen import scene_files
+    seen = set()
+    for g in cfg.scenes:
+        for j in range(min(g.count, len(g.files))):
+            src = g.file_source(j)
+            key = (src["path"], repr(src["camera"]))
+            if key not in seen:
+                seen.add(key)
+                scene_files.inspect(src["path"], scene_files.CameraSettings.from_dict(src["camera"]))
+    return len(seen)
 
 
 # render settings that did not exist before ``render.reference``: a store made then records none of them
@@ -176,6 +208,8 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
 def _run_dataset(cfg: DatasetConfig, store: str, *, scheduler, workers, progress, functions, overwrite) -> dict:
     from stores.lock import StoreLock
     cfg = check_existing_store(cfg, store, overwrite=overwrite)   # before the lock and the cluster: costs nothing
+    if any(g.files for g in cfg.scenes):
+        _print(f"scene files: {check_scene_files(cfg)} loaded and checked")
     check_cluster_settings(cfg, scheduler=scheduler, workers=workers)
     check_memory_before_start(cfg, scheduler=scheduler, workers=workers)
     if "://" not in store and not Path(store).parent.is_dir():

@@ -37,11 +37,11 @@ the bare hash, which leaves small stores without val or test scenes). Resuming s
 
 **Hard cases** (``scene_gen.cases``): a scene group takes ``case: NAME`` (every scene of the group) or
 ``cases: {sun: 0.1, fireflies: 0.1, zero-albedo: 0.1, thin: 0.05}`` (each scene draws at most one key
-from its own seed at those rates, :func:`draw_case`; a key may join several names with commas, a
+from its own seed at those rates, :func:`pipeline.groups.draw_case`; a key may join several names with commas, a
 combination; the rest of the scenes are ordinary). ``frames/case`` records every frame's.
 
 **Held-out datasets** (``held_out: true``, e.g. the hard-case suite ``configs/hard-cases.yaml``) take
-their scene seeds from [2**31, 2**32) and every other dataset from [0, 2**31) (:func:`scene_seed`), so
+their scene seeds from [2**31, 2**32) and every other dataset from [0, 2**31) (:func:`pipeline.groups.scene_seed`), so
 no training config, whatever its root seed, draws a held-out scene; a held-out dataset's split is
 ``{test: 1}`` (the default there; any other is refused), and ``python -m training train`` refuses a store
 that records ``held_out``.
@@ -65,7 +65,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from core.checks import is_int, is_number, known_keys, need, need_int
-from scene_gen.families import family_names
+from pipeline.groups import SceneGroup, scene_seed
 from stores.schema import StoreLayout
 
 CLIP_ID_SCHEMES = ("balanced", "scene_seed")
@@ -75,98 +75,6 @@ MAX_CLIP_ID_TRIES = 1_000_000
 CLUSTER_KINDS = ("local", "scheduler", "slurm", "pbs")
 MAX_RES = 16384
 STORE_KEYS = frozenset(StoreLayout.encoding_fields())   # what `dataset.store` may set
-
-
-HELD_OUT_SEEDS = 2 ** 31         # held-out datasets' scene seeds lie in [2**31, 2**32), every other's below
-CASE_DRAW = 0xCA5E               # SeedSequence([scene seed, CASE_DRAW]) draws a scene's hard case (``cases``)
-
-
-def scene_seed(root_seed: int, index: int, held_out: bool = False) -> int:
-    """Seed of scene ``index``: ``SeedSequence([root_seed, index])``'s first word halved, an int in
-    [0, 2**31); for a held-out dataset (``held_out: true``) the same plus 2**31, in [2**31, 2**32). No
-    dataset that is not held out can draw a held-out scene, whatever its root seed (``held_out``'s
-    docstring in :class:`DatasetConfig`)."""
-    ss = np.random.SeedSequence([int(root_seed), int(index)])
-    return int(ss.generate_state(1, np.uint32)[0] >> 1) + (HELD_OUT_SEEDS if held_out else 0)
-
-
-def draw_case(seed: int, cases: dict) -> str:
-    """The hard case of the scene of ``seed`` under the rates ``cases`` (case tag -> probability, summing
-    to at most 1): one uniform number from the scene's own stream ``SeedSequence([seed, CASE_DRAW])``
-    against the rates' cumulative sums in the order of the tags' names ('' when it falls past them), so
-    a scene's case depends on its seed and the rates alone, never on workers, task order or the order
-    the config lists the cases in."""
-    u = float(np.random.default_rng(np.random.SeedSequence([int(seed), CASE_DRAW])).random())
-    edge = 0.0
-    for tag in sorted(cases):
-        edge += float(cases[tag])
-        if u < edge:
-            return tag
-    return ""
-
-
-@dataclass(frozen=True)
-class SceneGroup:
-    """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip), with the
-    hard case(s) ``case`` applied to every scene (``scene_gen.cases``: a name, or names joined by commas;
-    None: none), or a case drawn for each scene at the rates ``cases`` (``{sun: 0.1, fireflies: 0.1}``:
-    each scene gets at most one key, a case or a combination of cases joined by commas, with that
-    probability, and none with the rest; :func:`draw_case`)."""
-    kind: str
-    count: int
-    frames: int = 1
-    case: str | None = None
-    cases: dict | None = None
-
-    def validate(self, where: str) -> None:
-        kinds = family_names()
-        need(self.kind in kinds, f"{where}.kind", f"one of {kinds}", self.kind, ConfigError)
-        need_int(f"{where}.count", self.count, 1, 10_000_000, ConfigError, numpy=True)
-        need_int(f"{where}.frames", self.frames, 1, 10_000, ConfigError, numpy=True)
-        if self.case is not None and self.cases is not None:
-            raise ConfigError(f"{where}: give case (every scene) or cases (drawn at rates), not both")
-        if self.case is not None:
-            self._check_case(self.case, f"{where}.case")
-        if self.cases is not None:
-            object.__setattr__(self, "cases", self._check_rates(self.cases, f"{where}.cases"))
-
-    def _check_case(self, case, where: str) -> str:
-        from scene_gen.cases import case_tag, check_kind
-        from scene_gen.errors import SceneGenError
-        try:
-            check_kind(case, self.kind)
-            return case_tag(case)
-        except SceneGenError as e:
-            raise ConfigError(f"{where}: {e}") from e
-
-    def _check_rates(self, cases, where: str) -> dict:
-        """``cases`` as {case tag: rate}: known names, each rate in [0, 1], summing to at most 1."""
-        need(isinstance(cases, dict) and len(cases) > 0, where,
-             "a mapping of hard-case names (or names joined by commas) to rates in [0, 1]", cases, ConfigError)
-        out = {}
-        for name, rate in cases.items():
-            tag = self._check_case(name, f"{where}.{name}")
-            need(is_number(rate, finite=True) and 0.0 <= rate <= 1.0, f"{where}.{name}", "a rate in [0, 1]", rate,
-                 ConfigError)
-            if tag in out:
-                raise ConfigError(f"{where}: case {tag!r} is given twice")
-            out[tag] = float(rate)
-        total = sum(out.values())
-        if total > 1.0 + 1e-9:
-            raise ConfigError(f"{where}: the rates sum to {total:g}; a scene takes at most one case, so they must "
-                              "sum to at most 1")
-        return out
-
-    @property
-    def case_tag(self) -> str:
-        """The case names every scene of the group has, as ``SceneSpec.case`` records them ('' for none,
-        and for a group that draws its cases: :meth:`scene_case`)."""
-        from scene_gen.cases import case_tag
-        return case_tag(self.case)
-
-    def scene_case(self, seed: int) -> str:
-        """The case tag of this group's scene of ``seed``: ``case``, or the one drawn at ``cases``' rates."""
-        return draw_case(seed, self.cases) if self.cases else self.case_tag
 
 
 @dataclass(frozen=True)
@@ -369,6 +277,7 @@ class FrameRef:
     num_frames: int
     clip_id: int | None = None
     case: str = ""                  # hard cases of the scene's group (scene_gen.cases), '' for none
+    source: dict | None = None      # a scene file's scene: what it is made from (SceneGroup.file_source)
 
     @property
     def key(self) -> str:
@@ -536,11 +445,11 @@ class DatasetConfig:
         ids = self.scene_clip_ids()
         s = 0
         for g in self.scenes:
-            for _ in range(g.count):
+            for j in range(g.count):
                 seed = scene_seed(self.seed, s, self.held_out)
-                case = g.scene_case(seed)
+                case, source = g.scene_case(seed), g.file_source(j)
                 for f in range(g.frames):
-                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s], case))
+                    out.append(FrameRef(len(out), s, g.kind, seed, f, g.frames, ids[s], case, source))
                 s += 1
         return out
 
@@ -574,12 +483,9 @@ class DatasetConfig:
     # -- (de)serialisation -------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """Plain data (lists, dicts, scalars) that :meth:`from_dict` turns back into an equal config."""
-        def group(g):   # `case` and `cases` only when set, so stores made before they existed still resume
-            return {"kind": g.kind, "count": g.count, "frames": g.frames, **({"case": g.case} if g.case else {}),
-                    **({"cases": dict(g.cases)} if g.cases else {})}
         return {
             "name": self.name, "seed": int(self.seed), "out": self.out, "resolution": list(self.resolution),
-            "scenes": [group(g) for g in self.scenes],
+            "scenes": [g.to_dict() for g in self.scenes],
             "render": _plain(self.render), "scene_gen": _plain(self.scene_gen), "store": _plain(self.store),
             "tasks": _plain({f.name: getattr(self.tasks, f.name) for f in fields(TaskConfig)}),
             "cluster": _plain({f.name: getattr(self.cluster, f.name) for f in fields(ClusterConfig)}),
@@ -606,16 +512,18 @@ class DatasetConfig:
     def from_dict(cls, d: Any) -> "DatasetConfig":
         d = known_keys(d, cls, "dataset", ConfigError)
         if "scenes" not in d:
-            raise ConfigError("dataset.scenes is required: a list of {kind: indoor|outdoor, count: N, frames: F}")
+            raise ConfigError("dataset.scenes is required: a list of {kind: indoor|outdoor, count: N, frames: F} "
+                              "or {file: PATH, count: N, frames: F} groups")
         scenes = d["scenes"]
         need(isinstance(scenes, list) and len(scenes) > 0, "dataset.scenes",
              "a non-empty list of {kind, count, frames} groups", scenes, ConfigError)
         groups = []
         for i, g in enumerate(scenes):
-            gd = known_keys(g, SceneGroup, f"dataset.scenes[{i}]", ConfigError)
-            for k in ("kind", "count"):
+            gd = known_keys(g, [*(f.name for f in fields(SceneGroup)), "sha256"], f"dataset.scenes[{i}]", ConfigError)
+            gd.pop("sha256", None)                  # a file group's recorded hashes: content_dict has them anew
+            for k in ("kind", "count") if gd.get("file") is None else ():
                 if k not in gd:
-                    raise ConfigError(f"dataset.scenes[{i}].{k} is required")
+                    raise ConfigError(f"dataset.scenes[{i}].{k} is required (or file: a Mitsuba scene file)")
             groups.append(SceneGroup(**gd))
         d["scenes"] = tuple(groups)
         d["tasks"] = TaskConfig(**known_keys(d.get("tasks"), TaskConfig, "dataset.tasks", ConfigError))

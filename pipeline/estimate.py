@@ -120,7 +120,7 @@ def predicted_passes(rel: float, done: int, rc) -> int:
 
 
 def predicted_rounds(rel: float, done: int, rc) -> list[int]:
-    """The passes after each round of a ``moments`` reference (``pipeline.render._reference_moments``)
+    """The passes after each round of a ``moments`` reference (``pipeline.render.reference._reference_moments``)
     whose relative standard error is ``rel`` after ``done`` passes: its error has thousands of degrees
     of freedom, so it is taken as exact and falls as 1/sqrt(passes). Without a target: one round."""
     if rc.ref_target_rel_stderr is None or rc.ref_spp == 0:

@@ -138,8 +138,9 @@ def build_graph(cfg: DatasetConfig, store: str, frames: Iterable[FrameRef] | Non
     for ref in sorted(frames, key=lambda r: r.index):
         sk = spec_key(ref.scene, token)
         if sk not in g.nodes:
+            made_of = ref.source if ref.source is not None else scene_gen      # a scene file's, or the generator's
             g.add(Node(sk, _tasks.scene_spec, (store, ref.index - ref.frame, ref.seed, ref.kind, ref.num_frames,
-                                               tuple(cfg.resolution), scene_gen)
+                                               tuple(cfg.resolution), made_of)
                        + ((ref.case,) if ref.case else ()), "spec",           # a hard case (scene_gen.cases)
                        kwargs={"make": fn.make_spec, **({"generation": generation} if generation else {})}))
         spec = Ref(sk)

@@ -177,7 +177,16 @@ def clear_scene_cache(*, flush_kernels: bool = False) -> None:
 
 def make_spec(seed: int, kind: str, num_frames: int, res: tuple[int, int], scene_gen: dict, case: str = "") -> str:
     """The SceneSpec JSON of one scene (``scene_gen.sampling.sample_scene``; ``res`` = (W, H)), with the
-    hard cases ``case`` applied (``scene_gen.cases``: their settings, then their edits)."""
+    hard cases ``case`` applied (``scene_gen.cases``: their settings, then their edits). A scene file's
+    (``kind`` ``file``): ``scene_gen`` is its source (``pipeline.groups.SceneGroup.file_source``: the file,
+    its content hash and the camera settings), and its cameras are drawn around the file's sensor
+    (``scene_gen.scene_files``: the file is loaded once here to learn the sensor)."""
+    from scene_gen import scene_files
+    if kind == scene_files.KIND:
+        settings = scene_files.CameraSettings.from_dict(scene_gen.get("camera"))
+        info = scene_files.inspect(scene_gen["path"], settings)
+        return scene_files.file_spec(scene_gen["path"], scene_gen["sha256"], info, settings, int(seed),
+                                     int(num_frames)).to_json()
     from scene_gen.cases import apply_cases, case_config
     from scene_gen.config import SceneGenConfig
     from scene_gen.sampling import sample_scene

@@ -16,3 +16,8 @@ class MeshError(SceneGenError, RuntimeError):
 
 class ConfigError(SpecError, SettingError):
     """A SceneGenConfig field is invalid; the message names the field and its allowed range."""
+
+
+class SceneFileError(SceneGenError, ValueError):
+    """A Mitsuba scene file cannot be a scene of the dataset (missing, unreadable, does not load, no sensor
+    and no camera, a plugin the variant lacks, changed since its scene was described); one line naming it."""

@@ -261,6 +261,20 @@ class CameraSpec(_Spec):
 
 
 @dataclass(frozen=True)
+class SceneFile(_Spec):
+    """A Mitsuba scene file a scene is made of (``scene_gen.scene_files``): its ``path`` (absolute) and the
+    SHA-256 of its content (``scene_gen.scene_files.content_hash``: the file and every file it names), so
+    a frame is never rendered from a file that changed since its scene was described."""
+    path: str
+    sha256: str
+
+    def __post_init__(self):
+        _check(isinstance(self.path, str) and self.path != "", f"source.path must be a file path, got {self.path!r}")
+        _check(isinstance(self.sha256, str) and len(self.sha256) == 64, f"source.sha256 must be a SHA-256 hex "
+               f"digest, got {self.sha256!r}")
+
+
+@dataclass(frozen=True)
 class SceneSpec(_Spec):
     """A whole scene: objects, lights, one camera per frame, and render-relevant settings.
 
@@ -268,7 +282,11 @@ class SceneSpec(_Spec):
     identifier), not against the registry: a spec holds all it needs to render, whatever families this
     install has, and this module sits below the families (they build specs). Where a family is used,
     the registry checks the name (``scene_gen.families.get_family``: sampling, the dataset config, the
-    command lines)."""
+    command lines).
+
+    ``source`` (a :class:`SceneFile`): the scene is a user's Mitsuba scene file (``kind`` ``file``, no
+    ``objects`` or ``lights``: they are the file's); its cameras are the spec's own, drawn around the
+    file's sensor (``scene_gen.scene_files``). None: a generated scene."""
     kind: str
     seed: int
     objects: tuple[ObjectSpec, ...]
@@ -278,6 +296,7 @@ class SceneSpec(_Spec):
     max_depth: int = 5                # path bounces (the layer paper: five)
     version: int = SPEC_VERSION
     case: str = ""                    # hard cases applied (scene_gen.cases), comma-separated; '' = none
+    source: SceneFile | None = None   # a scene file's scene (scene_gen.scene_files); None: generated
 
     def __post_init__(self):
         _check(isinstance(self.kind, str) and self.kind.isidentifier() and self.kind == self.kind.lower(),
@@ -288,6 +307,8 @@ class SceneSpec(_Spec):
         _check(isinstance(self.max_depth, int) and self.max_depth >= 1, f"scene.max_depth must be >= 1, got {self.max_depth}")
         _check(self.version == SPEC_VERSION, f"SceneSpec version {self.version} is not supported (expected {SPEC_VERSION})")
         _check(isinstance(self.case, str), f"scene.case must be a string of hard-case names, got {self.case!r}")
+        if self.source is not None:
+            _check(not self.objects and not self.lights, "a scene file's spec holds no objects or lights (the file's)")
         names = [o.name for o in self.objects]
         _check(len(set(names)) == len(names), "object names must be unique")
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -308,10 +329,12 @@ class SceneSpec(_Spec):
         return any(c.defocus for c in self.cameras)
 
     def to_dict(self) -> dict:
-        """Plain data; ``case`` only when set, so specs (and stores) made before it existed are unchanged."""
+        """Plain data; ``case`` and ``source`` only when set, so specs (and stores) made before they existed
+        are unchanged."""
         d = super().to_dict()
-        if not d["case"]:
-            del d["case"]
+        for k in ("case", "source"):
+            if not d[k]:
+                del d[k]
         return d
 
     def camera(self, frame: int) -> CameraSpec:
@@ -331,4 +354,5 @@ class SceneSpec(_Spec):
         return cls.from_dict(d)
 
 
-SceneSpec._nested = {"objects": ("tuple", ObjectSpec), "lights": ("tuple", LightSpec), "cameras": ("tuple", CameraSpec)}
+SceneSpec._nested = {"objects": ("tuple", ObjectSpec), "lights": ("tuple", LightSpec), "cameras": ("tuple", CameraSpec),
+                     "source": ("optional", SceneFile)}

@@ -181,14 +181,21 @@ def light_dict(light: LightSpec, mi=None) -> dict:
     raise ValueError(f"light kind {light.kind!r} is attached to shapes, not a standalone emitter")
 
 
-def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None) -> dict:
-    mi = mi or _mi()
+def film_dict(res: tuple[int, int], rfilter: str = "box") -> dict:
+    """The film: ``res`` (W, H), RGB, the pixel filter ``rfilter`` (``box``, or ``gaussian``: Mitsuba's, with
+    its default standard deviation 0.5). A filter wider than the pixel also samples the border around the
+    image, so an edge pixel averages its whole filter as an inner one does (the renderer's input loop draws
+    film positions from the filter over the whole plane: ``pipeline.render.inputs``)."""
     w, h = res
+    return {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
+            "rfilter": {"type": rfilter}, "sample_border": rfilter != "box"}
+
+
+def sensor_dict(cam: CameraSpec, res: tuple[int, int], mi=None, rfilter: str = "box") -> dict:
+    mi = mi or _mi()
     d = {"type": "thinlens" if cam.defocus else "perspective", "fov": float(cam.fov), "fov_axis": "x",
          "near_clip": NEAR_CLIP, "far_clip": FAR_CLIP, "to_world": mi.ScalarTransform4f(projection.camera_to_world(cam).tolist()),
-         "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
-                  "rfilter": {"type": "box"}, "sample_border": False},
-         "sampler": {"type": "independent"}}
+         "film": film_dict(res, rfilter), "sampler": {"type": "independent"}}
     if cam.defocus:
         d.update(aperture_radius=float(cam.aperture_radius), focus_distance=float(cam.focus_distance))
     return d
@@ -260,7 +267,7 @@ def _merged_mesh(mi, name: str, objs: tuple[ObjectSpec, ...], tau: float, bsdf):
 
 
 def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 256), tau: float | None = None,
-               merge: bool = False) -> dict:
+               merge: bool = False, rfilter: str = "box") -> dict:
     """The Mitsuba scene dict of ``spec`` at ``frame`` with objects at time ``tau`` (default: ``frame``).
 
     ``merge``: objects that share a material share one BSDF instance and static ones are merged into
@@ -274,7 +281,8 @@ def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 
         raise SpecError(f"resolution must be positive, got {w}x{h}")
     tau = float(frame if tau is None else tau)
     cam = spec.camera(frame)
-    d: dict[str, Any] = {"type": "scene", "integrator": integrator_dict(spec), "sensor": sensor_dict(cam, (w, h), mi)}
+    d: dict[str, Any] = {"type": "scene", "integrator": integrator_dict(spec),
+                         "sensor": sensor_dict(cam, (w, h), mi, rfilter)}
     bsdfs: dict[str, Any] = {}
 
     def bsdf_of(mat: MaterialSpec):
@@ -299,21 +307,28 @@ def scene_dict(spec: SceneSpec, frame: int = 0, *, res: tuple[int, int] = (256, 
     return d
 
 
+def file_scene_dict(parts: dict, spec: SceneSpec, cam: CameraSpec, res: tuple[int, int], rfilter: str = "box") -> dict:
+    """The scene dict of a scene file's frame (``scene_gen.scene_files``): the file's shapes and emitters
+    (``parts``: loaded Mitsuba objects by key) under this project's camera, film and ``path`` integrator."""
+    return {"type": "scene", "integrator": integrator_dict(spec), "sensor": sensor_dict(cam, res, _mi(), rfilter),
+            **parts}
+
+
 def load(spec: SceneSpec, frame: int = 0, res: tuple[int, int] | int = (256, 256), tau: float | None = None,
-         merge: bool = False):
+         merge: bool = False, rfilter: str = "box"):
     """``mi.load_dict(scene_dict(...))``."""
-    return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau, merge=merge))
+    return _mi().load_dict(scene_dict(spec, frame, res=res, tau=tau, merge=merge, rfilter=rfilter))
 
 
 @dataclass(eq=False)
 class LoadedScene:
-    """One frame of a SceneSpec loaded into Mitsuba (:func:`load_frame`), with everything a renderer asks of
-    its scene, so that it never reads the spec again: the Mitsuba ``scene``; the scene's ``seed``,
-    ``num_frames``, hard ``case`` and ``shutter``; this frame's camera and the previous one's (a clip's
-    first frame: its own) with their matrices at the film ``res`` (``scene_gen.projection``); the objects
-    each Mitsuba shape holds (``shapes``: shape id -> objects, one material each), the ``path``
-    integrator's settings, and the objects that move, which :meth:`set_time` puts where they are at a
-    shutter fraction."""
+    """One frame of a scene loaded into Mitsuba (:func:`load_frame`; a scene file's: ``scene_gen.scene_files``),
+    with everything a renderer asks of its scene besides the Mitsuba ``scene`` itself (whose BSDFs it asks
+    for materials), so that it never reads a description again: the scene's ``seed``, ``num_frames``, hard
+    ``case``, ``kind`` and ``shutter``; this frame's camera and the previous one's (a clip's first frame:
+    its own) with their matrices at the film ``res`` (``scene_gen.projection``); the ``path`` integrator's
+    settings; and the motion: each moving shape's velocity (:meth:`velocity`, world units a frame) and
+    :meth:`set_time`, which puts the moving objects where they are at a shutter fraction."""
 
     scene: Any
     seed: int
@@ -325,9 +340,8 @@ class LoadedScene:
     res: tuple[int, int]
     camera: CameraSpec
     prev_camera: CameraSpec
-    shapes: dict[str, tuple[ObjectSpec, ...]]
     integrator: dict
-    moving: tuple[ObjectSpec, ...]
+    moving: tuple[ObjectSpec, ...] = ()
     _params: Any = None
     _base: dict = field(default_factory=dict)
     _normals: dict = field(default_factory=dict)
@@ -337,6 +351,14 @@ class LoadedScene:
     def has_motion(self) -> bool:
         """Objects move during the exposure (``SceneSpec.has_motion``)."""
         return self.shutter > 0.0 and bool(self.moving)
+
+    def velocity(self, shape_id: str) -> np.ndarray:
+        """World-space velocity (float64, 3; units a frame) of the Mitsuba shape ``shape_id``: a moving
+        object's own (it is a shape of its own), 0 for every other shape."""
+        for o in self.moving:
+            if o.name == shape_id:
+                return np.asarray(o.velocity, np.float64)
+        return np.zeros(3)
 
     @property
     def has_defocus(self) -> bool:
@@ -414,13 +436,14 @@ class LoadedScene:
 
 
 def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge: bool = True,
-               on_loaded=None) -> LoadedScene:
-    """Frame ``frame`` of ``spec`` loaded into Mitsuba at film ``res`` (W, H): the one call that turns a
-    SceneSpec into what a renderer needs (:class:`LoadedScene`). ``merge``: see :func:`scene_dict`. A
-    hard case that edits the loaded scene (``scene_gen.cases.scene_hook``: the ``nan`` case) is applied,
-    then ``on_loaded(scene)`` (tests inject values with it), before anything renders."""
+               on_loaded=None, rfilter: str = "box") -> LoadedScene:
+    """Frame ``frame`` of a generated ``spec`` loaded into Mitsuba at film ``res`` (W, H) with the pixel
+    filter ``rfilter``: what a renderer needs (:class:`LoadedScene`; ``scene_gen.sources.load_frame`` is the
+    one call for every kind of scene). ``merge``: see :func:`scene_dict`. A hard case that edits the loaded
+    scene (``scene_gen.cases.scene_hook``: the ``nan`` case) is applied, then ``on_loaded(scene)`` (tests
+    inject values with it), before anything renders."""
     res = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
-    scene = load(spec, frame, res, merge=merge)
+    scene = load(spec, frame, res, merge=merge, rfilter=rfilter)
     hook = scene_hook(spec) if spec.case else None
     if hook is not None:
         hook(scene)
@@ -430,5 +453,5 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge
     return LoadedScene(scene=scene, seed=int(spec.seed), frame=int(frame), num_frames=spec.num_frames,
                        case=spec.case, kind=spec.kind, shutter=float(spec.shutter), res=res, camera=cam,
                        prev_camera=spec.camera(frame - 1) if frame > 0 else cam,
-                       shapes=dict(shape_groups(spec, merge)), integrator=integrator_dict(spec),
+                       integrator=integrator_dict(spec),
                        moving=tuple(o for o in spec.objects if o.moving))._moving_objects()

@@ -15,7 +15,8 @@ import yaml
 import zarr
 from scipy.stats import binomtest
 
-from pipeline.config import HELD_OUT_SEEDS, DatasetConfig, draw_case, load_config, scene_seed
+from pipeline.config import DatasetConfig, load_config
+from pipeline.groups import HELD_OUT_SEEDS, draw_case, scene_seed
 from pipeline.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -10,7 +10,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.config import DatasetConfig, load_config, scene_seed
+from pipeline.config import DatasetConfig, load_config
+from pipeline.groups import scene_seed
 from pipeline.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -212,9 +213,10 @@ def test_split_fractions_reach_the_store_reader(tmp_path):
 
 def test_scene_kinds_and_store_keys_have_one_source():
     from pipeline import config as C
+    from pipeline import groups as Gr
     from scene_gen.families import family_names
     from stores.schema import SHAPE_FIELDS, StoreLayout
-    assert C.family_names is family_names           # the registry's, asked at each check
+    assert Gr.family_names is family_names           # the registry's, asked at each check
     assert C.STORE_KEYS == {"tile", "radiance_encoding", "feature_dtype", "encoding"}
     assert C.STORE_KEYS | set(SHAPE_FIELDS) == set(StoreLayout.__dataclass_fields__)
 

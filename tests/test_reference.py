@@ -152,6 +152,6 @@ def test_layers_count_a_pixel_with_a_nan_sample_and_a_pixel_with_inf_alike(mi, m
         img[2, 2, 6] = 0.25
         img[2, 2, 1] = np.inf                   # both: one pixel
         return img
-    monkeypatch.setattr(R, "render_sliced", fake)
+    monkeypatch.setattr(R.layers, "render_sliced", fake)
     layers, bad = R.render_layers(fs)
     assert bad == 3 and np.isfinite(layers).all()

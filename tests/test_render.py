@@ -15,9 +15,13 @@ import pytest
 from scene_gen.spec import (CameraSpec, LightSpec, MaterialSpec, MeshSpec, ObjectSpec, SceneSpec, TextureSpec,
                             Transform)
 from stores.contract import FEATURE_GROUPS, FRAME_META
+from tests.render_probe import expected_shapes, shape_index, trace
 
 G = FEATURE_GROUPS
 RES = (24, 16)
+# The floor's specular colour as its BSDF renders it: roughplastic's F0 at normal incidence for int_ior 1.5
+# against Mitsuba's default exterior, air (1.000277), whatever the spec's own specular_color field says.
+PLASTIC_F0 = ((1.5 / 1.000277 - 1.0) / (1.5 / 1.000277 + 1.0)) ** 2
 
 
 def ball_scene(*, defocus=False, motion=False, frames=1, seed=7, cam_step=(0.0, 0.0, 0.0), light=None,
@@ -130,7 +134,6 @@ def static_frame(mi):
 
 
 def test_contract_shapes_and_meta(static_frame):
-    from pipeline.render import expected_shapes
     spec, out = static_frame
     for name, (shape, dtype) in expected_shapes(cfg(spp=32)).items():
         assert out[name].shape == shape, name
@@ -196,6 +199,7 @@ def test_unbiased_defocus(mi):
 
 def test_unbiased_motion(mi):
     from pipeline import render as R
+    from pipeline.render.settings import time_rng
     spec = ball_scene(motion=True)
     c = cfg(spp=32, time_slices=2, ref_time_slices=2)
     out = R.render_frame(spec, 0, c)
@@ -210,7 +214,7 @@ def test_unbiased_motion(mi):
     layer_taus = []
     for lvl in range(c.layer_levels):
         g = math.gcd(c.time_slices, 2 ** lvl)
-        layer_taus.append(spec.shutter * R.slice_times(R._rng(spec.seed, 0, c, R.STREAM_LAYER, lvl), g))
+        layer_taus.append(spec.shutter * R.slice_times(time_rng(spec.seed, 0, c, R.STREAM_LAYER, lvl), g))
     ref_taus = (np.arange(8) + 0.5) / 8 * spec.shutter
     _check_unbiased(mi, spec, out, c, layer_taus=layer_taus, input_taus=spec.shutter * tk, ref_taus=ref_taus)
     # the blur is real: the motion-blurred reference differs from the frame at rest
@@ -246,8 +250,7 @@ def test_unbiased_and_features_with_merged_shapes(mi):
     floor_like = np.all(np.abs(alb - [0.2, 0.6, 0.3]) < 1e-4, axis=-1)     # floor and boxes a, b
     ball_like = np.all(np.abs(alb - [0.8, 0.3, 0.2]) < 1e-4, axis=-1)      # ball and box c
     assert floor_like.sum() > 100 and ball_like.sum() > 100
-    np.testing.assert_allclose(f[floor_like][:, G["specular"]], np.broadcast_to([0.5, 0.4, 0.3], (floor_like.sum(), 3)),
-                               atol=1e-6)
+    np.testing.assert_allclose(f[floor_like][:, G["specular"]], PLASTIC_F0, atol=1e-6)
     np.testing.assert_allclose(f[floor_like][:, G["roughness"]], 0.3, atol=1e-6)
     np.testing.assert_allclose(f[ball_like][:, G["roughness"]], 1.0)
     # the moving ball keeps its own shape and velocity: its samples have motion, the merged boxes none
@@ -282,7 +285,7 @@ def test_features_top_down_depth_normal_albedo(mi):
     assert depth.max() > D * 1.12 and depth.min() < D * 1.01
     np.testing.assert_allclose(f[..., G["normal"]], np.broadcast_to([0, 1, 0], f.shape[:3] + (3,)), atol=1e-5)
     np.testing.assert_allclose(f[..., G["albedo"]], np.broadcast_to([0.25, 0.5, 0.75], f.shape[:3] + (3,)), atol=1e-5)
-    assert np.all(f[..., G["specular"]] == np.float32(0.04)) and np.all(f[..., G["roughness"]] == 1.0)
+    assert np.all(f[..., G["specular"]] == 0.0) and np.all(f[..., G["roughness"]] == 1.0)      # diffuse
 
 
 def test_features_ball(static_frame):
@@ -295,14 +298,14 @@ def test_features_ball(static_frame):
     assert np.all(n[~hit] == 0)
     alb = f[..., G["albedo"]]
     assert alb.min() >= 0 and alb.max() <= 1
-    # per-shape table: samples with the floor's albedo carry the floor's specular colour and roughness
+    # per-shape table: samples with the floor's albedo carry the floor BSDF's specular colour and roughness
     floor = np.all(np.abs(alb - [0.2, 0.6, 0.3]) < 1e-4, axis=-1)
     ball = np.all(np.abs(alb - [0.8, 0.3, 0.2]) < 1e-4, axis=-1)
     assert floor.sum() > 100 and ball.sum() > 100
-    np.testing.assert_allclose(f[floor][:, G["specular"]], np.broadcast_to([0.5, 0.4, 0.3], (floor.sum(), 3)), atol=1e-6)
+    np.testing.assert_allclose(f[floor][:, G["specular"]], PLASTIC_F0, atol=1e-6)
     np.testing.assert_allclose(f[floor][:, 10], 0.3, atol=1e-6)
     np.testing.assert_allclose(f[ball][:, 10], 1.0)
-    np.testing.assert_allclose(f[ball][:, G["specular"]], 0.04, atol=1e-6)
+    np.testing.assert_allclose(f[ball][:, G["specular"]], 0.0)          # a diffuse BSDF has no specular lobe
 
 
 def test_lens_uniform_and_coc(mi):
@@ -325,7 +328,7 @@ def test_lens_uniform_and_coc(mi):
     # by exactly -coc * lens (the thin-lens geometry, checked against Mitsuba's own rays)
     spec = top_down_scene(4.0, aperture=0.3, focus=2.5)
     fs = R.FrameScene(spec, 0, c)
-    tr = R._trace(fs, 1234, 0, 12, 4, 0.0, debug=True)
+    tr = trace(fs, 1234, 0, 12, 4, 0.0, debug=True)
     feats = tr["F"]
     coc = feats[:, 13]
     z = 4.0
@@ -336,7 +339,7 @@ def test_lens_uniform_and_coc(mi):
     np.testing.assert_allclose(film_px - pin_px, -coc[:, None] * feats[:, 14:16], atol=2e-3)
     # in front of the focus plane: negative
     fs2 = R.FrameScene(top_down_scene(2.0, aperture=0.3, focus=2.5), 0, c)
-    feats2 = R._trace(fs2, 99, 0, 12, 4, 0.0)["F"]
+    feats2 = trace(fs2, 99, 0, 12, 4, 0.0)["F"]
     assert np.all(feats2[:, 13] < 0)
 
 
@@ -344,16 +347,17 @@ def test_motion_vectors_reproject(mi):
     """Per sample: a ray from the previous frame's camera through p + motion hits the same surface point
     (moved back by one frame's velocity), checked with Mitsuba's own camera and ray cast."""
     from pipeline import render as R
+    from scene_gen import projection as C
     from scene_gen import to_mitsuba
     spec = ball_scene(motion=True, frames=2, cam_step=(0.3, 0.1, -0.2))
     c = cfg(spp=4, ref_spp=0, layer_levels=0, time_slices=1)
     fs = R.FrameScene(spec, 1, c)
     t = 0.4
     fs.set_time(t)
-    tr = R._trace(fs, 4321, 0, RES[1], 4, t, debug=True)
+    tr = trace(fs, 4321, 0, RES[1], 4, t, debug=True)
     feats = tr["F"].astype(np.float64)
     hit = tr["hit"].astype(bool)
-    cur = R.cam_geom.project_pixels(fs.world_to_clip, tr["p"], RES)
+    cur = C.project_pixels(fs.world_to_clip, tr["p"], RES)
     prev_px = cur + feats[:, 11:13]
     prev_scene = to_mitsuba.load(spec, 0, RES, tau=float(fs.tau(t)) - 1.0)
     sensor = prev_scene.sensors()[0]
@@ -361,7 +365,7 @@ def test_motion_vectors_reproject(mi):
     ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f((prev_px / np.array(RES)).T.astype(np.float32)), mi.Point2f(0.5, 0.5))
     si = prev_scene.ray_intersect(ray)
     p_prev = np.asarray(si.p).T
-    idx = fs.shape_index(tr["sid"])
+    idx = shape_index(fs, tr["sid"])
     expect = tr["p"] - fs.velocity[idx]
     err = np.linalg.norm(p_prev - expect, axis=1)
     # most agree to float precision; the others are occluded in the previous frame (the ray hits
@@ -389,7 +393,7 @@ def _features_oracle(fs, tr: dict, t: float) -> np.ndarray:
     cos_view = np.abs(tr["d"].astype(np.float64) @ fs.view_axis)
     f[:, G["depth"]] = np.where(hit, tr["t"] + C.NEAR / np.maximum(cos_view, 1e-6), 0.0)[:, None]
     f[:, G["albedo"]] = np.clip(np.where(hit[:, None], tr["albedo"], 0.0), 0.0, 1.0)
-    idx = np.where(hit, fs.shape_index(tr["sid"]), 0)
+    idx = np.where(hit, shape_index(fs, tr["sid"]), 0)
     f[:, G["specular"]] = fs.specular[idx]
     f[:, G["roughness"]] = fs.roughness[idx][:, None]
     pts = np.where(hit[:, None], tr["p"], tr["d"]).astype(np.float64)
@@ -419,7 +423,7 @@ def test_feature_kernel_matches_numpy_oracle(mi, kind):
         spec, frame, t = ball_scene(motion=True, defocus=True, frames=2, cam_step=(0.3, 0.1, -0.2)), 1, 0.6
     fs = R.FrameScene(spec, frame, cfg(spp=4, ref_spp=0, layer_levels=0, time_slices=1))
     fs.set_time(t)
-    tr = R._trace(fs, 777, 0, RES[1], 4, t, debug=True)
+    tr = trace(fs, 777, 0, RES[1], 4, t, debug=True)
     got, want = tr["F"].astype(np.float64), _features_oracle(fs, tr, t)
     assert got.shape == want.shape == (RES[0] * RES[1] * 4, 17) and tr["F"].dtype == np.float32
     hit = tr["hit"].astype(bool)
@@ -455,8 +459,7 @@ def test_clip_warp_matches_next_frame(mi):
 
     from pipeline.render import render_frame
     tex = TextureSpec("checker", (0.1, 0.1, 0.1), (0.9, 0.9, 0.9), uv_scale=1.5)
-    floor = ObjectSpec("floor", MeshSpec("plane"), MaterialSpec("diffuse", specular_color=(0.11, 0.22, 0.33),
-                                                                 texture=tex),
+    floor = ObjectSpec("floor", MeshSpec("plane"), MaterialSpec("diffuse", texture=tex),
                        transform=Transform(translate=(0.0, -1.0, 0.0), scale=(6.0, 1.0, 6.0)))
     ball = ObjectSpec("ball", MeshSpec("sphere"), MaterialSpec("diffuse", base_color=(0.8, 0.3, 0.2)),
                       transform=Transform(scale=(0.6, 0.6, 0.6)))
@@ -467,7 +470,8 @@ def test_clip_warp_matches_next_frame(mi):
     m = f1["guides_motion"].astype(np.float64)
     assert np.abs(m).max() > 1.5
     # static diffuse unoccluded: all samples of the pixel and its neighbours hit the floor
-    is_floor = np.all(np.abs(f1["features"][..., G["specular"]] - [0.11, 0.22, 0.33]) < 1e-6, axis=(-1, -2))
+    normal = f1["features"][..., G["normal"]]
+    is_floor = np.all((normal[..., 1] > 1 - 1e-6) & (f1["features"][..., 3] > 0), axis=-1)    # the plane's normal
     sel0 = ndimage.binary_erosion(is_floor, iterations=2)
     img0, img1 = f0["reference"].astype(np.float64), f1["reference"].astype(np.float64)
     errs = {}
@@ -636,11 +640,12 @@ def test_path_tracer_is_mitsubas_path_integrator(mi):
 
     from pipeline import primary_path
     from pipeline import render as R
+    from pipeline.render import inputs as I
     fs = R.FrameScene(mixed_scene(), 0, cfg(spp=4, ref_spp=0, layer_levels=0))
     H, s_per = RES[1], 4
 
     def rays():
-        return R._camera_rays(fs, R._Reads(fs, R._wave_params(fs, 0, 0.0), H * RES[0] * s_per), 4242, H, s_per)
+        return I._camera_rays(fs, I._Reads(fs, I._wave_params(fs, 0, 0.0), H * RES[0] * s_per), 4242, H, s_per)
 
     sampler, ray, _w, _f, _a = rays()
     si = fs.scene.ray_intersect(ray, mi.RayFlags.All, True)
@@ -686,7 +691,8 @@ def test_device_nan_rule_is_the_host_rule(mi):
 
     import drjit as dr
 
-    from pipeline.render import _sanitize_columns, sanitize_samples
+    from pipeline.render import sanitize_samples
+    from pipeline.render.inputs import _sanitize_columns
     rng = np.random.default_rng(3)
     L = (rng.standard_normal((64, 3)) * 10).astype(np.float32)
     F = rng.standard_normal((64, 17)).astype(np.float32)
@@ -705,11 +711,12 @@ def test_guides_are_sample_means_across_slices_and_chunks(mi):
     """The guides computed on the device are the per-pixel means of the stored samples (to an ulp or two)
     across time slices and row chunks, and the samples are those of the host-side path (sample_hook)."""
     from pipeline import render as R
+    from pipeline.render import inputs as I
     c = cfg(res=(48, 32), spp=8, ref_spp=0, layer_levels=0, time_slices=4, max_wavefront=1024)
     fs = R.FrameScene(ball_scene(motion=True, defocus=True), 0, c)
     dev = R.input_samples(fs)
     host = R.input_samples(fs, sample_hook=lambda L, F: None)
-    assert len(list(R._input_wavefronts(fs))) == 4 * 4 and dev["nonfinite"] == host["nonfinite"] == 0
+    assert len(list(I._input_wavefronts(fs))) == 4 * 4 and dev["nonfinite"] == host["nonfinite"] == 0
     for k in ("radiance", "features"):
         assert dev[k].tobytes() == host[k].tobytes(), k
     f = dev["features"]
@@ -761,14 +768,13 @@ def test_launch_plan_splits_only_what_exceeds_2_to_the_32_samples():
 def test_a_render_split_into_launches_is_the_same_estimate(mi, monkeypatch):
     """With the launch limit lowered to a few samples a pixel, a reference renders in several launches
     per pass: its mean agrees with Mitsuba's own mi.render (z-test), and it is not the unsplit image."""
-    from pipeline import render
-    from pipeline.render import render_frame
+    from pipeline.render import launches, render_frame
     spec = ball_scene()
     c = cfg(spp=2, ref_spp=256, ref_passes=4, ref_min_passes=2, layer_levels=0)
     whole = render_frame(spec, 0, c)
     W, H = RES
-    monkeypatch.setattr(render, "MAX_LAUNCH_SAMPLES", W * H * 24)          # 64-spp passes: 3 launches each
-    assert render.launch_plan(W * H, 64) == [22, 21, 21]
+    monkeypatch.setattr(launches, "MAX_LAUNCH_SAMPLES", W * H * 24)        # 64-spp passes: 3 launches each
+    assert launches.launch_plan(W * H, 64) == [22, 21, 21]
     split = render_frame(spec, 0, c)
     assert split["meta"]["reference_spp"] == 256
     assert split["reference"].tobytes() != whole["reference"].tobytes()
