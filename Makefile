@@ -9,7 +9,7 @@ export DENOISE_DATA ?= $(CURDIR)/data
 # test processes (pytest-xdist): one a core, at most 4 (each loads torch and Mitsuba); TEST_JOBS=0 runs in one process
 TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n < 4 ? n : 4 )))
 
-.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd scaling hard-cases preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd scaling hard-cases real-scenes preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -119,6 +119,19 @@ hard-cases: setup ## render configs/hard-cases.yaml, then evaluate RUNS (default
 	$(PY) -m pipeline dataset --config configs/hard-cases.yaml --out data/hard-cases.zarr
 	$(PY) -m training hard-cases --store data/hard-cases.zarr --runs $(or $(RUNS),$(dir $(HARD_RUNS))) \
 	  --out $(or $(REPORT),data/report-hard-cases)
+
+REAL_SCENES ?=
+REAL_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt data/runs-nppd/*/checkpoint.pt)
+real-scenes: setup ## the held-out real-scene suite (box and Gaussian filters; REAL_SCENES=DIR adds your folder of scene files): every trained run, its input and OIDN per scene (about 40 min on 2 cores)
+	$(PY) -m scene_gen real-scenes --out $(DENOISE_DATA)/real-scenes
+	$(PY) -m pipeline dataset --config configs/real-scenes.yaml
+	$(PY) -m pipeline dataset --config configs/real-scenes.yaml --set render.filter=gaussian --set name=real-scenes-gaussian
+	$(if $(REAL_SCENES),$(PY) -m pipeline dataset --config configs/real-scenes.yaml --set name=real-scenes-user \
+	  --set 'scenes=[{file: "$(abspath $(REAL_SCENES))", camera: {jitter: 0.0, turn: 0.0, zoom: 0.0}}, {file: "$(abspath $(REAL_SCENES))"}]' \
+	  --set render.filter=gaussian)
+	$(PY) -m training real-scenes --runs $(or $(RUNS),$(dir $(REAL_RUNS))) --store $(DENOISE_DATA)/real-scenes.zarr \
+	  --store $(DENOISE_DATA)/real-scenes-gaussian.zarr $(if $(REAL_SCENES),--store $(DENOISE_DATA)/real-scenes-user.zarr) \
+	  --out $(or $(REPORT),data/report-real-scenes)
 
 preview: setup   ## render a preview of one scene: SEED, KIND
 	$(PY) -m scene_gen preview --seed $(or $(SEED),0) --kind $(or $(KIND),indoor) --res 256 --spp 64 --out data/preview/$(or $(KIND),indoor)-$(or $(SEED),0).exr

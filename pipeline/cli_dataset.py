@@ -45,6 +45,9 @@ def add_arguments(p) -> None:
     p.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://host:8786) instead of a "
                                        "LocalCluster")
     p.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core) or batch jobs")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a config field (a dotted path, the value read as YAML), e.g. --set render.filter=gaussian "
+                        "--set name=real-scenes-gaussian; repeatable")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
     p.add_argument("--summary-json", help="also write the run summary to this JSON file")
     p.add_argument("--overwrite", action="store_true",
@@ -56,7 +59,7 @@ def run(args) -> int:
     if args.workers is not None and not 1 <= args.workers <= 4096:
         raise ConfigError(f"--workers must be an integer in [1, 4096] (LocalCluster processes, or batch jobs), "
                           f"got {args.workers}")
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.set)
     summary = run_dataset(cfg, out=args.out, scheduler=args.scheduler, workers=args.workers,
                           progress=not args.no_progress, overwrite=args.overwrite)
     if args.summary_json:

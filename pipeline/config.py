@@ -637,9 +637,34 @@ class DuplicateKeyError(ConfigError):
     """A YAML mapping gives the same key twice."""
 
 
-def load_config(path: str | os.PathLike) -> DatasetConfig:
-    """Read and validate a YAML dataset config; raises ConfigError naming the file and the field
-    (a duplicate key, a directory or a missing file included)."""
+def apply_overrides(data, overrides) -> dict:
+    """``data`` (a config's YAML mapping) with each ``KEY=VALUE`` of ``overrides`` set: ``KEY`` a dotted
+    path (``render.filter``, ``name``), ``VALUE`` read as YAML (``gaussian``, ``8``, ``[{file: DIR}]``)."""
+    import yaml
+    out = dict(data or {}) if isinstance(data, dict) else data
+    for item in overrides or ():
+        key, sep, text = str(item).partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(p.strip() for p in parts):
+            raise ConfigError(f"--set {item!r} must be KEY=VALUE (KEY a dotted path such as render.filter)")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML: {e}") from None
+        node = out
+        for p in parts[:-1]:
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {p!r} is not a mapping in the config")
+            node[p] = dict(node.get(p) or {})
+            node = node[p]
+        node[parts[-1]] = value
+    return out
+
+
+def load_config(path: str | os.PathLike, overrides=None) -> DatasetConfig:
+    """Read and validate a YAML dataset config, with ``overrides`` (``KEY=VALUE`` strings,
+    :func:`apply_overrides`) set; raises ConfigError naming the file and the field (a duplicate key, a
+    directory or a missing file included)."""
     import yaml
     p = Path(path)
     if p.is_dir():
@@ -654,6 +679,8 @@ def load_config(path: str | os.PathLike) -> DatasetConfig:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(f"config file {str(p)!r} cannot be read: {e}") from e
+    if overrides:
+        data = apply_overrides(data, overrides)
     try:
         return DatasetConfig.from_dict(data)
     except ConfigError as e:

@@ -55,6 +55,15 @@ def draw_case(seed: int, cases: dict) -> str:
     return ""
 
 
+def expand_path(path: str) -> str:
+    """A group's ``file`` with ``~`` and environment variables expanded; ``$DENOISE_DATA`` is the data folder
+    (``data`` where the variable is unset, as for stores: ``DatasetConfig.store_path``)."""
+    text = os.path.expanduser(str(path))
+    if "DENOISE_DATA" not in os.environ:
+        text = text.replace("${DENOISE_DATA}", "data").replace("$DENOISE_DATA", "data")
+    return os.path.expandvars(text)
+
+
 @dataclass(frozen=True)
 class SceneGroup:
     """``count`` scenes of one ``kind``, each with ``frames`` frames (1 = a still, > 1 = a clip), with the
@@ -102,7 +111,7 @@ class SceneGroup:
         if self.case is not None or self.cases is not None:
             raise ConfigError(f"{where}: hard cases (case, cases) are the generator's; a scene file renders as it is")
         try:
-            paths = scene_files.scene_list(os.path.expandvars(self.file))
+            paths = scene_files.scene_list(expand_path(self.file))
             files = tuple((str(p), scene_files.content_hash(p)) for p in paths)
             settings = scene_files.CameraSettings.from_dict(self.camera, f"{where}.camera")
         except SceneFileError as e:

@@ -3,6 +3,7 @@
     python -m scene_gen preview --seed 3 --kind indoor --res 256 --spp 64 --out data/preview/indoor-3.exr
     python -m scene_gen spec --seed 3 --kind outdoor                   # the SceneSpec as JSON
     python -m scene_gen contact-sheet --count 16 --res 160 --spp 64 --out docs/contact_sheet.png
+    python -m scene_gen real-scenes --out data/real-scenes              # the held-out real-scene suite's files
 
 Previews use a fixed tone map (``core.images.display``: log(1 + x), then sRGB; no auto
 exposure), so what looks right here is what the training data holds. Errors are one line on stderr
@@ -25,6 +26,8 @@ from scene_gen.errors import SceneGenError
 from scene_gen.families import family_names
 from core.images import display as tonemap, write_exr, write_png
 from scene_gen.sampling import sample_scene
+from scene_gen.real_scenes import write_suite
+from scene_gen.scene_files import load_file
 from core.variant import mitsuba
 
 
@@ -114,6 +117,19 @@ def _contact_sheet(a) -> int:
     return 0
 
 
+def _real_scenes(a) -> int:
+    t0 = time.perf_counter()
+    paths = write_suite(a.out)
+    print(f"wrote {len(paths)} scene files in {time.perf_counter() - t0:.1f} s (each loads with mi.load_file): "
+          + ", ".join(str(p) for p in paths))
+    if a.preview:
+        for p in paths:
+            img = np.asarray(mitsuba().render(load_file(p), spp=a.preview), np.float32)[..., :3]
+            write_png(p.with_suffix(".png"), img)
+        print(f"previews: {len(paths)} PNGs beside them ({a.preview} spp, the files' own sensors)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m scene_gen", description="Random scenes for denoiser training data.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -146,6 +162,13 @@ def build_parser() -> argparse.ArgumentParser:
     cs.add_argument("--spp", type=int, default=64)
     cs.add_argument("--out", default="docs/contact_sheet.png")
     cs.set_defaults(func=_contact_sheet)
+
+    rs = sub.add_parser("real-scenes", help="write the held-out real-scene suite's Mitsuba scene files "
+                        "(scene_gen.real_scenes; configs/real-scenes.yaml renders them)")
+    rs.add_argument("--out", default="data/real-scenes", help="folder for the files (default data/real-scenes)")
+    rs.add_argument("--preview", type=int, default=0, metavar="SPP",
+                    help="also render each file through its own sensor at SPP samples to a PNG beside it")
+    rs.set_defaults(func=_real_scenes)
     return p
 
 

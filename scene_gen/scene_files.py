@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from core.checks import is_number, known_keys, need
+from scene_gen import to_mitsuba
 from scene_gen.errors import SceneFileError
 from scene_gen.spec import CameraSpec, SceneFile, SceneSpec
 
@@ -300,7 +301,6 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int], *, rfilter: st
     """Frame ``frame`` of a scene file's ``spec`` loaded into Mitsuba (``scene_gen.to_mitsuba.LoadedScene``):
     the file's shapes and emitters under the frame's camera, the film (``res``, ``rfilter``) and the
     ``path`` integrator. The file must still have the content the spec recorded."""
-    from scene_gen import to_mitsuba
     src = spec.source
     now = content_hash(src.path)
     if now != src.sha256:

@@ -4,6 +4,7 @@ scene a renderer asks (``scene_gen.to_mitsuba.LoadedScene``), whether the genera
 ``source``)."""
 from __future__ import annotations
 
+from scene_gen import scene_files, to_mitsuba
 from scene_gen.spec import SceneSpec
 
 
@@ -13,7 +14,5 @@ def load_frame(spec: SceneSpec, frame: int, res, *, rfilter: str = "box", merge:
     the loaded ``mi.Scene`` before anything renders (tests)."""
     res = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
     if spec.source is not None:
-        from scene_gen import scene_files
         return scene_files.load_frame(spec, frame, res, rfilter=rfilter, on_loaded=on_loaded)
-    from scene_gen import to_mitsuba
     return to_mitsuba.load_frame(spec, frame, res, merge=merge, on_loaded=on_loaded, rfilter=rfilter)

@@ -124,4 +124,27 @@ def _column_or_spec(store, key: str, recorded: np.ndarray | None = None) -> np.n
         col[i] = done[text]
     return col.astype(str)
 
-__all__ = ["TrainingStore", "open_training_store", "scene_kinds", "scene_cases"]
+def scene_files(store) -> np.ndarray:
+    """Every frame's scene file (str: the path its scene's JSON records as ``source.path``; '' for a
+    generated scene), read only for the frames whose ``frames/kind`` is ``file``, and each clip's JSON
+    parsed once."""
+    import json
+    kinds = scene_kinds(store)
+    out = np.full(len(kinds), "", dtype=object)
+    pick = np.nonzero(kinds == "file")[0]
+    if len(pick) == 0:
+        return out.astype(str)
+    texts, done = store.meta_column("scene_json"), {}
+    for i in pick:
+        text = str(texts[i])
+        if text not in done:
+            try:
+                d = json.loads(text) if '"source"' in text else {}
+                done[text] = str((d.get("source") or {}).get("path", "")) if isinstance(d, dict) else ""
+            except ValueError:
+                done[text] = ""
+        out[i] = done[text]
+    return out.astype(str)
+
+
+__all__ = ["TrainingStore", "open_training_store", "scene_kinds", "scene_cases", "scene_files"]

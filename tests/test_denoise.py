@@ -224,3 +224,30 @@ def test_channels_are_read_by_name_from_mitsubas_own_aov_file(mi, store, tmp_pat
     err = capsys.readouterr().err
     assert f"--depth {sep['albedo']} has channels B,G,R; the depth is read from channels depth.T" in err, err
     assert not (tmp_path / "bad.exr").exists()
+
+
+def test_denoise_says_when_the_inputs_sample_count_is_not_the_models(store, tmp_path, capsys):
+    """A checkpoint records its training spp; ``--spp`` states an EXR's: the same count denoises silently, another
+    count denoises with one warning line saying what the model expects, no count at all with one note; a
+    per-sample model (any count of samples) is never warned."""
+    ck = save_model(tmp_path / "nbg.pt", "nbg", store)          # trained (recorded) at 1 spp
+    i = _test_frame(store)
+    p = _exr_inputs(store, i, tmp_path)
+    args = ["--checkpoint", ck, "--input", p["radiance"], "--albedo", p["albedo"], "--normal", p["normal"],
+            "--depth", p["depth"]]
+    lines = {}
+    for spp in (None, 1, 4):
+        capsys.readouterr()
+        extra = [] if spp is None else ["--spp", spp]
+        assert _run(*args, *extra, "--out", tmp_path / f"out{spp}.exr") == 0
+        lines[spp] = [x for x in capsys.readouterr().err.splitlines() if x.startswith(("warning", "note"))]
+    assert lines[1] == []
+    assert len(lines[4]) == 1 and "1-spp" in lines[4][0] and "4 spp" in lines[4][0], lines[4]
+    assert len(lines[None]) == 1 and lines[None][0].startswith("note") and "--spp" in lines[None][0]
+    # a store frame composed at another count than the training one: warned; a per-sample model: never
+    capsys.readouterr()
+    assert _run("--checkpoint", ck, "--store", store, "--frame", i, "--spp", 2, "--out", tmp_path / "s.exr") == 0
+    assert sum(x.startswith("warning") for x in capsys.readouterr().err.splitlines()) == 1
+    layer = save_model(tmp_path / "layer.pt", "layer", store)
+    assert _run("--checkpoint", layer, "--store", store, "--frame", i, "--spp", 1, "--out", tmp_path / "l.exr") == 0
+    assert not any(x.startswith(("warning", "note")) for x in capsys.readouterr().err.splitlines())

@@ -117,7 +117,8 @@ def test_predicted_passes_match_the_stopping_rule():
     import numpy as np
 
     from pipeline.estimate import c4, predicted_passes
-    from pipeline.render import RenderConfig, _batch_stats, rel_stderr
+    from pipeline.render import RenderConfig, rel_stderr
+    from pipeline.render.reference import _batch_stats
     assert c4(2) == pytest.approx(np.sqrt(2 / np.pi)) and c4(1000) == pytest.approx(1.0, abs=1e-3)
     rc = RenderConfig(res=(16, 16), ref_spp=4096, ref_passes=32, ref_min_passes=8, ref_target_rel_stderr=0.03,
                       reference="batch_means")

@@ -803,3 +803,44 @@ def test_cuda_and_llvm_estimates_of_one_scene_agree(tmp_path):
         est[v] = dict(np.load(out))
     a, b = est["cuda_ad_rgb"], est["llvm_ad_rgb"]
     assert zmax(a["mean"], a["var"], b["mean"], b["var"]) < 5
+
+
+# -------------------------------------------------------------------------------------------------
+# the pixel filter
+def fine_checker_scene():
+    """A floor of checks finer than a pixel seen from above: every pixel's filter footprint straddles checks,
+    so a wrong filter shows in every pixel (a pixel inside one check would be the same under any filter)."""
+    cam = CameraSpec(origin=(0.0, 3.0, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 0.0, -1.0), fov=50.0)
+    tex = TextureSpec("checker", (0.05, 0.05, 0.05), (0.9, 0.9, 0.9), uv_scale=16.0)
+    floor = ObjectSpec("floor", MeshSpec("plane"), MaterialSpec("diffuse", texture=tex),
+                       transform=Transform(scale=(4.0, 1.0, 4.0)))
+    return SceneSpec("indoor", 3, (floor,), (LightSpec("constant", {"radiance": (1.0, 1.0, 1.0)}),), (cam,))
+
+
+def test_gaussian_filter_pixels_are_mitsubas_filtered_pixels(mi):
+    """With ``filter: gaussian`` the mean of a pixel's input samples (film positions drawn from the filter)
+    and the reference estimate the pixel ``mi.render`` gives with Mitsuba's Gaussian film, pixel by pixel,
+    and the reference's standard error counts the filter's gain; the box filter's inputs do not."""
+    from pipeline.render import render_frame
+    from pipeline.render.scene import FilmFilter
+    from scene_gen import to_mitsuba
+    spec = fine_checker_scene()
+    gain = FilmFilter(mi, mi.load_dict({"type": "gaussian"}), "gaussian").gain
+    assert 2.9 < gain < 3.3                     # (integral f)^2 / integral f^2 of the stddev-0.5 Gaussian, squared
+    scene = to_mitsuba.load(spec, 0, RES, rfilter="gaussian")
+    ora = np.mean([np.asarray(mi.render(scene, spp=256, seed=s), np.float64)[..., :3] for s in range(8)], axis=0)
+    frac = {}
+    for filt in ("gaussian", "box"):
+        out = render_frame(spec, 0, cfg(spp=64, filter=filt, ref_spp=1024, ref_passes=16, layer_levels=0))
+        rad = out["radiance"].astype(np.float64)
+        v = rad.var(axis=2, ddof=1)         # a sample's variance; the oracle's mean of 2048 filtered samples: v / (gain 2048)
+        z = (rad.mean(axis=2) - ora) / np.sqrt(v / 64 + v / (gain * 2048))
+        frac[filt] = float(np.mean(np.abs(z) > 3))
+        if filt == "gaussian":
+            assert np.abs(z).mean() < 1.0, np.abs(z).mean()
+            ref, se = out["reference"].astype(np.float64), out["reference_stderr"].astype(np.float64)
+            zr = (ref - ora) / np.sqrt(se ** 2 + v / (gain * 2048))
+            assert np.mean(np.abs(zr) > 3) < 0.02, np.mean(np.abs(zr) > 3)
+            ratio = (se ** 2).mean() / (v / (gain * 1024)).mean()      # the error the filtered samples have
+            assert 0.7 < ratio < 1.4, ratio
+    assert frac["gaussian"] < 0.02 and frac["box"] > 0.1, frac

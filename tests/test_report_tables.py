@@ -83,3 +83,31 @@ def test_json_and_checkpoints_get_the_permissions_of_any_new_file(tmp_path):
         os.umask(old)
     modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in tmp_path.iterdir()}
     assert modes == {"e.json": 0o644, "plain.txt": 0o644, "c.pt": 0o644}, {k: oct(v) for k, v in modes.items()}
+
+
+def test_each_method_is_paired_with_its_own_input_and_worse_says_worse():
+    """By default a method is compared with the noisy input at its own spp and input kind, never with a
+    lower-spp input that flatters it: a layer model between the 1-spp and the 8-spp input reads "worse"
+    against its own (8 spp), and the 1-spp model "better" against its own (1 spp)."""
+    rng = np.random.default_rng(2)
+    base = _frames(rng)
+
+    def shifted(d):
+        return [{**f, "relmse": f["relmse"] + d, "psnr": f["psnr"] - 40 * d} for f in base]
+
+    def res(label, method, spp, kind, frames):
+        return {**_result(label, frames), "method": method, "spp": spp, "input_kind": kind}
+    results = [res("input @1spp", "input", 1, "pixels", shifted(0.2)), res("input @8spp", "input", 8, "pixels", base),
+               res("layer", "layer", 8, "samples", shifted(0.05)), res("nbg", "nbg", 1, "pixels", shifted(0.1))]
+    comp = report.comparisons(results)
+    rows = {r["label"]: r for r in comp["rows"]}
+    assert comp["baseline"] == report.OWN_INPUT and rows["layer"]["against"] == "input @8spp"
+    assert rows["nbg"]["against"] == "input @1spp" and "input @1spp" not in rows and "input @8spp" not in rows
+    table = report.comparisons_markdown(comp)
+    layer = next(ln for ln in table.splitlines() if ln.startswith("| layer |"))
+    nbg = next(ln for ln in table.splitlines() if ln.startswith("| nbg |"))
+    assert "worse" in layer and "better" not in layer and "better" in nbg and "worse" not in nbg
+    # an explicit --baseline still compares everything with that one
+    assert {r["against"] for r in report.comparisons(results, "input @1spp")["rows"]} == {"input @1spp"}
+    by = report.comparisons_by_kind(results)
+    assert {r["label"]: r["against"] for r in by["rows"]}["layer"] == "input @8spp"

@@ -237,3 +237,14 @@ def test_a_file_store_is_reproducible_and_trains_like_any_other(tmp_path):
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     ev = json.loads((tmp_path / "eval.json").read_text())
     assert ev["frames"] and all(np.isfinite(fr["relmse"]) for fr in ev["frames"])
+    # the real-scene table on it: the run against its own input and OIDN, per scene file, with intervals
+    r = run_cli("training", "real-scenes", "--runs", str(run), "--store", str(tmp_path / "w1.zarr"),
+                "--out", str(tmp_path / "rs"))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    res = json.loads((tmp_path / "rs" / "real-scenes.json").read_text())[0]
+    assert set(res["scenes"]) == {"(all)", "room"} and res["filter"] == "box"
+    cell = res["scenes"]["room"]["run"]
+    assert cell["vs_input"]["input"] == "input" and cell["vs_oidn"]["input"] == "oidn"
+    assert cell["relmse_ci95"] is not None and 0 < cell["mean_ratio"] < 10
+    md = (tmp_path / "rs" / "real-scenes.md").read_text()
+    assert "Against its own noisy input" in md and "Against OIDN" in md

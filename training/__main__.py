@@ -1,4 +1,4 @@
-"""``python -m training train|evaluate|report|bench|denoise|hard-cases|scaling|fma`` (see ``--help`` of each)."""
+"""``python -m training train|evaluate|report|bench|denoise|hard-cases|real-scenes|scaling|fma`` (see ``--help`` of each)."""
 from __future__ import annotations
 
 import argparse
@@ -52,7 +52,7 @@ def _report(a) -> int:
     from .report import report
     report(a.runs, a.store, a.out, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
            skip_bad_frames=a.skip_bad_frames, clips_store=a.clips_store, hard_cases=a.hard_cases,
-           baseline=a.baseline)
+           baseline=a.baseline, real_scenes=a.real_scenes)
     print(f"wrote {a.out}/report.md")
     return 0
 
@@ -92,6 +92,11 @@ def _fma(a) -> int:
 def _hard_cases(a) -> int:
     from .hardcases import hard_cases_cli
     return hard_cases_cli(a)
+
+
+def _real_scenes(a) -> int:
+    from .realscenes import real_scenes_cli
+    return real_scenes_cli(a)
 
 
 def run_study_command(argv: list[str]) -> int:
@@ -159,9 +164,13 @@ def _report_parser(sub) -> None:
                                          "clips (a section with tPSNR; recurrent models carry their state)")
     r.add_argument("--hard-cases", help="also evaluate everything on each case of this store of "
                                         "configs/hard-cases.yaml (the hard-case table)")
+    r.add_argument("--real-scenes", action="append", default=[], metavar="STORE",
+                   help="also evaluate everything on this store of scene files (configs/real-scenes.yaml, a user's "
+                        "folder): per scene, with intervals, against each method's own input and OIDN; repeatable")
     r.add_argument("--baseline", default=None,
-                   help="the method every other is compared with, by its label in the table (default: the first, "
-                        "the noisy input): paired per-frame differences with 95%% intervals")
+                   help="the one method every other is compared with, by its label in the table (default: each "
+                        "method against its own noisy input, at its spp and input kind): paired per-frame "
+                        "differences with 95%% intervals")
     r.set_defaults(fn=_report)
 
 
@@ -174,6 +183,19 @@ def _hard_cases_parser(sub) -> None:
              store="a store of configs/hard-cases.yaml (every split is evaluated)",
              out="folder for hard-cases.md and hard-cases.json", frames="at most this many frames per split (0: all)")
     h.set_defaults(fn=_hard_cases)
+
+
+def _real_scenes_parser(sub) -> None:
+    from .cli import add_eval
+    h = sub.add_parser("real-scenes", help="every run, its own noisy input and OIDN on stores of scene files "
+                                           "(configs/real-scenes.yaml): DIR/real-scenes.md and .json")
+    h.add_argument("--runs", nargs="*", default=[], help="run folders (each with checkpoint.pt; others are skipped)")
+    h.add_argument("--store", action="append", required=True, metavar="STORE",
+                   help="a store of scene files (every split is evaluated); repeatable (a box- and a "
+                        "Gaussian-filtered store, a user's folder)")
+    add_eval(h, ("out", "no_oidn", "frames"), required=("out",), out="folder for real-scenes.md and real-scenes.json",
+             frames="at most this many frames a store (0: all)")
+    h.set_defaults(fn=_real_scenes)
 
 
 def _bench_parser(sub) -> None:
@@ -220,7 +242,9 @@ def _denoise_parser(sub) -> None:
     d.add_argument("--depth", help="depth guide (EXR, first channel), when the model uses it")
     add_eval(d, ("store",), store="a Zarr store: denoise its frame --frame (instead of --input)")
     d.add_argument("--frame", type=int, help="frame index in --store")
-    add_eval(d, ("spp",), spp="input samples per pixel from a store or .npz (default: the checkpoint's)")
+    add_eval(d, ("spp",), spp="input samples per pixel: the count to take from a store or .npz (default: the "
+                              "checkpoint's), or the count an EXR image was rendered at (checked against the "
+                              "checkpoint's, with a one-line warning where they differ)")
     d.add_argument("--tile", type=int, default=0,
                    help="denoise in square tiles of this many pixels (with overlap) to bound memory; "
                         "0: automatic (whole image when it fits)")
@@ -238,8 +262,8 @@ def _scaling_parser(sub) -> None:
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m training", description=__doc__, epilog=EXIT_CODES_HELP)
     sub = p.add_subparsers(dest="cmd", required=True)
-    for add in (_train_parser, _evaluate_parser, _report_parser, _hard_cases_parser, _bench_parser,
-                _denoise_parser, _scaling_parser):
+    for add in (_train_parser, _evaluate_parser, _report_parser, _hard_cases_parser, _real_scenes_parser,
+                _bench_parser, _denoise_parser, _scaling_parser):
         add(sub)
     sub.add_parser("fma", help="figure 10: FMAs against spp").set_defaults(fn=_fma)
     return p

@@ -294,6 +294,28 @@ def denoise(model, items: list[dict], tile: int = 0, device: str = "cpu", progre
     return out
 
 
+ANY_SPP_KINDS = ("samples", "clips")     # per-sample models: each sample is its own input, any count of them
+
+
+def spp_note(spec, name: str, train_spp, spp, *, exr: bool) -> str | None:
+    """The one line ``denoise`` prints about samples per pixel, or None: a per-pixel (or sampling) model fed
+    another count than it was trained at (``--spp`` states an EXR's; a store or .npz frame is composed at
+    ``--spp``) is warned, saying what it expects; an EXR without ``--spp`` gets a note that its count is
+    unknown. Per-sample models (:data:`ANY_SPP_KINDS`) take any count; OIDN (``spec`` None) too."""
+    if spec is None or spec.kind in ANY_SPP_KINDS or train_spp is None:
+        return None
+    if spp is None:
+        if not exr:
+            return None
+        return (f"note: {name} was trained on {train_spp}-spp inputs and an EXR image holds no sample count; state "
+                f"yours with --spp N to have it checked")
+    if int(spp) != int(train_spp):
+        return (f"warning: {name} was trained on {train_spp}-spp inputs and this input has {spp} spp; expect a "
+                f"{'blurrier' if spp > train_spp else 'noisier'} result than it gives at {train_spp} spp (train one "
+                f"at this count: python -m training train --spp {spp})")
+    return None
+
+
 def denoise_cli(a) -> int:
     from core.images import write_exr
     from .models.common import flush_denormals
@@ -327,10 +349,11 @@ def denoise_cli(a) -> int:
         items = items_from_npz(spec, a.input, spp)
         src = a.input
     else:
-        if a.spp:
-            raise ConfigError("--spp applies to a store frame or an .npz; an EXR image is fed as it is")
         items = items_from_exr(spec, a)
         src = a.input
+    note = spp_note(spec, name, train_spp, a.spp, exr=a.store is None and not a.input.endswith(".npz"))
+    if note:
+        print(note, file=sys.stderr)
     H, W = _check_sizes(items)
     out = denoise(model, items, tile=a.tile, device=device, progress=True, precision=precision)
     if not np.isfinite(out).all():

@@ -124,10 +124,18 @@ def flip(denoised, reference) -> float:
     return float(mean_error)
 
 
+def mean_ratio(denoised, reference) -> float:
+    """The image's mean radiance over the reference's (1 where a method keeps the frame's energy; a
+    black reference: 1 for a black output, else its mean over 1e-8)."""
+    d, r = float(np.mean(np.asarray(denoised, np.float64))), float(np.mean(np.asarray(reference, np.float64)))
+    return 1.0 if r == 0.0 and d == 0.0 else d / max(r, 1e-8)
+
+
 def all_metrics(denoised, reference, with_flip: bool = True) -> dict[str, float]:
-    """relMSE, SMAPE, PSNR, SSIM (and FLIP) of one frame (H, W, 3)."""
+    """relMSE, SMAPE, PSNR, SSIM, the mean ratio (and FLIP) of one frame (H, W, 3)."""
     out = {"relmse": relmse(denoised, reference), "smape": smape(denoised, reference),
-           "psnr": psnr(denoised, reference), "ssim": ssim(denoised, reference)}
+           "psnr": psnr(denoised, reference), "ssim": ssim(denoised, reference),
+           "mean_ratio": mean_ratio(denoised, reference)}
     if with_flip:
         out["flip"] = flip(denoised, reference)
     return out

@@ -316,67 +316,91 @@ COMPARED = (("relmse", "relMSE", "{:+.4f}", -1), ("psnr", "PSNR", "{:+.2f}", 1),
             ("flip", "FLIP", "{:+.4f}", -1), ("tpsnr", "tPSNR", "{:+.2f}", 1))   # (key, name, format, +1: higher is better)
 
 
-def comparisons(results: list[dict], baseline: str | None = None) -> dict:
-    """Every method against ``baseline`` (a label; None: the first method) as the paired per-frame
-    difference (method minus baseline, on the frames both were evaluated on) with its 95% interval, a
-    bootstrap over clips (:func:`training.stats.paired_difference`). ``{"baseline": label, "rows":
-    [{"label", key: {"mean", "ci95", "frames", "shown"}}]}``."""
-    labels = [r["label"] for r in results]
-    if baseline is None:
-        baseline = labels[0]
-    if baseline not in labels:
-        raise DataError(f"--baseline {baseline!r} is not one of the report's methods: {labels}")
-    base = next(r for r in results if r["label"] == baseline)
+OWN_INPUT = "its own noisy input"
+
+
+def own_inputs(results: list[dict]) -> dict[str, str]:
+    """Each method's own noisy input: the label of the ``input`` evaluated at its spp and the baseline input
+    of its kind (``training.inputs``), the input it is judged against (the inputs and OIDN map to theirs)."""
+    from .inputs import KINDS
+
+    def key(r):
+        return int(r["spp"]), KINDS[r["input_kind"]].baseline_input
+    known = [r for r in results if r.get("spp") is not None and r.get("input_kind") in KINDS]
+    inputs = {key(r): r["label"] for r in known if r.get("method") == "input"}
+    return {r["label"]: inputs[key(r)] for r in known if r.get("method") != "input" and key(r) in inputs}
+
+
+def _paired_row(base: dict, r: dict) -> dict:
     clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
 
-    def per_frame(r, key):
-        return {f["index"]: f[key] for f in r["frames"] if key in f}
+    def per_frame(x, key):
+        return {f["index"]: f[key] for f in x["frames"] if key in f}
+    row = {"label": r["label"], "against": base["label"]}
+    for key, *_ in COMPARED:
+        if base["frames"] and key in base["frames"][0] and r["frames"] and key in r["frames"][0]:
+            row[key] = stats.paired_difference(per_frame(base, key), per_frame(r, key), clip)
+    if base.get("tpsnr_runs") and r.get("tpsnr_runs"):      # one value a run of a clip's frames, paired by run
+        row["tpsnr"] = stats.paired_difference(base["tpsnr_runs"], r["tpsnr_runs"],
+                                               {k: clip.get(int(k), int(k)) for k in base["tpsnr_runs"]})
+    return row
+
+
+def comparisons(results: list[dict], baseline: str | None = None) -> dict:
+    """Every method against a baseline as the paired per-frame difference (method minus baseline, on the
+    frames both were evaluated on) with its 95% interval, a bootstrap over clips
+    (:func:`training.stats.paired_difference`): ``baseline`` None (the default): each method against its own
+    noisy input (:func:`own_inputs`, the input at its spp and input kind, never a lower-spp one that
+    flatters it); a label: every method against that one. ``{"baseline": label or OWN_INPUT, "rows":
+    [{"label", "against", key: {"mean", "ci95", "frames", "shown"}}]}``."""
+    labels = [r["label"] for r in results]
+    by_label = {r["label"]: r for r in results}
+    if baseline is not None and baseline not in labels:
+        raise DataError(f"--baseline {baseline!r} is not one of the report's methods: {labels}")
+    own = own_inputs(results) if baseline is None else {}
     rows = []
     for r in results:
-        if r is base:
+        base = by_label.get(baseline if baseline is not None else own.get(r["label"], ""))
+        if base is None or base is r:
             continue
-        row = {"label": r["label"]}
-        for key, *_ in COMPARED:
-            if key in base["frames"][0] and r["frames"] and key in r["frames"][0]:
-                row[key] = stats.paired_difference(per_frame(base, key), per_frame(r, key), clip)
-        if base.get("tpsnr_runs") and r.get("tpsnr_runs"):      # one value a run of a clip's frames, paired by run
-            row["tpsnr"] = stats.paired_difference(base["tpsnr_runs"], r["tpsnr_runs"],
-                                                   {k: clip.get(int(k), int(k)) for k in base["tpsnr_runs"]})
-        rows.append(row)
-    return {"baseline": baseline, "rows": rows}
+        rows.append(_paired_row(base, r))
+    return {"baseline": baseline if baseline is not None else OWN_INPUT, "rows": rows}
 
 
 def comparisons_markdown(comp: dict) -> str:
     """The paired differences as a table: ``mean [low, high]``, "no difference shown" where the
     interval holds 0, and "no interval (one clip)" where it cannot be known."""
     keys = [c for c in COMPARED if any(c[0] in r for r in comp["rows"])]
-    lines = ["| method | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
-             "|---|" + "---|" * len(keys)]
+    lines = ["| method | against | " + " | ".join(f"Δ{name} (95%)" for _, name, _, _ in keys) + " |",
+             "|---|---|" + "---|" * len(keys)]
     for row in comp["rows"]:
         cells = [difference_cell(row.get(key), f, better) for key, _, f, better in keys]
-        lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row['label']} | {row.get('against', comp['baseline'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: str = "relmse") -> dict:
     """:func:`comparisons` of ``key`` over the frames of each kind (``evaluate.frame_kinds``; the kinds
-    of the baseline's ``by_kind``): ``{"baseline", "kinds": [(kind, frames)], "rows": [{"label", kind: diff}]}``."""
+    of the first result's ``by_kind``), each method against the same baseline as there: ``{"baseline",
+    "kinds": [(kind, frames)], "rows": [{"label", "against", kind: diff}]}``."""
     comp = comparisons(results, baseline)
-    base = next(r for r in results if r["label"] == comp["baseline"])
-    kinds = list(distinct_kinds(base.get("by_kind", {})))
-    tags = {f["index"]: frame_kinds(f) for f in base["frames"]}
-    clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
+    by_label = {r["label"]: r for r in results}
+    first = results[0]
+    kinds = list(distinct_kinds(first.get("by_kind", {})))
     rows = []
-    for r in results:
-        if r is base or not r["frames"] or key not in r["frames"][0]:
+    for c in comp["rows"]:
+        base, r = by_label[c["against"]], by_label[c["label"]]
+        if not r["frames"] or key not in r["frames"][0]:
             continue
-        row = {"label": r["label"]}
+        tags = {f["index"]: frame_kinds(f) for f in base["frames"]}
+        clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
+        row = {"label": r["label"], "against": base["label"]}
         for kind in kinds:
             a = {f["index"]: f[key] for f in base["frames"] if kind in tags[f["index"]]}
             b = {f["index"]: f[key] for f in r["frames"] if f["index"] in a}
             row[kind] = stats.paired_difference(a, b, clip)
         rows.append(row)
-    return {"baseline": comp["baseline"], "kinds": [(k, base["by_kind"][k]["frames"]) for k in kinds], "rows": rows}
+    return {"baseline": comp["baseline"], "kinds": [(k, first["by_kind"][k]["frames"]) for k in kinds], "rows": rows}
 
 
 def difference_cell(d, f: str, better: int) -> str:
@@ -395,16 +419,16 @@ def comparisons_section(results: list[dict], baseline: str | None) -> list[str]:
     if not comp["rows"]:
         return []
     kinds = comparisons_by_kind(results, baseline)
-    table = ["| method | " + " | ".join(f"{k} ({n})" for k, n in kinds["kinds"]) + " |",
-             "|---|" + "---|" * len(kinds["kinds"])]
+    table = ["| method | against | " + " | ".join(f"{k} ({n})" for k, n in kinds["kinds"]) + " |",
+             "|---|---|" + "---|" * len(kinds["kinds"])]
     for row in kinds["rows"]:
-        table.append(f"| {row['label']} | " + " | ".join(difference_cell(row[k], "{:+.4f}", -1)
-                                                          for k, _ in kinds["kinds"]) + " |")
-    return [f"Each method against **{comp['baseline']}**, frame by frame on the same frames: the mean difference "
-            "(method minus baseline) with its 95% interval, a bootstrap over the held-out clips (a still is a "
-            "clip of one frame; the frames of a clip are resampled together). \"better\"/\"worse\" only where "
-            "the interval excludes 0, \"no difference shown\" where it holds 0, \"no interval (one clip)\" where "
-            "the frames are all of one clip.", "", comparisons_markdown(comp), "",
+        table.append(f"| {row['label']} | {row['against']} | " + " | ".join(difference_cell(row[k], "{:+.4f}", -1)
+                                                                           for k, _ in kinds["kinds"]) + " |")
+    return [f"Each method against **{comp['baseline']}** (the column *against*), frame by frame on the same frames: "
+            "the mean difference (method minus baseline) with its 95% interval, a bootstrap over the held-out clips "
+            "(a still is a clip of one frame; the frames of a clip are resampled together). \"better\"/\"worse\" "
+            "only where the interval excludes 0, \"no difference shown\" where it holds 0, \"no interval (one "
+            "clip)\" where the frames are all of one clip.", "", comparisons_markdown(comp), "",
             f"ΔrelMSE against **{comp['baseline']}** by kind of frame (frame counts in brackets):", "",
             *table, ""]
 
@@ -461,18 +485,18 @@ def seed_spread_section(results: list[dict]) -> list[str]:
 
 def report(runs, store, out, split: str = "test", spp: int | None = None, max_frames: int = 0,
            with_flip: bool = True, progress: bool = True, skip_bad_frames: bool = False,
-           clips_store: str | None = None, hard_cases: str | None = None, baseline: str | None = None) -> dict:
+           clips_store: str | None = None, hard_cases: str | None = None, baseline: str | None = None,
+           real_scenes=()) -> dict:
     """Evaluate every run and the baselines; write the report files. Returns the results.
 
     Each run is evaluated at ``spp`` (None: the spp it was trained at, e.g. 8 for the layer family and 1
     for nbg/wskpn) and the noisy input and OIDN at every spp among the runs, so each model stands next
     to the baselines at its own sample count (labels gain ``@N spp`` when there are several).
-    Every method is compared with ``baseline`` (a label; None: the first method, the noisy input) as a
-    paired difference with its 95% interval (:func:`comparisons`); runs that differ only in their seed
-    get their spread. ``clips_store``: also evaluate everything on the ``test`` split of a store of
-    moving clips (a section with tPSNR). ``hard_cases``: a store of ``configs/hard-cases.yaml``,
-    evaluated case by case (:mod:`training.hardcases`). ``out/provenance.json`` records the command,
-    code, versions, stores and runs the numbers come from."""
+    Every method is compared with ``baseline`` (a label; None: each with its own noisy input, at its spp
+    and input kind) as a paired difference with its 95% interval (:func:`comparisons`); runs that differ
+    only in their seed get their spread. :func:`other_stores` adds the sections of the clips, hard-case and
+    real-scene stores. ``out/provenance.json`` records the command, code, versions, stores and runs the
+    numbers come from."""
     import time
     t_start = time.perf_counter()
     out = Path(out)
@@ -480,10 +504,12 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     run_dirs = find_runs(runs)
     if not run_dirs:
         raise DataError(f"no run directory with a checkpoint.pt among {list(runs)}")
-    prov = provenance(run_dirs, {"evaluation": store, "clips": clips_store, "hard_cases": hard_cases},
+    prov = provenance(run_dirs, {"evaluation": store, "clips": clips_store, "hard_cases": hard_cases,
+                                 **{f"real_scenes_{i}": s for i, s in enumerate(real_scenes)}},
                       {"runs": [str(r) for r in runs], "store": str(store), "split": split, "spp": spp,
                        "max_frames": max_frames, "with_flip": with_flip, "skip_bad_frames": skip_bad_frames,
-                       "clips_store": clips_store, "hard_cases": hard_cases, "baseline": baseline})
+                       "clips_store": clips_store, "hard_cases": hard_cases, "baseline": baseline,
+                       "real_scenes": [str(s) for s in real_scenes]})
     inputs, models, oidns, spps = evaluate_methods(run_dirs, store, out, split, spp, max_frames, with_flip,
                                                    progress, skip_bad_frames)
     results = inputs + models + oidns
@@ -493,6 +519,30 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
     lines = main_section(results, store, split, spps, maps, baseline)
     extra = {"comparisons": comparisons(results, baseline), "comparisons_by_kind": comparisons_by_kind(results, baseline),
              "seed_spread": seed_spread(results), "speed": {r["label"]: r["speed"] for r in results}}
+    more, found = other_stores(run_dirs, results, out, spp=spp, max_frames=max_frames, with_flip=with_flip,
+                               progress=progress, skip_bad_frames=skip_bad_frames, baseline=baseline,
+                               clips_store=clips_store, hard_cases=hard_cases, real_scenes=real_scenes)
+    lines += more
+    extra.update(found)
+    fig10 = figure10()
+    lines += budgets_section(results) + ["## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, "
+                                         "paper defaults)", "", figure10_markdown(fig10), ""]
+    prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
+    write_strict(out / "provenance.json", prov)
+    lines += provenance_section(prov)
+    (out / "report.md").write_text("\n".join(lines))
+    write_strict(out / "comparisons.json", extra)
+    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10,
+            **extra}
+
+
+def other_stores(run_dirs, results: list[dict], out: Path, *, spp, max_frames: int, with_flip: bool, progress: bool,
+                 skip_bad_frames: bool, baseline, clips_store=None, hard_cases=None, real_scenes=()) -> tuple[list, dict]:
+    """The report's sections beyond its store, and their JSON: ``clips_store`` (everything on the ``test``
+    split of a store of moving clips: tPSNR), ``hard_cases`` (a store of ``configs/hard-cases.yaml``, case by
+    case: :mod:`training.hardcases`), ``real_scenes`` (stores of scene files, scene by scene against each
+    method's input and OIDN: :mod:`training.realscenes`)."""
+    lines, extra = [], {}
     if clips_store is not None:
         clip_results = sum(evaluate_methods(run_dirs, clips_store, out, "test", spp, max_frames, with_flip, progress,
                                             skip_bad_frames, prefix="clips-")[:3], [])
@@ -506,16 +556,12 @@ def report(runs, store, out, split: str = "test", spp: int | None = None, max_fr
         hc = hard_case_report(run_dirs, hard_cases, out, with_flip=with_flip, progress=progress)
         lines += [f"## Hard cases: `{hard_cases}`", "", hc["markdown"], ""]
         extra["hard_cases"] = {k: v for k, v in hc.items() if k != "markdown"}
-    fig10 = figure10()
-    lines += budgets_section(results) + ["## FMAs against samples per pixel (figure 10, billions per 1920x1080 frame, "
-                                         "paper defaults)", "", figure10_markdown(fig10), ""]
-    prov["report_seconds"] = round(time.perf_counter() - t_start, 1)
-    write_strict(out / "provenance.json", prov)
-    lines += provenance_section(prov)
-    (out / "report.md").write_text("\n".join(lines))
-    write_strict(out / "comparisons.json", extra)
-    return {"results": [{k: v for k, v in r.items() if k != "images"} for r in results], "figure10": fig10,
-            **extra}
+    if real_scenes:
+        from .realscenes import evaluate_store, section
+        found = [evaluate_store(run_dirs, s, max_frames=max_frames, progress=progress) for s in real_scenes]
+        lines += [section(r) + "\n" for r in found]
+        extra["real_scenes"] = [{k: v for k, v in r.items() if k != "markdown"} for r in found]
+    return lines, extra
 
 
 def write_figures(results: list[dict], models: list[dict], store, out: Path) -> list[tuple[str, str, int]]:
