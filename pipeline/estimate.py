@@ -181,8 +181,8 @@ def _calibrate_frame(cfg, gi: int, ref, rc, cal_rc) -> tuple[dict, dict]:
     # CPU seconds of this process (all its threads): the work a worker of this speed does; wall seconds
     # are kept beside them
     w0, c0 = time.perf_counter(), time.process_time()
-    spec_json = tasks.make_spec(ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), dict(cfg.scene_gen),
-                                ref.case)
+    made_of = ref.source if ref.source is not None else dict(cfg.scene_gen)      # a scene file's, or the generator's
+    spec_json = tasks.make_spec(ref.seed, ref.kind, ref.num_frames, tuple(cfg.resolution), made_of, ref.case)
     spec = SceneSpec.from_json(spec_json)
     fs = R.FrameScene(spec, ref.frame, rc)
     cpu = {"load_s": time.process_time() - c0}

@@ -184,14 +184,30 @@ def _one_line(path, e: Exception, mi) -> SceneFileError:
     return SceneFileError(f"scene file {str(path)!r} does not load: {text}")
 
 
+LOAD_THREADS = 2       # drjit's pool while a file loads (its OpenEXR reader waits on the pool's other thread)
+
+
 def load_file(path):
-    """``mi.load_file(path)`` with its errors as one line (:class:`SceneFileError`)."""
+    """``mi.load_file(path)`` with its errors as one line (:class:`SceneFileError`), on the calling thread
+    (``parallel=False``: the same objects in the same order every time). drjit's thread pool is at least
+    :data:`LOAD_THREADS` while it loads: with the one thread a Dask worker gives it, Mitsuba's OpenEXR reader
+    (an EXR texture or environment map) hands its lines to the pool and waits forever (measured: the
+    real-scene suite's ``envmap-object.xml`` hung every worker; a plain process with ``dr.set_thread_count(1)``
+    hangs too). The pool is set back after."""
+    import drjit as dr
+
     from core.variant import mitsuba
     mi = mitsuba()
+    before = dr.thread_count()
+    if before < LOAD_THREADS:
+        dr.set_thread_count(LOAD_THREADS)
     try:
-        return mi.load_file(str(path))
+        return mi.load_file(str(path), parallel=False)
     except Exception as e:          # Mitsuba raises RuntimeError (and others) for a file it cannot load
         raise _one_line(path, e, mi) from None
+    finally:
+        if before < LOAD_THREADS:
+            dr.set_thread_count(before)
 
 
 def inspect(path, settings: CameraSettings) -> dict:

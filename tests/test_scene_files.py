@@ -248,3 +248,18 @@ def test_a_file_store_is_reproducible_and_trains_like_any_other(tmp_path):
     assert cell["relmse_ci95"] is not None and 0 < cell["mean_ratio"] < 10
     md = (tmp_path / "rs" / "real-scenes.md").read_text()
     assert "Against its own noisy input" in md and "Against OIDN" in md
+
+
+def test_a_file_with_exr_textures_loads_in_a_one_thread_worker(tmp_path):
+    """An EXR texture loads where drjit's pool has one thread (a Dask worker's): Mitsuba's OpenEXR reader
+    waits on the pool's other thread, so without ``scene_files.load_file`` raising the pool for the load this
+    hung forever (run in its own process, with a timeout)."""
+    from core.images import write_exr
+    path = write_scene(tmp_path)
+    write_exr(tmp_path / "textures" / "checker.exr", np.full((8, 8, 3), 0.5, np.float32))
+    path.write_text(path.read_text().replace("textures/checker.png", "textures/checker.exr"))
+    code = ("import drjit as dr; from core.variant import mitsuba; mitsuba(threads=1); "
+            "from scene_gen.scene_files import load_file; "
+            f"s = load_file({str(path)!r}); print(len(s.shapes()), dr.thread_count())")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.split() == ["5", "1"], r.stdout + r.stderr[-2000:]
