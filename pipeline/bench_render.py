@@ -41,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from functools import partial
 import os
 import subprocess
 import sys
@@ -327,11 +328,12 @@ def _loop_times(spec, cfg, *, spp: int, ref_spp: int, ref_pass_spp: int, repeats
     _mi_render(mi, fs.scene, spp)
     _mi_render(mi, fs.scene, ref_pass_spp)
     warm = time.perf_counter() - t0
-    t_in, t_mi = _best_pair(lambda: R.render_inputs(fs), lambda: _mi_render(mi, fs.scene, spp),
+    scene = fs.scene
+    t_in, t_mi = _best_pair(partial(R.render_inputs, fs), partial(_mi_render, mi, scene, spp),
                             3 * repeats)  # short calls
-    t_ref, t_mi_ref = _best_pair(lambda: R.render_reference(fs), lambda: _mi_render(mi, fs.scene, ref_spp),
+    t_ref, t_mi_ref = _best_pair(partial(R.render_reference, fs), partial(_mi_render, mi, scene, ref_spp),
                                  max(1, repeats - 1))
-    del fs
+    fs = scene = None               # the scene freed before the next loads (one alive at a time)
     _collect()
     return mi, dr, {"threads": threads, "shapes": shapes, "warm": warm, "t_in": t_in, "t_mi": t_mi,
                     "t_ref": t_ref, "t_mi_ref": t_mi_ref}

@@ -27,6 +27,7 @@ their time and memory.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import shutil
@@ -148,7 +149,7 @@ def _run_with_peaks(cfg, store: str, tmp: Path) -> tuple[dict, dict]:
     address, procs = _cluster(tmp)
     try:
         _wait_workers(address, 2)
-        import psutil  # noqa: F401 - the sampler's
+        importlib.import_module("psutil")      # the sampler's, imported before it starts
         peak = _Peak([procs[0].pid, os.getpid()])
         peak.start()
         s = _quiet(run_dataset, cfg, out=store, scheduler=address, progress=False)
@@ -213,13 +214,8 @@ def measure(frames: int, tmp: Path) -> dict:
     """Every stage's cost at ``frames`` frames (the module docstring): ``{stage: value per frame}`` plus
     ``_abs`` (whole-run figures: seconds, sizes)."""
     # imported before the run, so the client's memory growth is the run's own
-    import xarray  # noqa: F401
-
-    from pipeline.cli_dataset import run_dataset  # noqa: F401
-    from stores.export import export  # noqa: F401
-    from stores.reader import open_store  # noqa: F401
-    from stores.schema import GROUPS  # noqa: F401
-    from stores.validate import validate_store  # noqa: F401
+    for name in ("xarray", "pipeline.cli_dataset", "stores.export", "stores.reader", "stores.schema", "stores.validate"):
+        importlib.import_module(name)
     cfg = scale_config(frames)
     store = str(tmp / f"scale-{frames}.zarr")
     s, kib = _run_with_peaks(cfg, store, tmp)

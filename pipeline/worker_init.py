@@ -19,6 +19,7 @@ Importing it, in the worker process's main thread:
 """
 from __future__ import annotations
 
+import importlib
 import os
 import signal
 
@@ -118,7 +119,7 @@ if os.environ.get(LOCAL_WORKER_ENV) == "1":
     ignore_interrupts()
     quiet_task_failures()
 try:
-    import pymeshlab  # noqa: E402,F401  (first import in this, the main, thread; see scene_gen.meshes._pymeshlab)
+    importlib.import_module("pymeshlab")     # first imported in this, the main, thread (scene_gen.meshes._pymeshlab)
 except ImportError:   # a machine without it (scene_gen.pymeshlab: false); a mesh that needs it says so
     pass
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from core.checks import is_number, known_keys, need, need_int
-from scene_gen.errors import ConfigError, SpecError  # noqa: F401  (ConfigError re-exported)
+from scene_gen.errors import ConfigError
 from scene_gen.families import Setting, family_settings
 
 

@@ -11,11 +11,10 @@ and static within a frame's exposure.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, get_type_hints
+from typing import Any, ClassVar
 
 from scene_gen.errors import SpecError
 

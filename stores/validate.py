@@ -35,7 +35,6 @@ import numpy as np
 from stores import schema
 from stores.errors import MissingShardError, StoreCorruptionError, StoreError
 from stores.fitness import FRAME_KEYS, check_values, renderer_findings
-from stores.fitness import reference_limits  # noqa: F401  (docs/training.md names it here)
 from stores.reader import open_store
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE, EXIT_DAMAGED = 0, 1, 2, 3

@@ -202,7 +202,7 @@ class StoreWriter:
         for path, values in columns.items():
             lost |= _set_many(self._array(path), values)
         lost -= set(idx) | set(failures)
-        failures.update({i: f"damaged: a metadata chunk of this frame could not be read and was written "
+        failures.update({i: "damaged: a metadata chunk of this frame could not be read and was written "
                             "again; the frame is rendered again" for i in sorted(lost)})
         # The first commit into a chunk of META_CHUNK frames makes its flag chunk (all False) before
         # status/error: a status/error chunk without its flag chunk then only ever means a lost flag

@@ -227,7 +227,7 @@ def frames_for_target(fit: dict, target: float, metric: str, level: float = stat
         raise TargetBelowFloorError(
             f"{metric} target {target:g} is {where} the fitted {name} {fit['c']:.4g}"
             + (f" (95% interval [{ci[0]:.4g}, {ci[1]:.4g}])" if ci else "")
-            + f": no number of frames reaches it on this curve; more of this data cannot get there at this budget")
+            + ": no number of frames reaches it on this curve; more of this data cannot get there at this budget")
     n = frames_needed(fit["a"], fit["b"], fit["c"], target, sign)
     per = np.array([frames_needed(a, b, c, target, sign) for a, b, c in fit["samples"]])
     lo, hi = (1 - level) / 2, 1 - (1 - level) / 2

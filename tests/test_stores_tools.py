@@ -299,13 +299,13 @@ def test_reference_limits_match_a_simulated_reference():
     truth = rng.uniform(0.05, 4.0, (64, 64, 3))
     se = 0.02 * truth + 0.002
     ref = truth + rng.normal(size=truth.shape) * se
-    psnr, floor = validate.reference_limits(ref, se)
+    psnr, floor = fitness.reference_limits(ref, se)
     mse = np.mean((tonemap(truth) - tonemap(ref)) ** 2)
     assert psnr == pytest.approx(10 * np.log10(1 / mse), abs=0.3)
     assert floor == pytest.approx(np.mean((truth - ref) ** 2 / (ref ** 2 + 0.01)), rel=0.1)
-    assert validate.reference_limits(ref, np.zeros_like(se)) == (float("inf"), 0.0)
+    assert fitness.reference_limits(ref, np.zeros_like(se)) == (float("inf"), 0.0)
     # halving the error raises the ceiling by 20 log10(2) dB
-    assert validate.reference_limits(ref, se / 2)[0] - psnr == pytest.approx(6.02, abs=0.05)
+    assert fitness.reference_limits(ref, se / 2)[0] - psnr == pytest.approx(6.02, abs=0.05)
 
 
 def test_validate_states_the_reference_error(tmp_path, store2):

@@ -30,7 +30,8 @@ from core.checks import is_number, need, need_int
 from ..errors import ConfigError
 from ..inputs import InputSpec
 from core.images import tonemap
-from .common import OUTLIER_K, Denoiser, clean_radiance
+from .common import Denoiser, clean_radiance
+from .robust import OUTLIER_K
 
 DEMOD_EPS = 1e-2          # the papers' albedo offset of the demodulation (OIDN and KPCN use 0.00316-0.01) ...
 ALBEDO_OFFSET = 0.1       # ... and the models' default (setting "albedo_offset"; docs/hard-cases.md, measured)

@@ -21,8 +21,8 @@ from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 
 from core.checks import need
 from ..errors import ConfigError
-from ..inputs import ALL_FEATURES, InputSpec, check_feature_groups, mask_features
-from .robust import OUTLIER_K, bound_outliers, check_outliers  # noqa: F401  (OUTLIER_K: the models' default)
+from ..inputs import InputSpec, check_feature_groups, mask_features
+from .robust import bound_outliers, check_outliers
 
 NEG_SLOPE = 0.01
 EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)

@@ -18,10 +18,11 @@ import torch
 
 from core.checks import need_int
 from ..errors import ConfigError
-from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
-                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, splat,
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, splat,
                      xavier_init)
 from .registry import register
+from .robust import OUTLIER_K
 
 MAX_LAYERS = 5
 

@@ -21,10 +21,11 @@ import torch.nn.functional as F
 
 from core.checks import need_int
 from ..errors import ConfigError
-from .common import (IN_FEATURES, OUTLIER_K, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
-                     exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs, replicate_pad, splat, xavier_init)
+from .common import (IN_FEATURES, Denoiser, UNet, check_kernel_size, check_sigma, clean_radiance, conv_fmas,
+                     exp_kernels, gaussian_kernel_bias, mlp, replicate_pad, splat, xavier_init)
 from .layer import MAX_LAYERS, LayerDenoiser
 from .registry import register
+from .robust import OUTLIER_K
 
 OPT_UNET = dict(
     unet_encoder=((32, 32), (128,), (256,), (512,), (512,)),

@@ -51,8 +51,9 @@ from core.checks import known_keys, need, need_int
 from ..errors import ConfigError
 from ..inputs import InputSpec, mask_features
 from ._pixel import warp
-from .common import OUTLIER_K, Denoiser, UNet, clean_radiance, conv_fmas, replicate_pad, splat, xavier_init
+from .common import Denoiser, UNet, clean_radiance, conv_fmas, replicate_pad, splat, xavier_init
 from .registry import register
+from .robust import OUTLIER_K
 
 KERNEL = 5
 K2 = KERNEL * KERNEL

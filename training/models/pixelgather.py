@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
                      clean_radiance, conv_fmas, exp_kernels, gather, gaussian_kernel_bias, mlp,
-                     prepare_inputs, xavier_init)
+                     xavier_init)
 from .registry import register
+from .robust import OUTLIER_K
 
 
 @register("pixelgather")

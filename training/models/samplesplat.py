@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, OUTLIER_K, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
-                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp, prepare_inputs,
+from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
+                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp,
                      splat_columns, xavier_init)
 from .registry import register
+from .robust import OUTLIER_K
 
 
 @register("samplesplat")
