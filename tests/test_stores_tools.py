@@ -295,6 +295,7 @@ def test_pipeline_cli_dispatches_to_stores(store2, tmp_path, capsys):
 def test_reference_limits_match_a_simulated_reference():
     """The PSNR ceiling and relMSE floor are what the true image scores against a noisy reference."""
     from core.images import tonemap
+    from stores import fitness
     rng = np.random.default_rng(3)
     truth = rng.uniform(0.05, 4.0, (64, 64, 3))
     se = 0.02 * truth + 0.002
