@@ -124,3 +124,36 @@ def test_a_black_albedo_neighbour_is_not_amplified(name):
             outs[off] = m(b)[..., 12:].max()
     assert outs[ALBEDO_OFFSET] < (0.8 + ALBEDO_OFFSET) / ALBEDO_OFFSET < outs[DEMOD_EPS]
     assert get(name).legacy_config["albedo_offset"] == DEMOD_EPS            # old checkpoints: as trained
+
+
+@pytest.mark.parametrize("name", ["nbg", "wskpn"])
+def test_a_light_seen_directly_keeps_its_energy_and_a_firefly_is_still_cut(name):
+    """A 3x3 lamp of 8000 in a frame of 0.1 (the real-scene suite's metals: a light seen directly) keeps its
+    energy at its own pixels, unspread (``keep_lights``, the default); without it the bound drops it (what
+    took the image's mean to 26-29% there). A one-pixel firefly of the same value is still cut either way."""
+    from training.models.robust import light_excess
+    outs = {}
+    for keep in (True, False):
+        torch.manual_seed(0)
+        m = build(name, **{**get(name).tiny, "keep_lights": keep}).eval()
+        b = m.input_spec().input_kind.example_batch(1, 1, H, W, 1, torch.Generator().manual_seed(1))
+        b["albedo"] = torch.full_like(b["albedo"], 0.5)
+        lamp, fly = torch.full_like(b["radiance"], 0.1), torch.full_like(b["radiance"], 0.1)
+        lamp[..., 11:14, 11:14] = 8000.0
+        fly[..., 12, 12] = 8000.0
+        with torch.no_grad():
+            outs[keep] = (m({**b, "radiance": lamp}), m({**b, "radiance": fly}))
+    lamp_in = 9 * 3 * 8000.0
+    kept, dropped = outs[True][0].sum(), outs[False][0].sum()
+    assert abs(float(kept) / lamp_in - 1) < 0.02 and float(dropped) < 0.1 * lamp_in
+    ring = outs[True][0].clone()
+    ring[..., 11:14, 11:14] = 0
+    assert float(ring.max()) < 0.1 * 8000                       # not spread around the lamp
+    assert float(outs[True][1].max()) < 0.1 * 8000 and float(outs[False][1].max()) < 0.1 * 8000     # the firefly: cut
+    # the rule itself: a cut pixel with two cut neighbours is a light, an isolated one is not
+    x = torch.zeros(1, 3, 8, 8)
+    x[..., 2, 2] = 1.0
+    x[..., 5, 4:7] = 1.0
+    e = light_excess(x, torch.zeros_like(x))
+    assert e[..., 2, 2].sum() == 0 and e[..., 5, 5].sum() == 3 and e[..., 5, 4].sum() == 0
+    assert get(name).legacy_config["keep_lights"] is False                    # old checkpoints: as trained

@@ -31,7 +31,7 @@ from ..errors import ConfigError
 from ..inputs import InputSpec
 from core.images import tonemap
 from .common import Denoiser, clean_radiance
-from .robust import OUTLIER_K
+from .robust import OUTLIER_K, light_excess
 
 DEMOD_EPS = 1e-2          # the papers' albedo offset of the demodulation (OIDN and KPCN use 0.00316-0.01) ...
 ALBEDO_OFFSET = 0.1       # ... and the models' default (setting "albedo_offset"; docs/hard-cases.md, measured)
@@ -107,19 +107,20 @@ class PixelDenoiser(Denoiser):
     realtime = True
     outlier_bound = OUTLIER_K
 
-    legacy_config = {**Denoiser.legacy_config, "albedo_offset": DEMOD_EPS}
+    legacy_config = {**Denoiser.legacy_config, "albedo_offset": DEMOD_EPS, "keep_lights": False}
 
     def __init__(self, temporal_frames: int = 1, temporal_alpha: float = 0.2, albedo_offset: float = ALBEDO_OFFSET,
-                 **config):
+                 keep_lights: bool = True, **config):
         need_int('"temporal_frames" (1: no temporal accumulation)', temporal_frames, 1, None, ConfigError)
         need(is_number(temporal_alpha) and 0.0 <= temporal_alpha < 1.0, '"temporal_alpha"', "a number in [0, 1)",
              temporal_alpha, ConfigError)
         need(is_number(albedo_offset, finite=True) and 1e-4 <= albedo_offset <= 1.0, '"albedo_offset"',
              "a number in [1e-4, 1] (demodulation divides by albedo + offset)", albedo_offset, ConfigError)
+        need(isinstance(keep_lights, bool), '"keep_lights"', "true or false", keep_lights, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=float(temporal_alpha),
-                         albedo_offset=float(albedo_offset), **config)
+                         albedo_offset=float(albedo_offset), keep_lights=keep_lights, **config)
         self.temporal_frames, self.temporal_alpha = temporal_frames, float(temporal_alpha)
-        self.albedo_offset = float(albedo_offset)
+        self.albedo_offset, self.keep_lights = float(albedo_offset), keep_lights
 
     def declared_inputs(self) -> InputSpec:
         return InputSpec("pixels", frames=self.temporal_frames, default_spp=self.inputs.default_spp)
@@ -136,7 +137,10 @@ class PixelDenoiser(Denoiser):
             rad_in = rad
         if rad.dim() != 4 or rad.shape[1] != 3:
             raise ConfigError(f"radiance must be (B, 3, H, W) or (B, T, 3, H, W), got {tuple(batch['radiance'].shape)}")
-        out = self.filter(self.bound(irr), network_inputs(rad_in, alb, nrm, dep))
+        bounded = self.bound(irr)
+        out = self.filter(bounded, network_inputs(rad_in, alb, nrm, dep))
+        if self.keep_lights and self.outliers:          # a light's cut energy back at its pixels (training.models.robust)
+            out = out + light_excess(irr, bounded)
         return remodulate(out, alb, eps)
 
     def filter(self, irradiance: torch.Tensor, net_in: torch.Tensor) -> torch.Tensor:

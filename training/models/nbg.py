@@ -121,7 +121,7 @@ class NeuralBilateralGrid(PixelDenoiser):
 
     def __init__(self, guide_hidden=(20,), guide_kernel: int = 5, rates=(4, 8, 16), guide_range: float = 255.0,
                  temporal_frames: int = 1, temporal_alpha: float = 0.2,
-                 albedo_offset: float = ALBEDO_OFFSET):
+                 albedo_offset: float = ALBEDO_OFFSET, keep_lights: bool = True):
         guide_hidden = tuple(int(c) for c in guide_hidden)
         rates = tuple(int(r) for r in rates)
         need(all(c >= 1 for c in guide_hidden), '"guide_hidden"', "positive widths (one per hidden conv layer)",
@@ -132,6 +132,7 @@ class NeuralBilateralGrid(PixelDenoiser):
              rates, ConfigError)
         need(guide_range > 0, '"guide_range"', "> 0", guide_range, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, albedo_offset=albedo_offset,
+                         keep_lights=keep_lights,
                          guide_hidden=guide_hidden, guide_kernel=int(guide_kernel), rates=rates,
                          guide_range=float(guide_range))
         self.rates, self.guide_range = rates, float(guide_range)

@@ -125,13 +125,14 @@ class WSKPN(PixelDenoiser):
 
     def __init__(self, widths=(14, 14, 14, 14, 14), kernel_sizes=(3, 5, 7, 9, 11, 13), fused: bool = False,
                  temporal_frames: int = 1, temporal_alpha: float = 0.2,
-                 albedo_offset: float = ALBEDO_OFFSET):
+                 albedo_offset: float = ALBEDO_OFFSET, keep_lights: bool = True):
         widths = tuple(int(c) for c in widths)
         kernel_sizes = tuple(int(k) for k in kernel_sizes)
         need(all(c >= 1 for c in widths), '"widths"', "positive block widths", widths, ConfigError)
         need(bool(kernel_sizes) and all(k >= 1 and k % 2 for k in kernel_sizes), '"kernel_sizes"',
              "one or more odd sizes >= 1", kernel_sizes, ConfigError)
         super().__init__(temporal_frames=temporal_frames, temporal_alpha=temporal_alpha, albedo_offset=albedo_offset,
+                         keep_lights=keep_lights,
                          widths=widths, kernel_sizes=kernel_sizes, fused=bool(fused))
         self.kernel_sizes = kernel_sizes
         chans = (10, *widths, 2 * len(kernel_sizes))
