@@ -72,7 +72,9 @@ class SceneGroup:
     each scene gets at most one key, a case or a combination of cases joined by commas, with that
     probability, and none with the rest; :func:`draw_case`). With ``file`` the scenes are a user's scene
     files (the module docstring): ``kind`` is ``file``, ``count`` defaults to the number of files, and
-    ``camera`` says how the cameras vary."""
+    ``camera`` says how the cameras vary. Two file groups over files of different content compare equal as
+    dataclasses (the content is found, not a field); :meth:`to_dict` carries the hashes, and the dataset's
+    ``content_dict`` with it, which a resume compares."""
     kind: str = ""
     count: int | None = None
     frames: int = 1

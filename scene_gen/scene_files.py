@@ -15,7 +15,9 @@ group is one file seen through cameras of its own:
   up to ``jitter`` times the distance ``d`` to what the sensor looks at (the first hit of its central
   ray), the point looked at by up to ``turn`` d, and scales the field of view by up to ``exp(zoom)``; a
   clip starts there and travels ``move`` d along a straight path (perpendicular to the view), so its
-  frames have camera motion and motion vectors. ``jitter: 0, turn: 0, zoom: 0`` is the file's own view.
+  frames have camera motion and motion vectors. ``jitter: 0, turn: 0, zoom: 0`` is the file's own view
+  (at the dataset's resolution; a sensor that mirrors the image is refused, and so is a scene reaching
+  past the far clip plane, ``to_mitsuba.FAR_CLIP``, from its camera).
 - **Recorded and checked.** A scene's ``SceneSpec`` names the file (absolute path) and the SHA-256 of its
   content (:func:`content_hash`: the XML and every file it names, in order), and every frame's load
   checks it: a file changed since its scene was described is refused (:class:`SceneFileError`).
@@ -32,6 +34,8 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+import threading
+from contextlib import contextmanager
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -118,39 +122,71 @@ def _parse(path: Path) -> ET.Element:
 
 
 def referenced_files(path) -> list[Path]:
-    """The files a scene file names (``<string name="filename" value=...>`` and ``<include filename=...>``,
-    those of included files too), resolved against the folder of the file naming them, in document order,
-    each once."""
+    """The files a scene file names, found as Mitsuba's loader finds them, in document order, each once:
+    every ``filename`` (``<string name="filename">``, ``<include filename>``, a ``filename`` attribute), with
+    ``$name`` filled from the file's ``<default>`` values, looked for in the main file's folder, then each
+    ``<path value>`` folder, then the folder of the file that names it (an included file's); included XML
+    files are read in turn. A name found nowhere is an error (:class:`SceneFileError`)."""
+    main = Path(path).resolve()
+    folders = [main.parent]
+    defaults: dict[str, str] = {}
     out: list[Path] = []
     seen: set[Path] = set()
 
+    def find(name: str, here: Path) -> Path:
+        name = re.sub(r"\$(\w+)", lambda m: defaults.get(m.group(1), m.group(0)), name)
+        if "$" in name:
+            raise SceneFileError(f"scene file {str(main)!r} names {name!r}, a parameter without a <default>: "
+                                 "give it one in the file")
+        for folder in [*folders, here]:
+            q = (folder / name).resolve()
+            if q.exists():
+                return q
+        raise SceneFileError(f"scene file {str(main)!r} names {name!r}, which is neither in its folder nor in "
+                             f"the folders it adds ({', '.join(str(f) for f in folders)})")
+
     def visit(p: Path):
         for el in _parse(p).iter():
-            name = el.get("value") if el.tag == "string" and el.get("name") == "filename" else (
-                el.get("filename") if el.tag == "include" else None)
-            if not name or "$" in name:
+            if el.tag == "default" and el.get("name"):
+                defaults.setdefault(el.get("name"), el.get("value", ""))
+            elif el.tag == "path" and el.get("value"):
+                folders.append((p.parent / el.get("value")).resolve())
+            name = el.get("value") if el.tag == "string" and el.get("name") == "filename" else el.get("filename")
+            if not name:
                 continue
-            q = (p.parent / name).resolve()
+            q = find(name, p.parent)
             if q in seen:
                 continue
             seen.add(q)
             out.append(q)
-            if el.tag == "include" and q.suffix.lower() == ".xml" and q.is_file():
+            if el.tag == "include" and q.suffix.lower() == ".xml":
                 visit(q)
-    visit(Path(path))
+    visit(main)
     return out
+
+
+_hashes: dict = {}          # (path, the stats of it and of every file it names) -> content hash
 
 
 def content_hash(path) -> str:
     """SHA-256 (hex) of a scene file's content: its bytes, then each file it names (:func:`referenced_files`)
-    with its name relative to the scene's folder and its bytes. A named file that is missing is an error."""
+    with its name relative to the scene's folder and its bytes. A named file that is missing is an error.
+    Kept per process for files whose sizes and modification times have not changed (a config is built
+    several times a run, and every frame's load checks its file)."""
     p = Path(path).resolve()
+    refs = referenced_files(p)
+    try:
+        key = (str(p), *((str(q), q.stat().st_size, q.stat().st_mtime_ns) for q in [p, *refs]))
+    except OSError as e:
+        raise SceneFileError(f"scene file {str(p)!r}: a file it names cannot be read: {e.strerror or e}") from None
+    if key in _hashes:
+        return _hashes[key]
     h = hashlib.sha256()
     try:
         h.update(p.read_bytes())
     except OSError as e:
         raise SceneFileError(f"scene file {str(p)!r} cannot be read: {e.strerror or e}") from None
-    for q in referenced_files(p):
+    for q in refs:
         try:
             data = q.read_bytes()
         except OSError as e:
@@ -158,7 +194,8 @@ def content_hash(path) -> str:
                                  f"{e.strerror or e}") from None
         rel = str(q.relative_to(p.parent)) if q.is_relative_to(p.parent) else str(q)
         h.update(b"\0" + rel.encode() + b"\0" + hashlib.sha256(data).digest())
-    return h.hexdigest()
+    _hashes[key] = h.hexdigest()
+    return _hashes[key]
 
 
 def has_sensor(path) -> bool:
@@ -194,20 +231,37 @@ def load_file(path):
     (an EXR texture or environment map) hands its lines to the pool and waits forever (measured: the
     real-scene suite's ``envmap-object.xml`` hung every worker; a plain process with ``dr.set_thread_count(1)``
     hangs too). The pool is set back after."""
-    import drjit as dr
-
     from core.variant import mitsuba
     mi = mitsuba()
-    before = dr.thread_count()
-    if before < LOAD_THREADS:
-        dr.set_thread_count(LOAD_THREADS)
+    with _load_threads():
+        try:
+            return mi.load_file(str(path), parallel=False)
+        except Exception as e:          # Mitsuba raises RuntimeError (and others) for a file it cannot load
+            raise _one_line(path, e, mi) from None
+
+
+_loads = {"count": 0, "before": 0}
+_loads_lock = threading.Lock()
+
+
+@contextmanager
+def _load_threads():
+    """drjit's pool at :data:`LOAD_THREADS` at least while any thread of the process loads a file (the pool is
+    process-wide: the last load to end sets it back, so one ending never shrinks another's)."""
+    import drjit as dr
+    with _loads_lock:
+        if _loads["count"] == 0:
+            _loads["before"] = dr.thread_count()
+            if _loads["before"] < LOAD_THREADS:
+                dr.set_thread_count(LOAD_THREADS)
+        _loads["count"] += 1
     try:
-        return mi.load_file(str(path), parallel=False)
-    except Exception as e:          # Mitsuba raises RuntimeError (and others) for a file it cannot load
-        raise _one_line(path, e, mi) from None
+        yield
     finally:
-        if before < LOAD_THREADS:
-            dr.set_thread_count(before)
+        with _loads_lock:
+            _loads["count"] -= 1
+            if _loads["count"] == 0 and _loads["before"] < LOAD_THREADS:
+                dr.set_thread_count(_loads["before"])
 
 
 def inspect(path, settings: CameraSettings) -> dict:
@@ -226,6 +280,7 @@ def inspect(path, settings: CameraSettings) -> dict:
     base = _sensor_camera(mi, scene, sensor, p) if sensor is not None else None
     cam = _with_settings(base, settings)
     dist = float(np.linalg.norm(np.subtract(cam.target, cam.origin)))
+    _check_extent(scene, cam, p)
     return {"camera": cam.to_dict(), "distance": dist, "max_depth": _bounces(scene.integrator())}
 
 
@@ -238,6 +293,10 @@ def _sensor_camera(mi, scene, sensor, path: Path) -> CameraSpec:
                              "or thinlens camera; give its scene group a camera (camera: {origin, target, fov})")
     params = mi.traverse(sensor)
     m = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    if np.linalg.det(m[:3, :3]) < 0:
+        raise SceneFileError(f"scene file {str(path)!r}: its sensor's to_world mirrors the image (a negative scale); "
+                             "the dataset's cameras are look-at cameras: give its scene group a camera (camera: "
+                             "{origin, target, up, fov}) or remove the mirroring")
     origin, forward, up = m[:3, 3], m[:3, 2], m[:3, 1]
     forward = forward / np.linalg.norm(forward)
     ray = mi.Ray3f(mi.Point3f(*map(float, origin)), mi.Vector3f(*map(float, forward)))
@@ -250,6 +309,18 @@ def _sensor_camera(mi, scene, sensor, path: Path) -> CameraSpec:
     fov = float(np.ravel(params["x_fov"])[0])
     return CameraSpec(origin=tuple(origin), target=tuple(origin + forward * t), up=tuple(up / np.linalg.norm(up)),
                       fov=fov, aperture_radius=aperture, focus_distance=focus if focus > 0 else t)
+
+
+def _check_extent(scene, cam: CameraSpec, path: Path) -> None:
+    """Refuse a scene that reaches past the dataset's far clip plane from its camera (``to_mitsuba.FAR_CLIP``,
+    the cameras of every source: a scene modelled in millimetres would lose what lies beyond it)."""
+    bb = scene.bbox()
+    lo, hi = np.asarray(bb.min, np.float64).ravel(), np.asarray(bb.max, np.float64).ravel()
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    far = float(np.max(np.linalg.norm(corners - np.asarray(cam.origin), axis=1))) if np.isfinite(corners).all() else 0.0
+    if far > to_mitsuba.FAR_CLIP:
+        raise SceneFileError(f"scene file {str(path)!r} reaches {far:.4g} units from its camera, past the far clip "
+                             f"plane at {to_mitsuba.FAR_CLIP:g}: scale the scene down (e.g. millimetres to metres)")
 
 
 def _with_settings(base: CameraSpec | None, s: CameraSettings) -> CameraSpec:

@@ -8,7 +8,8 @@ Conventions (shared with the renderer):
   objects) and handed to Mitsuba as ``mi.Mesh`` objects; nothing touches the disk.
 - ``tau`` is time in frames (see ``scene_gen.spec``); by default the start of the frame's exposure.
 - Cameras: ``perspective`` without defocus, ``thinlens`` with it; ``fov`` on the x axis (Mitsuba's
-  default ``fov_axis``); a box pixel filter so a pixel is the plain mean of its samples.
+  default ``fov_axis``); the pixel filter of the render settings (``box``: a pixel is the plain mean of
+  its samples; ``gaussian``: Mitsuba's, with the border sampled: :func:`film_dict`).
 - Integrator: ``path`` with ``max_depth = spec.max_depth + 1`` (``spec.max_depth`` counts bounces)
   and Russian roulette off (``rr_depth`` past ``max_depth``), as in the layer paper.
 - Roughness in a MaterialSpec is perceptual; microfacet ``alpha = roughness ** 2``.

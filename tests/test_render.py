@@ -844,3 +844,6 @@ def test_gaussian_filter_pixels_are_mitsubas_filtered_pixels(mi):
             ratio = (se ** 2).mean() / (v / (gain * 1024)).mean()      # the error the filtered samples have
             assert 0.7 < ratio < 1.4, ratio
     assert frac["gaussian"] < 0.02 and frac["box"] > 0.1, frac
+    # a launch of the Gaussian film samples its 2-pixel border too: launches are planned on those pixels
+    from pipeline.render import FrameScene
+    assert FrameScene(spec, 0, cfg(filter="gaussian", ref_spp=0, layer_levels=0)).launch_pixels == (RES[0] + 4) * (RES[1] + 4)

@@ -263,3 +263,36 @@ def test_a_file_with_exr_textures_loads_in_a_one_thread_worker(tmp_path):
             f"s = load_file({str(path)!r}); print(len(s.shapes()), dr.thread_count())")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.split() == ["5", "1"], r.stdout + r.stderr[-2000:]
+
+
+def test_what_a_file_names_is_found_and_hashed_as_mitsuba_finds_it(mi, tmp_path):
+    """``<default>`` parameters, ``<path>`` folders and a texture named through them are found and hashed (a
+    changed texture changes the hash, a file cache or not); a parameter without a default, a name found
+    nowhere, a mirrored sensor and a scene past the far clip plane are one-line errors."""
+    from core.images import write_exr
+    from scene_gen import scene_files as sf
+    from scene_gen.errors import SceneFileError
+    path = write_scene(tmp_path)
+    (tmp_path / "maps").mkdir()
+    write_exr(tmp_path / "maps" / "grey.exr", np.full((4, 4, 3), 0.5, np.float32))
+    text = path.read_text().replace('<scene version="3.0.0">', '<scene version="3.0.0">\n  <default name="tex" value="grey"/>\n  <path value="maps"/>')
+    text = text.replace("textures/checker.png", "$tex.exr")
+    path.write_text(text)
+    assert tmp_path / "maps" / "grey.exr" in sf.referenced_files(path)
+    mi.load_file(str(path))                                  # Mitsuba finds it the same way
+    before = sf.content_hash(path)
+    write_exr(tmp_path / "maps" / "grey.exr", np.full((4, 4, 3), 0.25, np.float32))
+    assert sf.content_hash(path) != before
+    for bad, words in ((text.replace('<default name="tex" value="grey"/>', ""), "without a <default>"),
+                       (text.replace('<path value="maps"/>', ""), "neither in its folder")):
+        path.write_text(bad)
+        with pytest.raises(SceneFileError, match=words):
+            sf.content_hash(path)
+    mirrored = write_scene(tmp_path / "m")
+    mirrored.write_text(mirrored.read_text().replace('<lookat origin="0, 1.3, 4"', '<scale x="-1"/><lookat origin="0, 1.3, 4"'))
+    with pytest.raises(SceneFileError, match="mirrors the image"):
+        sf.inspect(mirrored, sf.CameraSettings())
+    huge = write_scene(tmp_path / "h")
+    huge.write_text(huge.read_text().replace('<scale value="4"/><translate z="-2"/>', '<scale value="40000"/><translate z="-2"/>'))
+    with pytest.raises(SceneFileError, match="far clip"):
+        sf.inspect(huge, sf.CameraSettings())

@@ -287,17 +287,26 @@ def hard_case_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def link_inputs(evals: list[dict]) -> None:
-    """Set each method's ``input_label``: the label of the ``input`` evaluation at its spp and the baseline
-    input of its kind (``training.inputs``), the noisy input it is judged against."""
+def baselines_of(evals: list[dict], baseline: str) -> dict[str, str]:
+    """Each method's own ``baseline`` (``input`` or ``oidn``): label -> the label of that baseline's
+    evaluation at the method's spp and the baseline input of its kind (``training.inputs``), for every
+    method that has one (never the baseline's own evaluations); methods without a spp or input kind have none."""
     from .inputs import KINDS
 
     def key(e):
         return int(e["spp"]), KINDS[e["input_kind"]].baseline_input
-    inputs = {key(e): e["label"] for e in evals if e.get("method") == "input"}
+    known = [e for e in evals if e.get("spp") is not None and e.get("input_kind") in KINDS]
+    found = {key(e): e["label"] for e in known if e.get("method") == baseline}
+    return {e["label"]: found[key(e)] for e in known if e.get("method") != baseline and key(e) in found}
+
+
+def link_inputs(evals: list[dict]) -> None:
+    """Set each method's ``input_label``: the label of the ``input`` evaluation at its spp and the baseline
+    input of its kind (:func:`baselines_of`), the noisy input it is judged against."""
+    own = baselines_of(evals, "input")
     for e in evals:
         if e.get("method") != "input":
-            e["input_label"] = inputs.get(key(e))
+            e["input_label"] = own.get(e["label"])
 
 
 def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: bool = True, oidn: bool = True,

@@ -29,7 +29,7 @@ from .checkpoint import find_runs
 from .data import open_store
 from .errors import ConfigError
 from .evaluate import baseline_groups
-from .hardcases import VERDICT_MARK, against_input, case_cell, evaluate_frames, link_inputs
+from .hardcases import VERDICT_MARK, against_input, baselines_of, case_cell, evaluate_frames, link_inputs
 from .jsonio import write
 
 ALL = "(all)"
@@ -44,14 +44,10 @@ def frame_scenes(st) -> list[str]:
 
 def link_oidn(evals: list[dict]) -> None:
     """Each model's ``oidn_label``: the ``oidn`` evaluation at its spp and baseline input."""
-    from .inputs import KINDS
-
-    def key(e):
-        return int(e["spp"]), KINDS[e["input_kind"]].baseline_input
-    oidn = {key(e): e["label"] for e in evals if e.get("method") == "oidn"}
+    oidn = baselines_of(evals, "oidn")
     for e in evals:
         if e.get("method") not in ("input", "oidn"):
-            e["oidn_label"] = oidn.get(key(e))
+            e["oidn_label"] = oidn.get(e["label"])
 
 
 def against(rows: list[dict], base: list[dict], label: str) -> dict:
@@ -145,7 +141,8 @@ def markdown(res: dict) -> str:
     lines += ["Mean radiance over the reference's (1: the image keeps its energy), with 95% intervals:", "",
               "| scene | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for n, row in scenes.items():
-        cells = [f"{v['mean_ratio']:.3f}{_ci(v.get('mean_ratio_ci95'), '.3f')}" if v and v.get("mean_ratio") else "–"
+        cells = [f"{v['mean_ratio']:.3f}{_ci(v.get('mean_ratio_ci95'), '.3f')}" if v and v.get("mean_ratio") is not None
+                 else "–"
                  for v in (row.get(m) for m in methods)]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

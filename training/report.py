@@ -4,8 +4,8 @@
 training budgets), ``out/speed_vs_error.png`` (ms per megapixel at 128x128 against relMSE, both log),
 ``out/crops.png`` (input / each model / OIDN / reference, tone-mapped), ``out/sample_map-<run>.png``
 for adaptive samplers (where the samples went), ``out/eval-<name>.json`` and ``out/comparisons.json``.
-Every comparison is stated against one method (the first, or ``--baseline``) as a paired per-frame
-difference with its 95% interval (a bootstrap over clips, :mod:`training.stats`), "no difference shown"
+Every method is compared with its own noisy input (at its spp and input kind), or with one method
+(``--baseline``), as a paired per-frame difference with its 95% interval (a bootstrap over clips, :mod:`training.stats`), "no difference shown"
 where the interval holds 0 and "no interval (one clip)" where it cannot be known; runs that differ only
 in their training seed get their spread. Figures: matplotlib.
 """
@@ -24,7 +24,7 @@ from .errors import DataError
 from .data import open_store
 from .evaluate import FIREFLY_RATIO, FIREFLY_SHARE, baseline_groups, evaluate, frame_kinds, write_json
 from .fma import figure10, figure10_markdown
-from .hardcases import hard_case_report
+from .hardcases import baselines_of, hard_case_report
 from .jsonio import write as write_strict
 from core.images import tonemap
 
@@ -319,18 +319,6 @@ COMPARED = (("relmse", "relMSE", "{:+.4f}", -1), ("psnr", "PSNR", "{:+.2f}", 1),
 OWN_INPUT = "its own noisy input"
 
 
-def own_inputs(results: list[dict]) -> dict[str, str]:
-    """Each method's own noisy input: the label of the ``input`` evaluated at its spp and the baseline input
-    of its kind (``training.inputs``), the input it is judged against (the inputs and OIDN map to theirs)."""
-    from .inputs import KINDS
-
-    def key(r):
-        return int(r["spp"]), KINDS[r["input_kind"]].baseline_input
-    known = [r for r in results if r.get("spp") is not None and r.get("input_kind") in KINDS]
-    inputs = {key(r): r["label"] for r in known if r.get("method") == "input"}
-    return {r["label"]: inputs[key(r)] for r in known if r.get("method") != "input" and key(r) in inputs}
-
-
 def _paired_row(base: dict, r: dict) -> dict:
     clip = {f["index"]: f.get("clip", f["index"]) for f in base["frames"]}
 
@@ -350,20 +338,21 @@ def comparisons(results: list[dict], baseline: str | None = None) -> dict:
     """Every method against a baseline as the paired per-frame difference (method minus baseline, on the
     frames both were evaluated on) with its 95% interval, a bootstrap over clips
     (:func:`training.stats.paired_difference`): ``baseline`` None (the default): each method against its own
-    noisy input (:func:`own_inputs`, the input at its spp and input kind, never a lower-spp one that
-    flatters it); a label: every method against that one. ``{"baseline": label or OWN_INPUT, "rows":
+    noisy input (``training.hardcases.baselines_of``: the input at its spp and input kind, never a lower-spp
+    one that flatters it; a method without one gets a row whose ``against`` is None); a label: every method
+    against that one. ``{"baseline": label or OWN_INPUT, "rows":
     [{"label", "against", key: {"mean", "ci95", "frames", "shown"}}]}``."""
     labels = [r["label"] for r in results]
     by_label = {r["label"]: r for r in results}
     if baseline is not None and baseline not in labels:
         raise DataError(f"--baseline {baseline!r} is not one of the report's methods: {labels}")
-    own = own_inputs(results) if baseline is None else {}
+    own = baselines_of(results, "input") if baseline is None else {}
     rows = []
     for r in results:
-        base = by_label.get(baseline if baseline is not None else own.get(r["label"], ""))
-        if base is None or base is r:
+        if r["label"] == baseline or (baseline is None and r.get("method") == "input"):
             continue
-        rows.append(_paired_row(base, r))
+        base = by_label.get(baseline if baseline is not None else own.get(r["label"], ""))
+        rows.append(_paired_row(base, r) if base is not None else {"label": r["label"], "against": None})
     return {"baseline": baseline if baseline is not None else OWN_INPUT, "rows": rows}
 
 
@@ -375,7 +364,8 @@ def comparisons_markdown(comp: dict) -> str:
              "|---|---|" + "---|" * len(keys)]
     for row in comp["rows"]:
         cells = [difference_cell(row.get(key), f, better) for key, _, f, better in keys]
-        lines.append(f"| {row['label']} | {row.get('against', comp['baseline'])} | " + " | ".join(cells) + " |")
+        against = row.get("against") or "no input at its spp and input kind"
+        lines.append(f"| {row['label']} | {against} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -389,6 +379,8 @@ def comparisons_by_kind(results: list[dict], baseline: str | None = None, key: s
     kinds = list(distinct_kinds(first.get("by_kind", {})))
     rows = []
     for c in comp["rows"]:
+        if c["against"] is None:
+            continue
         base, r = by_label[c["against"]], by_label[c["label"]]
         if not r["frames"] or key not in r["frames"][0]:
             continue

@@ -15,11 +15,12 @@ pixel filter ``cfg.filter``: ``box`` or ``gaussian``):
 
 - **Inputs** (``radiance`` float32 HWS3, ``features`` float32 HWS17): one drjit wavefront of
   W·H·S samples (split in row chunks of at most ``cfg.max_wavefront`` lanes). Each sample draws
-  its film position uniformly inside its pixel, a lens sample and a wavelength sample from an
+  its film position inside its pixel (uniformly for the box filter; from the filter for ``gaussian``,
+  so that it estimates the same filtered pixel as ``mi.render``), a lens sample and a wavelength sample from an
   ``independent`` sampler, builds the ray with ``sensor.sample_ray_differential`` and traces it once
   with ``pipeline.primary_path`` (Mitsuba's ``path`` integrator step for step: the same per-sample
   radiance as ``integrator.sample``, times the ray weight), which also hands back the primary hit
-  for the features. A pixel's mean is therefore the same estimator as ``mi.render``'s. Each
+  for the features. A pixel's mean therefore estimates what ``mi.render``'s pixel estimates. Each
   wavefront is one drjit kernel that writes its samples, after the NaN/Inf rule, straight into one
   buffer, plus one small kernel for the guides, and one read-back. Features
   (``stores.contract.FEATURE_NAMES``): world shading normal, distance along the ray, diffuse

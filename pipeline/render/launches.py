@@ -53,8 +53,7 @@ def launch_seed(seed: int, i: int) -> int:
 def mi_render(fs: FrameScene, spp: int, seed: int, *, integrator=None, channels: int = 3) -> np.ndarray:
     """``mi.render`` of ``spp`` samples (float64 HW x ``channels``), in as many launches as :func:`launch_plan`
     says, weighted by their samples; ``integrator`` in place of the scene's own."""
-    W, H = fs.cfg.res
-    plan = launch_plan(W * H, int(spp))
+    plan = launch_plan(fs.launch_pixels, int(spp))
     acc = 0.0
     for i, n in enumerate(plan):
         img = fs.mi.render(fs.scene, integrator=integrator, spp=int(n), seed=launch_seed(seed, i))
@@ -88,8 +87,9 @@ def render_sliced(fs: FrameScene, spp: int, stream: int, index: int, max_slices:
 
 def moment_integrator(mi, nested):
     """``nested`` (a ``SamplingIntegrator``) wrapped to add four AOVs: the square of each sample's R, G
-    and B, and 1 for a sample with a NaN (whose value is then 0). The film's box filter averages them
-    per pixel, so ``mi.render`` returns each pixel's mean, second moment and share of NaN samples in one
+    and B, and 1 for a sample with a NaN (whose value is then 0). The film's filter averages them per
+    pixel (the box: the plain mean of the pixel's samples; another filter: their weighted mean, whose
+    error ``pipeline.render.reference`` counts with the filter's gain), so ``mi.render`` returns each pixel's mean, second moment and share of NaN samples in one
     launch (:data:`MOMENT_CHANNELS`: R, G, B, R², G², B², NaN share; :func:`valid_moments`). Mitsuba's
     own ``moment`` integrator records the second moment of XYZ, from which per-channel RGB variances
     cannot be had, and a film with AOVs sets a NaN sample to 0 without a word, hence the NaN share. The

@@ -11,7 +11,7 @@ diffuse                             0                                           
 conductor / roughconductor          ``specular_reflectance`` x F0 of (eta, k)    0 / sqrt(alpha)
 dielectric / thin / roughdielectric ``((eta - 1) / (eta + 1))^2``                0 / 0 / sqrt(alpha)
 plastic / roughplastic              ``((eta - 1) / (eta + 1))^2``                0 / sqrt(alpha)
-principled                          ``0.08 specular (1 - metallic) + base metallic``  ``roughness``
+principled                          ``F0 (1 - metallic) + base metallic``         ``roughness``
 twosided                            its front BSDF's
 blendbsdf                           ``(1 - weight) a + weight b`` for both
 mask, bumpmap, normalmap            the nested BSDF's
@@ -20,7 +20,8 @@ mask, bumpmap, normalmap            the nested BSDF's
 F0 of a conductor is ``((eta - 1)^2 + k^2) / ((eta + 1)^2 + k^2)`` per channel (Mitsuba's ``material``
 ``none`` is eta 0, k 1: a perfect mirror, F0 1). ``alpha`` is the microfacet roughness (anisotropic:
 the mean of ``alpha_u`` and ``alpha_v``); the feature is its square root, the perceptual roughness the
-generator draws (``scene_gen.materials``). A textured parameter counts with its mean over the texture
+generator draws (``scene_gen.materials``); a principled BSDF's F0 is ``0.08 specular``, or its ``eta``'s
+where the file gives one. A textured parameter counts with its mean over the texture
 (a bitmap's texels, a checkerboard's two colours, any other texture's values on a 16x16 grid of UVs).
 
 **Fallback** for a BSDF none of the rows names (``measured``, ``hair``, a plugin of the user's): by its
@@ -152,9 +153,12 @@ def _dielectric(mi, kids, params):
 def _principled(mi, kids, params):
     base = _rgb(_value(mi, kids, params, "base_color", 0.5))
     metallic = float(np.mean(_value(mi, kids, params, "metallic", 0.0)))
-    specular = float(np.mean(_value(mi, kids, params, "specular", 0.5)))
     rough = float(np.mean(_value(mi, kids, params, "roughness", 0.5)))
-    return 0.08 * specular * (1.0 - metallic) + base * metallic, rough
+    if "eta" in params:             # a file that gives eta: Mitsuba then derives the dielectric F0 from it
+        f0 = _dielectric_f0(float(np.mean(_value(mi, kids, params, "eta", 1.5))))
+    else:
+        f0 = 0.08 * float(np.mean(_value(mi, kids, params, "specular", 0.5)))
+    return f0 * (1.0 - metallic) + base * metallic, rough
 
 
 def _diffuse(mi, kids, params):

@@ -64,6 +64,9 @@ class FrameScene:
         self.consts, self.consts_u = self._input_constants(lut_size)
         self.integrator_depths = self._path_depths()
         self.film_filter = _film_filter(mi, self.sensor.film(), cfg.filter)
+        # the pixels an mi.render launch samples: the film and, for a filter wider than a pixel, its border
+        b = int(self.sensor.film().rfilter().border_size()) if self.film_filter is not None else 0
+        self.launch_pixels = (cfg.width + 2 * b) * (cfg.height + 2 * b)
 
     def _shape_tables(self) -> int:
         """The per-shape tables (index 0 = no hit) in numpy and on the drjit side, where the input kernel
