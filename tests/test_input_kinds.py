@@ -84,11 +84,12 @@ def test_a_model_of_each_kind_goes_through_every_command(kind, probes, clip_stor
     assert cli("report", "--runs", run, "--store", clip_store, "--out", tmp_path / "report", "--no-flip") == 0
     text = (tmp_path / "report" / "report.md").read_text()
     assert f"| {run.name} |" in text and "| input |" in text and "| oidn |" in text
-    assert "Each method against **input**" in text                     # paired differences with intervals
+    assert "Each method against **its own noisy input**" in text      # paired differences with intervals
     saved = json.loads((tmp_path / "report" / "comparisons.json").read_text())
     comp, by_kind = saved["comparisons"], saved["comparisons_by_kind"]
     assert by_kind["kinds"] and all(k in row for row in by_kind["rows"] for k, _ in by_kind["kinds"])
-    assert comp["baseline"] == "input" and [r["label"] for r in comp["rows"]] == [run.name, "oidn"]
+    assert comp["baseline"] == "its own noisy input" and [r["label"] for r in comp["rows"]] == [run.name, "oidn"]
+    assert {r["against"] for r in comp["rows"]} == {"input"}             # one spp, one input kind: one input
     lo, hi = comp["rows"][0]["relmse"]["ci95"]
     assert lo <= comp["rows"][0]["relmse"]["mean"] <= hi
     assert comp["rows"][0]["tpsnr"]["frames"] == CLIPS[2]      # tPSNR paired clip by clip (one run each)
