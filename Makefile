@@ -124,7 +124,7 @@ hard-cases: setup ## render configs/hard-cases.yaml, then evaluate RUNS (default
 
 REAL_SCENES ?=
 REAL_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt data/runs-nppd/*/checkpoint.pt)
-real-scenes: setup ## the held-out real-scene suite (box and Gaussian filters; REAL_SCENES=DIR adds your folder of scene files): every trained run, its input and OIDN per scene (about 40 min on 2 cores)
+real-scenes: setup ## the held-out real-scene suite (box and Gaussian filters; REAL_SCENES=DIR adds your folder of scene files): every trained run, its input and OIDN per scene (about 7 min on 2 cores)
 	$(PY) -m scene_gen real-scenes --out $(DENOISE_DATA)/real-scenes
 	$(PY) -m pipeline dataset --config configs/real-scenes.yaml
 	$(PY) -m pipeline dataset --config configs/real-scenes.yaml --set render.filter=gaussian --set name=real-scenes-gaussian
