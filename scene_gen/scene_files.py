@@ -106,7 +106,9 @@ def scene_list(path) -> list[Path]:
             raise SceneFileError(f"scene folder {str(p)!r} holds no Mitsuba scene file (*.xml)")
         return found
     if not p.exists():
-        raise SceneFileError(f"scene file {str(p)!r} does not exist")
+        hint = (": the real-scene suite's files are written by `python -m scene_gen real-scenes --out "
+                f"{str(p)}` (`make real-scenes` does it first)") if p.name == "real-scenes" else ""
+        raise SceneFileError(f"scene file {str(p)!r} does not exist{hint}")
     if not p.is_file():
         raise SceneFileError(f"scene file {str(p)!r} is not a file")
     return [p.resolve()]

@@ -32,6 +32,22 @@ def mi():
     return mitsuba()
 
 
+@pytest.fixture(scope="session")
+def _suite_folder(tmp_path_factory):
+    from scene_gen.real_scenes import write_suite
+    root = tmp_path_factory.mktemp("data")
+    write_suite(root / "real-scenes")
+    return root
+
+
+@pytest.fixture
+def real_scene_data(_suite_folder, monkeypatch):
+    """``DENOISE_DATA`` set to a folder holding the real-scene suite's files, where ``configs/real-scenes.yaml``
+    names them (``make real-scenes`` writes them there; a fresh clone has none)."""
+    monkeypatch.setenv("DENOISE_DATA", str(_suite_folder))
+    return _suite_folder
+
+
 @pytest.fixture(autouse=True)
 def _flush_denormals_stays_in_its_test():
     """``training`` flushes float32 denormals to zero for speed (``torch.set_flush_denormal``), a

@@ -72,7 +72,7 @@ def test_bad_rates_are_a_one_line_config_error(group, needle):
     assert "\n" not in str(e.value)
 
 
-def test_held_out_scenes_come_from_a_seed_space_no_other_dataset_draws():
+def test_held_out_scenes_come_from_a_seed_space_no_other_dataset_draws(real_scene_data):
     assert all(0 <= scene_seed(r, i) < HELD_OUT_SEEDS for r in (0, 7, 2 ** 62) for i in range(200))
     assert all(HELD_OUT_SEEDS <= scene_seed(r, i, True) < 2 ** 32 for r in (0, 14) for i in range(200))
     suite = load_config(ROOT / "configs" / "hard-cases.yaml")

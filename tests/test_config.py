@@ -31,7 +31,7 @@ def write(tmp_path, d) -> Path:
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
-def test_every_shipped_config_is_valid(path):
+def test_every_shipped_config_is_valid(path, real_scene_data):
     cfg = load_config(path)
     assert cfg.num_frames >= 1
     assert DatasetConfig.from_dict(cfg.to_dict()) == cfg

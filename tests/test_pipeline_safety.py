@@ -409,7 +409,7 @@ def test_a_frame_that_cannot_fit_in_memory_is_refused(tmp_path, capsys):
 
 # ---- 10: every small config puts scenes in val and test ------------------------------------------
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
-def test_splits_are_balanced_and_read_back_by_the_store_rule(path):
+def test_splits_are_balanced_and_read_back_by_the_store_rule(path, real_scene_data):
     from stores.reader import split_of_clip
     cfg = load_config(path)
     fr = cfg.split_fractions
