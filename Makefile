@@ -128,9 +128,9 @@ real-scenes: setup ## the held-out real-scene suite (box and Gaussian filters; R
 	$(PY) -m scene_gen real-scenes --out $(DENOISE_DATA)/real-scenes
 	$(PY) -m pipeline dataset --config configs/real-scenes.yaml
 	$(PY) -m pipeline dataset --config configs/real-scenes.yaml --set render.filter=gaussian --set name=real-scenes-gaussian
-	$(if $(REAL_SCENES),$(PY) -m pipeline dataset --config configs/real-scenes.yaml --set name=real-scenes-user \
+	if [ -n "$(REAL_SCENES)" ]; then $(PY) -m pipeline dataset --config configs/real-scenes.yaml --set name=real-scenes-user \
 	  --set 'scenes=[{file: "$(abspath $(REAL_SCENES))", camera: {jitter: 0.0, turn: 0.0, zoom: 0.0}}, {file: "$(abspath $(REAL_SCENES))"}]' \
-	  --set render.filter=gaussian)
+	  --set render.filter=gaussian || exit 1; fi
 	$(PY) -m training real-scenes --runs $(or $(RUNS),$(dir $(REAL_RUNS))) --store $(DENOISE_DATA)/real-scenes.zarr \
 	  --store $(DENOISE_DATA)/real-scenes-gaussian.zarr $(if $(REAL_SCENES),--store $(DENOISE_DATA)/real-scenes-user.zarr) \
 	  --out $(or $(REPORT),data/report-real-scenes)
