@@ -13,7 +13,9 @@ clipped to [0, 1]: albedo) or ``"linear"`` (no curve: normal maps as ``n * 0.5 +
 [0, 1]. No auto exposure: a preview shows the radiance levels the dataset stores.
 
 OpenEXR files (the ``OpenEXR`` package; scanline, ZIP): :func:`write_exr` / :func:`read_exr` for images
-(float32 HWC with channel names) and :func:`read_exr_channels` for the channels by name.
+(float32 HWC with channel names) and :func:`read_exr_channels` for the channels by name. The readers
+give the pixels of a file's data window; :func:`exr_windows` says where that window lies in the display
+window, and :func:`write_exr` writes both windows (``data_window``, ``display_window``).
 """
 from __future__ import annotations
 
@@ -85,10 +87,16 @@ def write_png(path: str | Path, image, exposure: float = 1.0, mode: str = "log")
     return path
 
 
-def write_exr(path: str | Path, image, channels="RGB", half: bool = False) -> Path:
+Window = tuple[int, int, int, int]       # (x0, y0, x1, y1), inclusive: OpenEXR's box2i
+
+
+def write_exr(path: str | Path, image, channels="RGB", half: bool = False, *, data_window: Window | None = None,
+              display_window: Window | None = None) -> Path:
     """Write ``image`` (float32, HWC or HW) as a scanline, ZIP-compressed OpenEXR file. ``channels``
     names the C channels: a string of one-letter names (``"RGB"``, ``"Y"``, ``"RG"``) or a list of
-    names. ``half``: store float16."""
+    names. ``half``: store float16. ``data_window``: where the image's pixels lie, ``(x0, y0, x1, y1)``
+    inclusive, the image's size (default: at (0, 0)); ``display_window``: the whole image's (default: the
+    data window)."""
     import OpenEXR
 
     path = Path(path)
@@ -102,6 +110,14 @@ def write_exr(path: str | Path, image, channels="RGB", half: bool = False) -> Pa
                          f"named {names}")
     chans = {c: np.ascontiguousarray(img[..., i]) for i, c in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    H, W = img.shape[:2]
+    data = tuple(int(v) for v in data_window) if data_window is not None else (0, 0, W - 1, H - 1)
+    if (data[2] - data[0] + 1, data[3] - data[1] + 1) != (W, H):
+        raise ValueError(f"{path}: data window {window_text(data)} is not the image's {W}x{H}")
+    if data_window is not None or display_window is not None:
+        box = lambda b: (np.array(b[:2], np.int32), np.array(b[2:], np.int32))      # noqa: E731
+        header["dataWindow"] = box(data)
+        header["displayWindow"] = box(tuple(int(v) for v in display_window) if display_window is not None else data)
     with OpenEXR.File(header, chans) as f:
         try:
             f.write(str(path))
@@ -122,6 +138,21 @@ def read_exr_channels(path: str | Path) -> dict:
 
     with OpenEXR.File(str(path)) as f:
         return {k: np.array(v.pixels) for k, v in f.channels().items()}
+
+
+def exr_windows(path: str | Path) -> tuple[Window, Window]:
+    """``(data window, display window)`` of an OpenEXR file, each ``(x0, y0, x1, y1)`` inclusive: where
+    the pixels the readers give lie, and the whole image they belong to."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), header_only=True) as f:
+        h = f.header()
+        return tuple(tuple(int(v) for b in h[k] for v in b) for k in ("dataWindow", "displayWindow"))
+
+
+def window_text(w: Window) -> str:
+    """``(x0,y0)-(x1,y1)``, as OpenEXR's tools print a window."""
+    return f"({w[0]},{w[1]})-({w[2]},{w[3]})"
 
 
 def exr_channel_names(path: str | Path) -> list[str]:

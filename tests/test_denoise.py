@@ -251,3 +251,58 @@ def test_denoise_says_when_the_inputs_sample_count_is_not_the_models(store, tmp_
     layer = save_model(tmp_path / "layer.pt", "layer", store)
     assert _run("--checkpoint", layer, "--store", store, "--frame", i, "--spp", 1, "--out", tmp_path / "l.exr") == 0
     assert not any(x.startswith(("warning", "note")) for x in capsys.readouterr().err.splitlines())
+
+
+def _exr_at(path, img, data, display):
+    """``img`` (HWC float32, RGB or one channel ``Z``) as an OpenEXR file written by the OpenEXR package
+    itself, with data window ``data`` and display window ``display`` (each ``(x0, y0, x1, y1)``, inclusive)."""
+    import OpenEXR
+    names = "RGB" if img.shape[-1] == 3 else "Z"
+    box = lambda b: (np.array(b[:2], np.int32), np.array(b[2:], np.int32))      # noqa: E731
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "dataWindow": box(data),
+              "displayWindow": box(display)}
+    with OpenEXR.File(header, {c: np.ascontiguousarray(img[..., k], np.float32) for k, c in enumerate(names)}) as f:
+        f.write(str(path))
+    return str(path)
+
+
+def _windows(path):
+    import OpenEXR
+    with OpenEXR.File(str(path)) as f:
+        h = f.header()
+        return tuple(tuple(int(v) for b in h[k] for v in b) for k in ("dataWindow", "displayWindow"))
+
+
+def test_an_exrs_data_window_is_kept_and_guides_must_cover_it(store, tmp_path, capsys):
+    """An input whose data window is (4,4)-(19,19) of a 24x24 display window, with guides over the whole
+    display window: each guide is taken at the input's pixels, and the output keeps the input's data and
+    display windows (before: written at (0,0) of a 16x16 display, the crop's place lost, exit 0; or the
+    24x24 guides refused by size). The pixels are those of the same crop given as plain images. Guides at
+    (0,0) that do not cover the input's pixels, or of another display window, are one line, exit 2."""
+    ck = save_model(tmp_path / "wskpn.pt", "wskpn", store)
+    p = _exr_inputs(store, _test_frame(store), tmp_path)
+    full = {k: read_exr(v)[0][:24, :24] for k, v in p.items()}
+    disp, dw = (0, 0, 23, 23), (4, 4, 19, 19)
+    inp = _exr_at(tmp_path / "crop.exr", full["radiance"][4:20, 4:20], dw, disp)
+    guides = {g: _exr_at(tmp_path / f"{g}-full.exr", full[g], disp, disp) for g in ("albedo", "normal", "depth")}
+    args = [x for g, path in guides.items() for x in (f"--{g}", path)]
+    assert _run("--checkpoint", ck, "--input", inp, *args, "--out", tmp_path / "out.exr") == 0
+    assert _windows(tmp_path / "out.exr") == (dw, disp)
+    plain = {g: _exr_at(tmp_path / f"{g}-plain.exr", full[g][4:20, 4:20], (0, 0, 15, 15), (0, 0, 15, 15))
+             for g in ("radiance", "albedo", "normal", "depth")}
+    assert _run("--checkpoint", ck, "--input", plain["radiance"], *[x for g in guides for x in (f"--{g}", plain[g])],
+                "--out", tmp_path / "plain.exr") == 0
+    np.testing.assert_array_equal(read_exr(tmp_path / "out.exr")[0], read_exr(tmp_path / "plain.exr")[0])
+    capsys.readouterr()
+    # guides of the crop's size at (0, 0) of the same display window: they hold other pixels than the input's
+    at0 = {g: _exr_at(tmp_path / f"{g}-at0.exr", full[g][4:20, 4:20], (0, 0, 15, 15), disp) for g in guides}
+    assert _run("--checkpoint", ck, "--input", inp, *[x for g in guides for x in (f"--{g}", at0[g])],
+                "--out", tmp_path / "bad.exr") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "(0,0)-(15,15)" in err and "(4,4)-(19,19)" in err, err
+    # a guide of another display window (another render's) is refused even where its pixels would cover the input
+    other = _exr_at(tmp_path / "albedo-32.exr", read_exr(p["albedo"])[0], (0, 0, 31, 31), (0, 0, 31, 31))
+    assert _run("--checkpoint", ck, "--input", inp, *args, "--albedo", other, "--out", tmp_path / "bad.exr") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "display window" in err and "32x32" in err and "24x24" in err, err
+    assert not (tmp_path / "bad.exr").exists()

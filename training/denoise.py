@@ -19,6 +19,11 @@ What a model reads decides the input it accepts (``training.inputs``):
   carrying its state, as in evaluation (an ``.npz`` is a clip's first frame).
 * ``--checkpoint oidn`` runs Intel Open Image Denoise on the same inputs (guides optional).
 
+An EXR's data window is kept: the radiance's pixels are denoised where its data window puts them, each
+guide (of the same display window, its data window covering the radiance's) is taken at those pixels,
+and the output is written with the radiance's data and display windows. Guides of another display
+window, or whose pixels do not cover the radiance's, are refused naming both windows.
+
 Any model gets an ``.npz`` or a store frame; each is turned into the model's input as in training (the
 mean of the first N samples and of their features for a per-pixel model, N the checkpoint's spp unless
 ``--spp``). Images that differ in size, and NaN or Inf in the radiance or a guide, are refused with the
@@ -144,7 +149,6 @@ def items_from_exr(spec, a) -> list[dict]:
     """One item (channel-first tensors) from ``--input`` and the guide EXRs, for a model whose input kind
     reads per-pixel images (or OIDN: ``spec`` None, guides optional)."""
     rad = _read_image(a.input, "input")
-    H, W = rad.shape[:2]
     kind = _kind(spec)
     if not kind.reads_images:
         raise ConfigError(f"this model reads {kind.holds} (input kind {kind.name!r}), which an EXR image does not "
@@ -163,11 +167,29 @@ def items_from_exr(spec, a) -> list[dict]:
         path = getattr(a, g)
         if path is None:
             continue
-        img = _read_image(path, g)
-        if img.shape[:2] != (H, W):
-            raise DataError(f"--{g} {path} is {img.shape[1]}x{img.shape[0]}; --input {a.input} is {W}x{H}")
-        images[g] = _chw(img)
+        images[g] = _chw(_at_input(_read_image(path, g), path, g, a.input))
     return [kind.item_from_images(images)]
+
+
+def _size(w) -> str:
+    return f"{w[2] - w[0] + 1}x{w[3] - w[1] + 1}"
+
+
+def _at_input(img: np.ndarray, path: str, name: str, input_path: str) -> np.ndarray:
+    """Guide ``img`` (the pixels of its data window) at the pixels of ``--input``'s data window. Both files
+    must share one display window (one render's), and the guide's data window must cover the input's;
+    otherwise DataError naming both windows."""
+    from core.images import exr_windows, window_text as wt
+    (gx0, gy0, gx1, gy1), gdisp = exr_windows(path)
+    (x0, y0, x1, y1), disp = exr_windows(input_path)
+    if gdisp != disp:
+        raise DataError(f"--{name} {path} has display window {wt(gdisp)} ({_size(gdisp)}); --input {input_path} has "
+                        f"{wt(disp)} ({_size(disp)}): a guide must come from the same render as the input")
+    if not (gx0 <= x0 and gy0 <= y0 and x1 <= gx1 and y1 <= gy1):
+        raise DataError(f"--{name} {path} holds the pixels {wt((gx0, gy0, gx1, gy1))} of its display window "
+                        f"{wt(disp)}, which do not cover those of --input {input_path}, {wt((x0, y0, x1, y1))} (its "
+                        "data window): write the guide over the whole image or over the input's window")
+    return img[y0 - gy0:y1 - gy0 + 1, x0 - gx0:x1 - gx0 + 1]
 
 
 def _kind(spec):
@@ -351,16 +373,25 @@ def denoise_cli(a) -> int:
     else:
         items = items_from_exr(spec, a)
         src = a.input
-    note = spp_note(spec, name, train_spp, a.spp, exr=a.store is None and not a.input.endswith(".npz"))
+    exr = a.store is None and not a.input.endswith(".npz")
+    note = spp_note(spec, name, train_spp, a.spp, exr=exr)
     if note:
         print(note, file=sys.stderr)
     H, W = _check_sizes(items)
     out = denoise(model, items, tile=a.tile, device=device, progress=True, precision=precision)
     if not np.isfinite(out).all():
         raise DataError(f"{name} produced {int((~np.isfinite(out)).any(axis=-1).sum())} non-finite pixels on {src}")
-    write_exr(a.out, out)
+    where = ""
+    if exr:                         # the output keeps the input's place in its image
+        from core.images import exr_windows, window_text
+        data, display = exr_windows(a.input)
+        write_exr(a.out, out, data_window=data, display_window=display)
+        if data != display:
+            where = f" at {window_text(data)} of {_size(display)}"
+    else:
+        write_exr(a.out, out)
     ms = (time.perf_counter() - t0) * 1e3
-    print(f"{name}: {src} ({W}x{H}) -> {a.out} in {ms:.0f} ms")
+    print(f"{name}: {src} ({W}x{H}{where}) -> {a.out} in {ms:.0f} ms")
     return 0
 
 
