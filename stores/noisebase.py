@@ -41,7 +41,10 @@ export's ``sequences.json`` gives each sequence file the split of the clip it ca
 ``split_source`` says which, and a training run records it. A missing file is never zeros here either:
 a chunk missing from a sequence's zip (which zarr reads as its fill value) is ``MissingShardError``, and
 one that does not decode or fails the zip's CRC ``CorruptChunkError``, each naming the sequence, array,
-frame and chunk key (training exits 3, as for a damaged store of ours).
+frame and chunk key; a sequence file that is not a whole zip (cut short: no central directory) and a
+sequence missing one of the format's arrays while holding others are ``StoreCorruptionError``, naming
+the file (training exits 3 on each, as for a damaged store of ours). A zip holding none of the format's
+arrays is not a sequence (NoisebaseError, exit 2).
 """
 from __future__ import annotations
 
@@ -51,7 +54,8 @@ import os
 import numpy as np
 
 from stores.contract import FEATURE_GROUPS, NUM_FEATURES
-from stores.errors import CorruptChunkError, MissingShardError, StoreError, StoreNotFoundError
+from stores.errors import (CorruptChunkError, MissingShardError, StoreCorruptionError, StoreError,
+                           StoreNotFoundError)
 
 FORMAT = "sampleset_v1"
 CHUNK_SAMPLES = 4                 # samples a chunk (Noisebase: "chunked for every frame and every 4 samples")
@@ -291,6 +295,12 @@ class NoisebaseStore:
             try:
                 with zipfile.ZipFile(self.files[n]) as z:          # the members: what a read may rely on
                     self._members[n] = frozenset(z.namelist())
+            except (zipfile.BadZipFile, EOFError) as e:            # cut short or overwritten: lost data
+                raise StoreCorruptionError(f"{self.files[n]} is not a whole zip file ({e}): the sequence file is "
+                                           "truncated or damaged; copy or export it again", path=self.files[n]) from e
+            except OSError as e:
+                raise NoisebaseError(f"{self.files[n]} cannot be read: {e}") from e
+            try:
                 g = zarr.open_group(zarr.storage.ZipStore(self.files[n], mode="r"), mode="r", zarr_format=2)
             except Exception as e:                     # zarr raises many kinds for a file that is not a store
                 raise NoisebaseError(f"{self.files[n]} is not a readable Zarr v2 zip store: {e}") from e
@@ -298,11 +308,20 @@ class NoisebaseStore:
         return g
 
     def _array(self, n: int, name: str):
+        g = self._group(n)
         try:
-            return self._group(n)[name]
+            return g[name]
         except KeyError:
+            needed = PER_SAMPLE + PER_FRAME[:6]
+            held = [k for k in PER_SAMPLE + PER_FRAME if k in self._members[n] or
+                    any(m.startswith(k + "/") for m in self._members[n])]
+            if held:                   # a sequence that lost an array: damage, as a lost chunk is
+                raise StoreCorruptionError(f"{self.files[n]} has no array {name!r}, which every sampleset_v1 "
+                                           f"sequence holds (it has {', '.join(held)}): the sequence file is "
+                                           "damaged; copy or export it again", array=name,
+                                           path=self.files[n]) from None
             raise NoisebaseError(f"{self.files[n]} has no array {name!r} (sampleset_v1 needs "
-                                 f"{', '.join(PER_SAMPLE + PER_FRAME[:6])})") from None
+                                 f"{', '.join(needed)})") from None
 
     def _read(self, n: int, name: str, sel, frame: int) -> np.ndarray:
         """``array[sel]`` of sequence ``n`` (``sel`` within frame ``frame`` of a per-frame array, or the

@@ -493,3 +493,30 @@ def test_both_export_commands_offer_every_format(store, exported, tmp_path, caps
         with pytest.raises(SystemExit):
             main(["export", "--help"])
         assert "noisebase" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("damage", ["truncated", "no normal"])
+def test_a_damaged_sequence_file_exits_3(exported, tmp_path, damage, capsys):
+    """A sequence zip cut short (zipfile: "File is not a zip file") or without its ``normal`` array is damage,
+    as the README says of Noisebase folders: `train` and `evaluate` exit 3 with one line naming the file and
+    what is wrong (before: exit 2, as for bad settings)."""
+    import shutil
+    folder = tmp_path / "nb"
+    shutil.copytree(exported, folder)
+    rows = json.loads((folder / "sequences.json").read_text())["sequences"]
+    seq = folder / next(r["file"] for r in rows if r["split"] == "train")      # one the commands below read
+    if damage == "truncated":
+        data = seq.read_bytes()
+        seq.write_bytes(data[:len(data) // 2])
+    else:
+        _rewrite_zip(Path(exported) / seq.name, seq, lambda name, data: None if name.startswith("normal/") else data)
+    capsys.readouterr()
+    assert cli("evaluate", "--checkpoint", "input", "--store", folder, "--split", "train", "--no-flip",
+               "--out", tmp_path / "e.json") == 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and seq.name in err, err
+    assert ("truncated" in err) if damage == "truncated" else ("'normal'" in err), err
+    assert cli("train", "--model", "nbg", "--store", folder, "--out", tmp_path / "r", "--steps", "1", "--batch", "1",
+               "--crop", "8", "--workers", "0", "--device", "cpu", "--no-progress", "--val-split", "train") == 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and seq.name in err, err
