@@ -311,3 +311,35 @@ def test_each_method_is_judged_against_its_own_input_with_intervals():
     link_inputs(black)
     cell = summarize(black, ["black"] * 6, [])["cases"]["black"]
     assert cell["zero"]["vs_input"]["verdict"] == "exact" and cell["leak"]["vs_input"]["verdict"] == "not exact"
+
+
+def test_a_split_whose_every_frame_is_flagged_is_listed_not_fatal(tmp_path, capsys):
+    """Every frame of the test split flagged by validate (a negative reference stderr, written through zarr-python):
+    `hard-cases`, which exists to look at hard frames, evaluates the other splits, lists each flagged frame in its
+    table as not evaluated and exits 1 with one line saying so (before: exit 2, 'every frame of split ... is
+    flagged', no table). With every frame of the store flagged it still writes the table of them, exit 1."""
+    from stores.reader import open_store
+    from test_training import _zarr_set, make_store
+    from training.__main__ import main
+    path = make_store(tmp_path / "s.zarr", h=16, w=16, per_split=(1, 1, 2))
+    st = open_store(path)
+    test = st.frames_in_split("test")
+    for i in test:
+        _zarr_set(path, "reference/stderr", (i, 0, 1, 1), -0.5)
+    out = tmp_path / "hc"
+    assert main(["hard-cases", "--store", path, "--out", str(out), "--no-oidn"]) == 1
+    err = capsys.readouterr().err
+    assert "split 'test'" in err and "every frame" in err and "Traceback" not in err, err
+    res = json.loads((out / "hard-cases.json").read_text())
+    left = {f["frame"]: f for f in res["flags"] if f["kind"] == "not evaluated"}
+    assert set(left) == set(test) and all("negative" in f["detail"] for f in left.values()), left
+    assert {r["index"] for r in res["frames"]["input"]} == set(range(st.num_frames)) - set(test)
+    md = (out / "hard-cases.md").read_text()
+    assert all(f"frame {i}: stage *evaluate*" in md for i in test), md
+    for i in set(range(st.num_frames)) - set(test):
+        _zarr_set(path, "reference/stderr", (i, 0, 1, 1), -0.5)
+    assert main(["hard-cases", "--store", path, "--out", str(out), "--no-oidn"]) == 1
+    err = capsys.readouterr().err
+    assert "every frame" in err and "Traceback" not in err, err
+    res = json.loads((out / "hard-cases.json").read_text())
+    assert {f["frame"] for f in res["flags"] if f["kind"] == "not evaluated"} == set(range(st.num_frames))

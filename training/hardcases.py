@@ -19,7 +19,8 @@ Flags (the ``flags`` list; each names the stage, the method and the frame):
   :data:`OUTLIER_FACTOR` (10) times the median of that method's relMSE over the cases (kind ``error``,
   an error far above its neighbours; the case's worst frame is named);
 - **not evaluated**: frames ``validate`` flags (``stores.fitness``, the one check every command applies)
-  are left out of the methods' numbers and listed here. The ``nan`` case's frame is fit: its stored
+  are left out of the methods' numbers and listed here; a split whose every frame is flagged is left
+  out whole (its frames listed), and so is every frame of a store that has no fit frame. The ``nan`` case's frame is fit: its stored
   arrays are finite and its renderer NaNs are its case's purpose (a note, not a problem).
 
 The command exits 1 when it finds a non-finite output, a non-finite stored value or a frame it could not
@@ -95,14 +96,25 @@ def _splits_with_frames(st) -> list[str]:
     return [s for s in SPLITS if s in fr and st.frames_in_split(s)]
 
 
+def evaluable_splits(st, unfit) -> tuple[list[str], list[str]]:
+    """``(splits to evaluate, splits left out)``: of the splits with frames, those whose every frame is in
+    ``unfit`` (frame -> why validate flags it) are left out (``evaluate`` has nothing to take there)."""
+    bad = set(unfit)
+    keep, out = [], []
+    for split in _splits_with_frames(st):
+        (out if set(st.frames_in_split(split)) <= bad else keep).append(split)
+    return keep, out
+
+
 def evaluate_frames(method, store, *, label: str, spp=None, baseline_input: str = "pixels", max_frames: int = 0,
-                    with_flip: bool = False, progress: bool = True) -> dict:
-    """``training.evaluate.evaluate`` of ``method`` on every split of ``store`` (all frames), with each
-    frame's output finiteness: ``{label, method, spp, input_kind, frames: [row + finite + split]}``.
-    Frames ``evaluate`` refuses are left out (with a warning); :func:`hard_case_report` lists them."""
+                    with_flip: bool = False, progress: bool = True, splits=None) -> dict:
+    """``training.evaluate.evaluate`` of ``method`` on ``splits`` of ``store`` (None: every split with
+    frames; all frames), with each frame's output finiteness: ``{label, method, spp, input_kind, frames:
+    [row + finite + split]}`` (no ``spp`` or ``input_kind`` when no split is evaluated). Frames
+    ``evaluate`` refuses are left out (with a warning); :func:`hard_case_report` lists them."""
     st = open_store(store)
     rows, info = [], {}
-    for split in _splits_with_frames(st):
+    for split in (_splits_with_frames(st) if splits is None else splits):
         if progress:
             print(f"hard cases: {label} on {split} of {st.path} ...", flush=True)
         with warnings.catch_warnings():
@@ -319,15 +331,18 @@ def hard_case_report(runs, store, out, *, with_flip: bool = False, progress: boo
     if runs and not run_dirs:
         raise ConfigError(f"none of the runs {list(map(str, runs))} holds a checkpoint.pt")
     cases = frame_cases(st)
+    unfit = st.check_frames(st.complete_frames())
+    splits, left_out = evaluable_splits(st, unfit)
     evals = [evaluate_frames(d / "checkpoint.pt", st, label=d.name, max_frames=max_frames, with_flip=with_flip,
-                             progress=progress) for d in run_dirs]
+                             progress=progress, splits=splits) for d in run_dirs]
     for name in ("input",) + (("oidn",) if oidn else ()):
-        for n, b, tag in baseline_groups(evals, st.layout.spp):
+        for n, b, tag in baseline_groups([e for e in evals if e.get("spp") is not None], st.layout.spp):
             evals.append(evaluate_frames(name, st, label=name + tag, spp=n, baseline_input=b, max_frames=max_frames,
-                                         with_flip=with_flip, progress=progress))
+                                         with_flip=with_flip, progress=progress, splits=splits))
     link_inputs(evals)
-    res = summarize(evals, cases, store_flags(st), str(st.path), st.check_frames(st.complete_frames()))
+    res = summarize(evals, cases, store_flags(st), str(st.path), unfit)
     res["runs"] = [str(d) for d in run_dirs]
+    res["splits_evaluated"], res["splits_left_out"] = splits, left_out
     res["markdown"] = hard_case_table(res)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -352,9 +367,21 @@ def hard_cases_cli(a) -> int:
     found = problem_flags(res)
     if found:
         print(f"hard cases: {len(found)} problem(s) found (non-finite outputs or stored values, frames left "
-              f"out): see the flags above", file=sys.stderr)
+              f"out{_left_out_text(res)}): see the flags above", file=sys.stderr)
         return 1
     return 0
+
+
+def _left_out_text(res: dict) -> str:
+    """``; every frame of split 'test' is flagged by validate: ...`` for the splits left out whole, or ''."""
+    out = res.get("splits_left_out") or []
+    if not out:
+        return ""
+    if not res.get("splits_evaluated"):
+        return "; every frame of the store is flagged by validate: none was evaluated, each is listed"
+    names = ", ".join(repr(s) for s in out)
+    return (f"; every frame of split{'s' if len(out) > 1 else ''} {names} is flagged by validate: "
+            f"{'they were' if len(out) > 1 else 'it was'} left out, each frame listed")
 
 
 PROBLEM_KINDS = ("non-finite", "not evaluated")
