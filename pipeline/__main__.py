@@ -51,8 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.errors import PipelineError
     from stores.errors import StoreCorruptionError, StoreError, exit_status, unreachable_exit
     from scene_gen.errors import SceneGenError
+    from core.notices import plain_warnings
     try:
-        return int(args._run(args) or 0)
+        with plain_warnings():                # a notice (frames left out, clips split, ...) is one plain line
+            return int(args._run(args) or 0)
     except StoreCorruptionError as e:         # before StoreError: its message says damage (3, its exit_code)
         print(f"error: the store is damaged: {e}", file=sys.stderr)
         return exit_status(e)

@@ -26,7 +26,10 @@ What each array holds:
 
 Sequences are whole clips of one length (Noisebase has one ``frames_per_sequence``): frames of a clip
 that ``--frames`` leaves out, stills, and clips of different lengths are refused with a message naming
-them. Our features without a Noisebase array (specular, roughness, CoC, lens, time) are not exported.
+them. A clip holding a frame that ``--skip-bad-frames`` leaves out is split there, never joined across
+it: each run of frames before and after it that is as long as the other sequences (the whole clips', or
+without any the length that keeps the most frames, two at least) becomes a sequence of its own, and the
+rest of the clip is left out, with one line naming each clip split or left out (:func:`clip_sequences`). Our features without a Noisebase array (specular, roughness, CoC, lens, time) are not exported.
 Non-square frames are written as they are; Noisebase's flip/rotate augmentation assumes square crops,
 so turn it off (``flip_rotate: false``) for them.
 """
@@ -45,50 +48,107 @@ RGBE_SALT = 0x4E42     # "NB": the dither stream of the RGBE encoding
 DEPTH_SLACK = 2.0 ** -7   # relative: twice the coarsest stored depth rounding (compact2/3 keep 8 bits)
 
 
-def whole_clips(store, frames: list[int]) -> list[tuple[int, list[int]]]:
-    """``(clip id, its frames in clip order)`` for every clip ``frames`` touches, in store order; refuses
-    clips that ``frames`` covers in part, stills and clips of different lengths (ExportError)."""
+def _runs(frames: list[int]) -> list[list[int]]:
+    """The maximal runs of consecutive values of the sorted ``frames``."""
+    out: list[list[int]] = []
+    for i in frames:
+        if out and i == out[-1][-1] + 1:
+            out[-1].append(i)
+        else:
+            out.append([i])
+    return out
+
+
+def _span(run: list[int]) -> str:
+    return f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0])
+
+
+def clip_sequences(store, frames: list[int], left_out=None) -> tuple[list[tuple[int, list[int]]], list[str]]:
+    """``(sequences, notes)``: ``(clip id, its frames in clip order)`` of every sequence to write, in store
+    order, and what was done to the clips holding a frame of ``left_out`` (the frames ``--skip-bad-frames``
+    left out). Clips ``frames`` covers whole are one sequence each. A clip whose frames are all chosen but
+    those of ``left_out`` is split there into its runs of consecutive frames (never joined across one), and
+    each run as long as the sequences (the whole clips' length, or without whole clips the length that
+    keeps the most frames; two frames at least) is a sequence of its own; a note names each clip split or
+    left out. Refused (ExportError): clips that ``frames`` covers in part, a frame inside a clip that is
+    not complete and not left out, stills, whole clips of different lengths, and no sequence at all."""
     chosen = set(int(i) for i in frames)
+    skipped = {int(i) for i in (left_out or {})}
     clip_of = store.meta_column("clip_id")
     position, length = store.meta_column("frame"), store.meta_column("num_frames")
     members = store.clips(None)
-    out, partial, gaps = [], [], []
+    whole, split, partial, gaps, touched = [], [], [], [], set()
     for c, idx in members.items():
+        first, n = idx[0] - int(position[idx[0]]), int(length[idx[0]])     # a clip's frames are consecutive
+        # the clip's frames left out: those between its complete ones, and those its recorded metadata places in it
+        cut = sorted(i for i in skipped if idx[0] < i < idx[-1] or (
+            0 <= i < len(clip_of) and int(clip_of[i]) == c and i - int(position[i]) == first))
         have = [i for i in idx if i in chosen]
-        if not have:
+        if not have and not cut:
             continue
-        first = idx[0] - int(position[idx[0]])                  # a clip's frames are consecutive in the store
-        pos = {int(position[i]) for i in idx}
-        absent = sorted(set(range(min(pos), max(pos) + 1)) - pos)
+        touched.update(idx)
+        complete = set(idx)
+        span = range(min([idx[0]] + cut), max([idx[-1]] + cut) + 1)
+        absent = [i for i in span if i not in complete and i not in skipped]
+        other = [i for i in idx if i not in chosen and i not in skipped]
         if absent:                  # a frame inside the clip is not complete: never join its neighbours across it
-            gaps.append(f"clip {c} has no complete frame {', '.join(str(first + p) for p in absent[:5])} "
-                        f"(position {', '.join(str(p) for p in absent[:5])} of its {int(length[idx[0]])})")
-        elif len(have) != len(idx):
+            gaps.append(f"clip {c} has no complete frame {', '.join(str(i) for i in absent[:5])} "
+                        f"(position {', '.join(str(i - first) for i in absent[:5])} of its {n})")
+        elif other:
             partial.append(f"clip {c} (frames {idx[0]}-{idx[-1]}; {len(have)} of {len(idx)} chosen)")
-        out.append((int(c), list(idx)))
+        elif cut:
+            split.append((int(c), _runs(have), cut))
+        else:
+            whole.append((int(c), list(idx)))
     if gaps:
         raise ExportError("a Noisebase sequence is a run of consecutive frames, never joined across a gap: "
                           + "; ".join(gaps[:5]) + ": render the frames again (the same `python -m pipeline "
-                          "dataset` command resumes them) or leave the clips out (--frames)")
-    lost = sorted(chosen - {i for _, idx in out for i in idx})
+                          "dataset` command resumes them), leave the clips out (--frames), or pass "
+                          "--skip-bad-frames to split them there")
+    lost = sorted(chosen - touched)
     if lost:
         raise ExportError(f"frames {lost[:8]} are not complete frames of any clip (clip ids "
                           f"{sorted({int(clip_of[i]) for i in lost})[:8]})")
     if partial:
-        raise ExportError("a Noisebase sequence is a whole clip; --frames (or --skip-bad-frames, leaving out "
-                          "frames validate flags) covers only part of " + "; ".join(partial[:5])
-                          + ": choose whole clips (or --frames all)")
-    stills = [c for c, idx in out if len(idx) == 1]
+        raise ExportError("a Noisebase sequence is a whole clip; --frames covers only part of "
+                          + "; ".join(partial[:5]) + ": choose every frame of those clips (--frames all takes "
+                          "every clip whole)")
+    stills = [c for c, idx in whole if len(idx) == 1]
     if stills:
-        raise ExportError(f"{len(stills)} of the {len(out)} clips chosen are stills (clips {stills[:8]}): Noisebase "
+        raise ExportError(f"{len(stills)} of the {len(whole)} clips chosen are stills (clips {stills[:8]}): Noisebase "
                           "sequences are clips of two frames or more; choose the clips (--frames) or export a store "
                           "of clips")
-    lengths = sorted({len(idx) for _, idx in out})
+    lengths = sorted({len(idx) for _, idx in whole})
     if len(lengths) > 1:
-        by = {n: [c for c, idx in out if len(idx) == n][:5] for n in lengths}
+        by = {n: [c for c, idx in whole if len(idx) == n][:5] for n in lengths}
         raise ExportError(f"the clips chosen have different lengths {by} (length: first clip ids); Noisebase has one "
                           "frames_per_sequence for a dataset: export the clips of one length at a time (--frames)")
-    return sorted(out, key=lambda t: t[1][0])
+    if lengths:
+        size = lengths[0]
+    else:                           # no whole clip: the run length that keeps the most frames (the longer on a tie)
+        counts = {}
+        for _, runs, _ in split:
+            for r in runs:
+                if len(r) >= 2:
+                    counts[len(r)] = counts.get(len(r), 0) + len(r)
+        size = max(counts, key=lambda k: (counts[k], k)) if counts else 0
+    out, notes = list(whole), []
+    for c, runs, cut in split:
+        kept = [r for r in runs if len(r) == size]
+        out += [(c, r) for r in kept]
+        where = f"at its flagged frame{'s' if len(cut) > 1 else ''} {', '.join(map(str, cut[:5]))}"
+        if kept:
+            rest = [r for r in runs if len(r) != size]
+            notes.append(f"clip {c} split {where} into frames {' and '.join(_span(r) for r in kept)}"
+                         + (f" (frames {', '.join(_span(r) for r in rest)} left out: not {size} frames)" if rest else ""))
+        else:
+            notes.append(f"clip {c} left out {where}: "
+                         + (f"its frames {', '.join(_span(r) for r in runs)} are no sequence of {size} frames" if runs
+                            and size else "no run of two frames or more is left" if runs else "no frame is left"))
+    if not out:
+        raise ExportError("no Noisebase sequence is left to write: " + "; ".join(notes[:5])
+                          + (f" (and {len(notes) - 5} more)" if len(notes) > 5 else ""))
+    return sorted(out, key=lambda t: t[1][0]), notes
 
 
 def render_config_of(store):
@@ -124,11 +184,18 @@ def frame_geometry(store, i: int, spec, cfg, stored_depth: np.ndarray) -> dict[s
     return geo
 
 
-def export_noisebase(store, frames: list[int], out: str, name: str = "dataset") -> list[str]:
-    """Write the clips of ``frames`` as Noisebase sequences into ``out`` (module docstring). Returns the files."""
+def export_noisebase(store, frames: list[int], out: str, name: str = "dataset", left_out=None) -> list[str]:
+    """Write the clips of ``frames`` as Noisebase sequences into ``out`` (module docstring; ``left_out``: the
+    frames ``--skip-bad-frames`` left out, where clips are split, :func:`clip_sequences`, with one warning
+    naming them). Returns the files."""
+    import warnings
+
     import yaml
     from tqdm import tqdm
-    clips = whole_clips(store, frames)
+    clips, notes = clip_sequences(store, frames, left_out)
+    if notes:
+        warnings.warn("noisebase: " + "; ".join(notes[:5]) + (f" (and {len(notes) - 5} more clips)" if len(notes) > 5
+                                                               else ""), stacklevel=2)
     cfg = render_config_of(store)
     lay = store.layout
     files, rows = [], []

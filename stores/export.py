@@ -191,13 +191,14 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     Frames ``validate`` flags are refused (``UnfitFrameError`` naming them), or left out with a warning
     when ``skip_bad_frames``. Everything is written into a temporary folder in ``out`` first and moved
     into place at the end (:func:`_into_place`): a failed export leaves ``out`` as it was."""
-    from stores.fitness import screen
+    from stores.fitness import screen_items
     write = _writer(fmt)
     store = open_store(store_path)
     idx = frames if isinstance(frames, list) else parse_frames(frames, store.num_frames)
     if not idx:
         raise ExportError("no frames to export")
-    idx = screen(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}", progress=True)
+    idx, left_out = screen_items(store, idx, skip=skip_bad_frames, what=f"the export of {store_path!s}",
+                                 progress=True)
     made = _missing_parents(out)
     try:
         os.makedirs(out, exist_ok=True)
@@ -208,7 +209,7 @@ def export(store_path, frames: str | list[int] | None, fmt: str, out: str, name:
     tmp = tempfile.mkdtemp(prefix=".export-", dir=out)
     done = False
     try:
-        files = write(store, idx, tmp, name)
+        files = write(store, idx, tmp, name, left_out)
         done = True
         return _into_place(tmp, out, files)
     finally:
@@ -230,12 +231,13 @@ def _missing_parents(out: str) -> list[str]:
     return made
 
 
-# format -> writer(store, frames, out, name) -> files: the store's own formats. Formats that need more than
-# the store are plug-ins (:data:`PLUGINS`, :func:`writers`): ``noisebase``, which re-traces the samples
-# with the renderer, is ``pipeline.noisebase``'s.
-WRITERS = {"exr": lambda st, fr, out, name: export_exr(st, fr, out),
-           "oidn": lambda st, fr, out, name: export_oidn(st, fr, out),
-           "layerdenoise": export_layerdenoise}
+# format -> writer(store, frames, out, name, left_out) -> files: the store's own formats (``left_out``: the
+# frames --skip-bad-frames left out, frame -> problems; a format whose files hold runs of frames, Noisebase's
+# sequences, splits its runs there). Formats that need more than the store are plug-ins (:data:`PLUGINS`,
+# :func:`writers`): ``noisebase``, which re-traces the samples with the renderer, is ``pipeline.noisebase``'s.
+WRITERS = {"exr": lambda st, fr, out, name, left_out: export_exr(st, fr, out),
+           "oidn": lambda st, fr, out, name, left_out: export_oidn(st, fr, out),
+           "layerdenoise": lambda st, fr, out, name, left_out: export_layerdenoise(st, fr, out, name)}
 PLUGINS = "denoise_datagen.export_formats"      # the entry-point group (pyproject.toml) of the other formats
 
 

@@ -353,8 +353,10 @@ def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
     args = ap.parse_args(argv)
     retry_defaults()
     quiet_abandoned_requests()
+    from core.notices import plain_warnings
     try:
-        return run_fn(args)
+        with plain_warnings():              # a notice (frames left out, ...) is one plain line
+            return run_fn(args)
     except StoreCorruptionError as e:
         print(f"error: the store is damaged: {e}", file=sys.stderr)
         return exit_status(e)

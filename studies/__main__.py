@@ -52,8 +52,10 @@ def main(argv=None) -> int:
     from pipeline.errors import PipelineError
     from stores.errors import StoreError, exit_status, unreachable_exit
     from training.errors import TrainingError
+    from core.notices import plain_warnings
     try:
-        return _scaling(a)
+        with plain_warnings():                      # a notice (frames left out, ...) is one plain line
+            return _scaling(a)
     except (TrainingError, PipelineError, StoreError) as err:
         print(f"error: {type(err).__name__}: {err}", file=sys.stderr)
         return exit_status(err, 2)

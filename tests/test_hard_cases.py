@@ -228,7 +228,6 @@ def runs(tmp_path_factory):
 
 def test_hard_cases_command(case_store, runs, tmp_path, capsys):
     from training.__main__ import main
-    from training.hardcases import hard_case_table
     out = tmp_path / "report"
     # the poisoned run's non-finite outputs are problems found: exit 1
     assert main(["hard-cases", "--store", case_store, "--runs", str(runs / "good"), str(runs / "poisoned"),

@@ -395,24 +395,60 @@ class TestNoisebaseStoreContract(StoreContract):
         return NoisebaseStore(exported)
 
 
-def test_export_never_joins_a_clip_across_an_incomplete_frame(store, tmp_path, capsys):
-    """The middle frame of a clip marked incomplete, then `export --format noisebase --skip-bad-frames`:
-    exit 2 with one line naming the clip and the missing frame, and nothing written, where it wrote the
-    clip's other frames as a consecutive sequence whose motion pointed at the missing frame."""
+def test_export_splits_or_drops_a_clip_at_a_flagged_frame(store, tmp_path):
+    """The middle frame of clip 0 marked incomplete (validate flags it), then `python -m pipeline export --format
+    noisebase --skip-bad-frames`: the parts of the clip around it (one frame each) are no sequence, so clip 0 is
+    left out with one plain line naming it, and clip 1 is exported whole (before: the whole export refused,
+    pointing at --frames all, which did not help; the skip notice a raw UserWarning with its file and line).
+    Parts long enough are sequences of their own: with a first and a last frame flagged, each clip's other two
+    frames. Never joined across the frame: without --skip-bad-frames, --frames 0,2 is refused naming the gap."""
     import shutil
 
     from pipeline.__main__ import main
+    from stores.noisebase import NoisebaseStore
+    from stores.reader import open_store
     from stores.writer import StoreWriter
+    ours = open_store(store)
+    c0, c1 = (int(ours.meta_column("clip_id")[i]) for i in (0, FRAMES))
     copy = tmp_path / "gap.zarr"
     shutil.copytree(store, copy)
     StoreWriter(str(copy)).mark_failed(1, "a frame lost in the test")
     out = tmp_path / "nb"
+    r = subprocess.run([sys.executable, "-m", "pipeline", "export", str(copy), "--format", "noisebase",
+                        "--skip-bad-frames", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 2 and all(x.startswith("warning: ") for x in lines), r.stderr
+    assert "skipping 1 flagged frames" in lines[0] and "frame 1: incomplete" in lines[0], lines
+    assert f"clip {c0} left out at its flagged frame 1" in lines[1] and "UserWarning" not in r.stderr, lines
+    rows = json.loads((out / "sequences.json").read_text())["sequences"]
+    assert [(x["clip_id"], x["frames"]) for x in rows] == [(c1, [3, 4, 5])]
+    assert NoisebaseStore(out).num_frames == FRAMES
+    # the clip alone: nothing is left to write, one line naming it, exit 2
     with pytest.warns(UserWarning, match="skipping 1 flagged frames"):
         assert main(["export", str(copy), "--format", "noisebase", "--skip-bad-frames", "--frames", "0-2",
-                     "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert "never joined across a gap" in err and "has no complete frame 1 (position 1 of its 3)" in err, err
-    assert not out.exists() or not any(out.iterdir())
+                     "--out", str(tmp_path / "none")]) == 2
+    # without --skip-bad-frames the gap is refused, never joined
+    assert main(["export", str(copy), "--format", "noisebase", "--frames", "0,2", "--out", str(tmp_path / "g")]) == 2
+    # a first and a last frame flagged: clips 0 and 1 each split into their other two frames, two sequences of 2
+    both = tmp_path / "ends.zarr"
+    shutil.copytree(store, both)
+    for i in (0, 2 * FRAMES - 1):
+        StoreWriter(str(both)).mark_failed(i, "a frame lost in the test")
+    with pytest.warns(UserWarning) as rec:
+        assert main(["export", str(both), "--format", "noisebase", "--skip-bad-frames", "--out",
+                     str(tmp_path / "ends")]) == 0
+    said = [str(w.message) for w in rec]
+    assert len(said) == 2 and said[0].startswith("skipping 2 flagged frames"), said
+    assert f"clip {c0} split at its flagged frame 0 into frames 1-2; clip {c1} split at its flagged frame 5 into " \
+           "frames 3-4" in said[1], said
+    rows = json.loads((tmp_path / "ends" / "sequences.json").read_text())["sequences"]
+    assert [(x["clip_id"], x["frames"]) for x in rows] == [(c0, [1, 2]), (c1, [3, 4])]
+    nb = NoisebaseStore(tmp_path / "ends")
+    assert nb.frames_per_sequence == [2, 2]
+    for k, i in enumerate([1, 2, 3, 4]):          # each sequence frame is its store frame (within RGBE's error)
+        np.testing.assert_allclose(nb.read_array("reference/radiance", k), ours.read_array("reference/radiance", i),
+                                   rtol=1e-6)
 
 
 def test_a_folder_keeps_the_splits_it_declares(store, exported, tmp_path, capsys):

@@ -565,3 +565,24 @@ def test_train_options_are_the_config_fields_and_the_shared_ones_come_from_them(
         assert (ns.device, ns.precision, ns.compile) == ("auto", "auto", False), cmd
         with pytest.raises(SystemExit):
             parser().parse_args([cmd, *args, "--precision", "fp8"])
+
+
+def test_a_notice_of_the_command_line_is_one_plain_line(tmp_path):
+    """`train --skip-bad-frames` names the frame it leaves out on one line, ``warning: skipping 1 flagged frames
+    ...``, as the command line's other notices read (before: Python's ``FILE:LINE: UserWarning: ...`` and the
+    source line of the warnings.warn call)."""
+    import subprocess
+    import sys
+    from stores.reader import open_store
+    path = make_store(tmp_path / "s.zarr", h=16, w=16, per_split=(2, 1, 1))
+    frame = open_store(path).frames_in_split("train")[1]
+    _zarr_set(path, "reference/stderr", (frame, 0, 1, 1), -0.5)
+    r = subprocess.run([sys.executable, "-m", "training", "train", "--model", "nbg", "--store", path, "--out",
+                        str(tmp_path / "run"), "--steps", "1", "--crop", "16", "--batch", "1", "--workers", "0",
+                        "--no-progress", "--val-every", "0", "--skip-bad-frames"], cwd=Path(__file__).parents[1],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    said = [x for x in r.stderr.splitlines() if "flagged" in x]
+    assert len(said) == 1 and said[0].startswith("warning: skipping 1 flagged frames of split 'train'"), r.stderr
+    assert f"frame {frame}: reference_stderr has 1 negative" in said[0]
+    assert "UserWarning" not in r.stderr and "warnings.warn" not in r.stderr and ".py:" not in r.stderr, r.stderr

@@ -282,9 +282,12 @@ def main(argv=None) -> int:
     retry_defaults()
     quiet_abandoned_requests()
 
+    from core.notices import plain_warnings
+
     from .errors import TrainingError
     try:
-        return a.fn(a)
+        with plain_warnings():                      # a notice (frames left out, ...) is one plain line
+            return a.fn(a)
     except (TrainingError, StoreError) as err:      # 1 a NaN loss, 3 damage, 4 a full disk, 5 unreachable S3
         code = exit_status(err, EXIT_ERROR)
         if unreachable_cause(err) is not None and not isinstance(err, TrainingError):
