@@ -170,8 +170,8 @@ class SceneGroup:
             out[tag] = float(rate)
         total = sum(out.values())
         if total > 1.0 + 1e-9:
-            raise ConfigError(f"{where}: the rates sum to {total:g}; a scene takes at most one case, so they must "
-                              "sum to at most 1")
+            raise ConfigError(f"{where}: the rates sum to {total:.12g}, above 1; a scene takes at most one case, "
+                              "so they must sum to at most 1")
         return out
 
     @property

@@ -191,27 +191,31 @@ def raise_if_unreachable(e: BaseException, store=None, doing: str = "") -> None:
         raise store_unreachable(store if store is not None else "the store", e, doing) from e
 
 
-def unreachable_exit(e: BaseException, store=None, out=None) -> int:
+DISK_FULL_HINT = "free space and run it again"
+
+
+def unreachable_exit(e: BaseException, store=None, out=None, *, again: str | None = None) -> int:
     """A command's last handler: for a failed connection to the object store of ``store`` (anywhere in
     ``e``'s chain), one line on stderr naming the endpoint and the last error, and exit code 5; for a
     full disk or quota (``ENOSPC``, ``EDQUOT`` anywhere in the chain: a checkpoint, an evaluation, an
     export being written), one line naming the file and the free space there, and exit code 4, as
-    ``dataset`` gives (``out``: the command's output, named where the error names no file); any other
-    error is raised again, traceback and all."""
+    ``dataset`` gives (``out``: the command's output, named where the error names no file; ``again``:
+    what to do, :data:`DISK_FULL_HINT` unless the command resumes); any other error is raised again,
+    traceback and all."""
     import sys
     if unreachable_cause(e) is not None:
         print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
         return StoreUnreachableError.exit_code
     if not is_disk_full(e):
         raise e
-    print(f"error: {disk_full(e, out)}", file=sys.stderr)
+    print(f"error: {disk_full(e, out, again or DISK_FULL_HINT)}", file=sys.stderr)
     return StoreFullError.exit_code
 
 
-def disk_full(e: BaseException, out=None) -> StoreFullError:
+def disk_full(e: BaseException, out=None, again: str = DISK_FULL_HINT) -> StoreFullError:
     """The :class:`StoreFullError` for the full-disk error in ``e``'s chain that is not a store's (a run's
     checkpoint, an evaluation's JSON, an export): one line naming the file (else ``out``, the command's
-    output), the free space on its device and what to do."""
+    output), the free space on its device and what to do (``again``)."""
     import os
     cause = disk_full_cause(e)
     if cause is None or isinstance(cause, StoreFullError):
@@ -221,8 +225,7 @@ def disk_full(e: BaseException, out=None) -> StoreFullError:
     free = _free_bytes(os.path.dirname(os.path.abspath(where))) if where and "://" not in where else None
     at = f" writing {where}" if where else ""
     have = f"; {_size(free)} free there" if free is not None else ""
-    return StoreFullError(f"no space left on the device{at} ({os.strerror(cause.errno)}{have}): free space and run "
-                          "the same command again (a training run resumes from its last checkpoint.pt)")
+    return StoreFullError(f"no space left on the device{at} ({os.strerror(cause.errno)}{have}): {again}")
 
 
 def exit_status(e: BaseException, default: int = 2) -> int:

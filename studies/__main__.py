@@ -37,7 +37,7 @@ def _scaling(a) -> int:
     from .scaling import check_targets, load_scaling_config
     from .scaling_run import run_study
     targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
-    check_targets(targets, "--target")
+    check_targets(targets, "--target", flags=True)
     run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
     return 0
 

@@ -44,14 +44,16 @@ TARGET_RANGES = {"relmse": "a relMSE > 0", "smape": "a SMAPE in (0, 1)", "flip":
                  "psnr": "a PSNR > 0 dB", "ssim": "an SSIM in (0, 1)", "tpsnr": "a tPSNR > 0 dB"}
 
 
-def check_targets(targets: dict, where: str) -> None:
+def check_targets(targets: dict, where: str, *, flags: bool = False) -> None:
     """Targets to invert (``{metric: value or None}``): known metrics, each a value the metric can take
-    (ConfigError naming ``where.metric``; ``--target-psnr -5`` included)."""
+    (ConfigError naming ``where.metric``; with ``flags``, the command's flag ``where-metric``:
+    ``--target-psnr -5``)."""
     known_keys(targets, LOWER_IS_BETTER, where, ConfigError)
     for k, v in targets.items():
         bounded = k in ("smape", "flip", "ssim")
         ok = v is None or (is_number(v, finite=True) and v > 0 and (not bounded or v < 1))
-        need(ok, f"{where}.{k}", f"null or {TARGET_RANGES[k]}", v, ConfigError)
+        need(ok, f"{where}-{k}" if flags else f"{where}.{k}", TARGET_RANGES[k] if flags else
+             f"null or {TARGET_RANGES[k]}", v, ConfigError)
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,6 @@
 """Contract and math tests for every registered denoiser (tiny widths, 16-32 px, 2 samples)."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -39,8 +38,9 @@ def kind_batch(model, b=2, h=24, w=20, seed=0, spp=2):
 
 def test_registry_has_the_paper_models():
     assert set(PAPER_MODELS) | {"nbg", "wskpn"} <= set(names())
-    with pytest.raises(UnknownModelError):
+    with pytest.raises(UnknownModelError) as e:
         build("no-such-model")
+    assert str(e.value).startswith("unknown model 'no-such-model'; registered: ["), str(e.value)   # no KeyError quotes
     with pytest.raises(ConfigError, match="layers"):
         build("layer", layers=6)
     with pytest.raises(ConfigError, match="kernel_size"):

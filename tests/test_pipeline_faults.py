@@ -243,3 +243,8 @@ def test_a_full_disk_under_any_commands_output_is_exit_4_in_one_line(small_disk,
     assert r.returncode == 4, r.stdout[-2000:] + r.stderr[-3000:]
     line = _one_line_error(r)
     assert "no space left on the device" in line and str(small_disk) in line, line
+    if command == "train":          # only a training run resumes from its checkpoint
+        assert line.endswith("free space and run the same command again: the run resumes from its last "
+                             "checkpoint.pt"), line
+    else:
+        assert line.endswith("free space and run it again") and "checkpoint" not in line, line

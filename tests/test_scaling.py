@@ -308,7 +308,7 @@ def test_hard_share_analysis_on_synthetic_results(tmp_path):
     assert not (tmp_path / "scaling.png").exists()                      # no size axis, no curves
 
 
-def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path):
+def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path, capsys):
     from stores.errors import StoreLockedError
     from stores.lock import StoreLock
     from studies.__main__ import main
@@ -319,6 +319,8 @@ def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path):
         _config(targets={"psnr": -5})
     assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--target-psnr", "-5",
                  "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err                       # the flag as typed, never "--target.psnr"
+    assert err == "error: ConfigError: --target-psnr must be a PSNR > 0 dB, got -5.0\n", err
     with StoreLock(str(tmp_path / "study")):           # another study runs in this folder
         with pytest.raises(StoreLockedError, match="dataset.lock"):
             run_study(_config(), tmp_path / "study", progress=False)

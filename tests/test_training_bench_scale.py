@@ -43,3 +43,17 @@ def test_the_stores_hold_what_the_layouts_say(tmp_path):
             assert st.scene_json(19).count('"origin"') == 10          # a camera a frame of the clip
         if layout == "pairs":
             assert set(int(s) for s in st.meta_column("scene_seed")) == {clip_seed}
+
+
+def test_a_size_without_a_test_frame_is_one_line_naming_frames_before_anything_renders(capsys):
+    """``--frames 0`` (no store to time) and ``--frames -5`` are argument errors naming ``--frames`` and
+    the fewest frames every layout can be built with (16: stills' first test clip is frame 7, pairs'
+    frames 14 and 15), exit 2, before the source store is rendered."""
+    from training import bench_scale as B
+    from training.__main__ import main
+    assert B.min_frames() == 16 and B.min_frames(("clips",)) == 4
+    for bad in ("0", "-5", "15"):
+        assert main(["bench", "--scale", "--frames", "100", bad]) == 2
+        err = capsys.readouterr().err
+        assert err == ("error: ConfigError: --frames must be one or more integers >= 16 (the fewest frames at which "
+                       f"every layout has a clip in the train and the test split), got {bad}\n"), err

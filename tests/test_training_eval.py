@@ -212,3 +212,25 @@ def test_speed_vs_error_marks_what_it_cannot_place(tmp_path, monkeypatch):
     assert drawn["yscale"] == "log" and drawn["ylim"][0] < 0.046 and 57.0 < drawn["ylim"][1] < 5e4
     assert drawn["labels"] == ["input (no time)", "nbg", "oidn", "diverged (relMSE 5e+04: above the plot)",
                                "broken (relMSE nan: not plotted)"]
+
+
+def test_a_split_without_a_complete_frame_says_what_the_store_holds(tmp_path, capsys):
+    """evaluate on a store whose complete frames are all in other splits names the split, the store's
+    frames and its complete ones, none of them in the split; never "no complete frame (4 frames, 2 complete)"."""
+    from stores.reader import open_store
+    from stores.writer import StoreWriter
+    store = make_store(tmp_path / "s.zarr", h=16, w=16, spp=2, per_split=(2, 0, 2))
+    test = open_store(store).frames_in_split("test")
+    for i in test:
+        StoreWriter(store).mark_failed(i, "cut short")
+    argv = ["evaluate", "--checkpoint", "input", "--store", store, "--out", str(tmp_path / "e.json"), "--no-flip",
+            "--skip-bad-frames"]
+    assert len(test) == 2 and main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"split 'test' of {store} has no complete frame (the store has 4 frames, 2 " \
+        "complete, none of them in 'test')" in err, err
+    for i in range(4):
+        StoreWriter(store).mark_failed(i, "cut short")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "has no complete frame (none of the store's 4 frames is complete)" in err, err

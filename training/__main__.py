@@ -59,7 +59,8 @@ def _report(a) -> int:
 
 def _bench(a) -> int:
     if a.scale:
-        from .bench_scale import DEFAULT_FRAMES, markdown, run as scale_run
+        from .bench_scale import DEFAULT_FRAMES, check_frames, markdown, run as scale_run
+        check_frames(a.frames or DEFAULT_FRAMES, "--frames")
         res = scale_run(frames=tuple(a.frames or DEFAULT_FRAMES), source=a.source)
         print(markdown(res))
     elif a.train:
@@ -299,7 +300,9 @@ def main(argv=None) -> int:
         print(f"interrupted{': ' + kept if kept else ''}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
-        return unreachable_exit(err, getattr(a, "store", None), getattr(a, "out", None))
+        hint = ("free space and run the same command again: the run resumes from its last checkpoint.pt"
+                if a.cmd == "train" else None)
+        return unreachable_exit(err, getattr(a, "store", None), getattr(a, "out", None), again=hint)
 
 
 EXIT_FAILED = 1     # the run failed (a NaN/Inf loss), or hard-cases found non-finite outputs or values

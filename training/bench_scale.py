@@ -194,8 +194,34 @@ def tiny_run(source: str, out: Path) -> Path:
     return out
 
 
+def min_frames(layouts=LAYOUTS) -> int:
+    """The fewest frames a store of every layout of ``layouts`` can have: two clips of two frames or more
+    (clips: the clips dataset reads windows of two) and, in stills and pairs, a clip in the train split
+    and one in the test split (the datasets read the one, evaluate, report and the exports the other).
+    16 for the three layouts: the first test clip of stills is frame 7, of pairs frames 14 and 15."""
+    from stores.reader import split_of_clip
+    f = 4
+    while not all({"train", "test"} <= {split_of_clip(100_000 + _scene_of(i, f, lay)[0]) for i in range(f - f % 2)}
+                  for lay in layouts if lay != "clips"):
+        f += 1
+    return f
+
+
+def check_frames(frames, name: str = "frames", layouts=LAYOUTS) -> None:
+    """``frames`` (the store sizes to measure) must be integers of at least :func:`min_frames` each
+    (ConfigError naming ``name``: ``--frames`` on the command line)."""
+    from core.checks import is_int, need
+    from training.errors import ConfigError
+    lo = min_frames(layouts)
+    sizes = list(frames) if isinstance(frames, (list, tuple)) else None
+    bad = [f for f in sizes or [] if not is_int(f) or f < lo]
+    need(bool(sizes) and not bad, name, f"one or more integers >= {lo} (the fewest frames at which every layout has "
+         "a clip in the train and the test split)", bad[0] if bad else frames, ConfigError)
+
+
 def run(frames=DEFAULT_FRAMES, layouts=LAYOUTS, source: str | None = None, say=print) -> dict:
     """``{layout: {stage: {F: ms a frame}}}`` at each size, printed as it goes."""
+    check_frames(frames, layouts=layouts)
     tmp = Path(tempfile.mkdtemp(prefix="training-scale-"))
     try:
         source = source or source_store(tmp)

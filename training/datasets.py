@@ -279,8 +279,10 @@ def frame_windows(store, split, T: int, full_windows: bool) -> list[tuple[int, .
                 out.append(tuple(idxs[start:end + 1]))
     if not out:
         if T == 1:
-            raise SplitError(f"split {split!r} of {store.path!s} has no complete frame "
-                             f"({store.num_frames} frames, {len(store.complete_frames())} complete)")
+            done = len(store.complete_frames())
+            why = (f"none of the store's {store.num_frames} frames is complete" if not done else
+                   f"the store has {store.num_frames} frames, {done} complete, none of them in {split!r}")
+            raise SplitError(f"split {split!r} of {store.path!s} has no complete frame ({why})")
         raise SplitError(f"split {split!r} of {store.path!s} has no run of {T} consecutive complete frames in one "
                          f"clip (the longest is {longest}): the model reads windows of {T} frames; train on a "
                          "store with longer clips, or shorten the model's window (e.g. --model-cfg "

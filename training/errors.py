@@ -14,6 +14,9 @@ class ConfigError(TrainingError, SettingError):
 class UnknownModelError(TrainingError, KeyError):
     """No model is registered under the requested name."""
 
+    def __str__(self) -> str:           # KeyError's own quotes its message: "'unknown model ...'"
+        return str(self.args[0]) if len(self.args) == 1 else super().__str__()
+
 
 class CheckpointError(TrainingError, RuntimeError):
     """A checkpoint cannot be read or does not match (model, config or the store's schema version)."""
