@@ -246,8 +246,11 @@ def exit_status(e: BaseException, default: int = 2) -> int:
 
 def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreachableError:
     """The :class:`StoreUnreachableError` of ``store`` for the failed connection ``e``: one line naming the
-    endpoint, the last error and what to do."""
-    from stores.objectstore import endpoint, retry_window
+    endpoint, the last error and what to do. The requests still pending on zarr's event loop are
+    cancelled at exit (:func:`stores.objectstore.cancel_abandoned_requests_at_exit`): the line stays the
+    command's last."""
+    from stores.objectstore import cancel_abandoned_requests_at_exit, endpoint, retry_window
+    cancel_abandoned_requests_at_exit()
     cause = unreachable_cause(e) or e
     if isinstance(cause, StoreUnreachableError):
         return cause

@@ -35,6 +35,48 @@ def retry_window() -> str:
             f"{os.environ.get('AWS_RETRY_MODE', 'legacy')} retry mode")
 
 
+def cancel_abandoned_requests_at_exit() -> None:
+    """At exit, before zarr closes its event loop (``zarr.core.sync.cleanup_resources``, registered when
+    zarr was imported: ``atexit`` runs the later first), cancel the requests still pending there and let
+    them end: a read or write that found the endpoint gone abandons the others of its batch, some
+    waiting out botocore's back-off, and each would print asyncio's "Task was destroyed but it is
+    pending!" (and a connection's "Future exception was never retrieved") after the command's one-line
+    error. Called where a command learns that the endpoint is gone (``stores.errors.store_unreachable``);
+    once a process."""
+    global _drain_registered
+    if not _drain_registered:
+        import atexit
+        atexit.register(_cancel_pending)
+        _drain_registered = True
+
+
+_drain_registered = False
+
+
+def _cancel_pending(timeout: float = 5.0) -> None:
+    import asyncio
+    import sys
+
+    async def cancel_all():
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in tasks:
+            t.cancel()
+        if tasks:
+            await asyncio.wait(tasks, timeout=timeout)
+        for t in tasks:                     # their errors are the one the command printed: retrieved here
+            if t.done() and not t.cancelled():
+                t.exception()
+    for name in ("zarr.core.sync", "fsspec.asyn"):      # zarr's loop; fsspec's, for s3fs used directly
+        mod = sys.modules.get(name)
+        loop = mod.loop[0] if mod is not None and getattr(mod, "loop", None) else None
+        if loop is None or loop.is_closed() or not loop.is_running():
+            continue
+        try:
+            asyncio.run_coroutine_threadsafe(cancel_all(), loop).result(timeout + 1)
+        except Exception:  # noqa: BLE001 - at exit: a loop that cannot settle prints what asyncio prints
+            pass
+
+
 def _drop_abandoned(unraisable) -> None:
     code = getattr(unraisable.object, "cr_code", None)
     path = getattr(code, "co_filename", "")
