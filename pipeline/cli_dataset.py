@@ -243,6 +243,11 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
 
     t0 = time.perf_counter()
     cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
+    from stores.schema import remove_partial_files
+    left = remove_partial_files(store)        # a killed run's temporary files (held lock: no write is under way)
+    if left:
+        _print(f"resume: removed {len(left)} temporary file(s) of a write cut short ({', '.join(left[:3])}"
+               f"{', ...' if len(left) > 3 else ''})")
     _print(f"dataset {cfg.name!r}: {cfg.num_scenes} scenes, {cfg.num_frames} frames at "
            f"{cfg.resolution[0]}x{cfg.resolution[1]} -> {store}")
     if not overwrite and frames_to_render(cfg, store) == []:     # a complete store: no cluster to start

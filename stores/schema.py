@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
@@ -724,6 +725,34 @@ def refuse_link(path, what: str = "--overwrite") -> None:
     if _is_local(p) and os.path.islink(p):
         raise ForeignStoreError(f"{p} is a symbolic link to {os.path.realpath(p)}; {what} never deletes through a "
                                 "link: give the link's target itself, or remove the link")
+
+
+PARTIAL_NAME = re.compile(r"\.[0-9a-f]{32}\.partial$")   # zarr's local store: KEY.<uuid4 hex>.partial
+
+
+def partial_files(path_or_url) -> list[str]:
+    """The temporary files a cut-short write left in the local store at ``path_or_url`` (sorted paths
+    relative to it): zarr's local store writes a key to ``KEY.<uuid>.partial`` and renames it to ``KEY``,
+    so a process killed in between (a SIGKILL mid-commit) leaves one; the key keeps its previous bytes.
+    Not store data. Empty at a URL (an object store's put is whole or nothing) or where nothing is."""
+    p = _zarr_store(path_or_url)
+    if not _is_local(p) or not os.path.isdir(p):
+        return []
+    p = os.fspath(p)
+    return sorted(os.path.relpath(os.path.join(d, n), p) for d, _, names in os.walk(p) for n in names
+                  if PARTIAL_NAME.search(n))
+
+
+def remove_partial_files(path_or_url) -> list[str]:
+    """Delete :func:`partial_files` (a resume, holding the store's writer lock: no write is under way);
+    the paths removed."""
+    found = partial_files(path_or_url)
+    for rel in found:
+        try:
+            os.unlink(os.path.join(os.fspath(_zarr_store(path_or_url)), rel))
+        except FileNotFoundError:
+            pass
+    return found
 
 
 def _clear(path_or_url) -> None:

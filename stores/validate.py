@@ -197,6 +197,11 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     stale = _consolidation_note(path, root, version)
     if stale:
         rep.notes.append(stale)
+    leftover = schema.partial_files(path)
+    if leftover:
+        rep.notes.append(f"{len(leftover)} temporary file(s) of a write cut short ({', '.join(leftover[:3])}"
+                         f"{', ...' if len(leftover) > 3 else ''}): not store data; the next `python -m pipeline "
+                         "dataset` run on this store removes them")
     store = open_store(path, check=False)                  # array_problems ran above
     meta_damage = store.metadata_damage()                  # frame -> errors of its frames/* and status/* chunks
     indices = range(store.num_frames) if frames is None else frames
