@@ -9,7 +9,7 @@ export DENOISE_DATA ?= $(CURDIR)/data
 # test processes (pytest-xdist): one a core, at most 4 (each loads torch and Mitsuba); TEST_JOBS=0 runs in one process
 TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n < 4 ? n : 4 )))
 
-.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd scaling hard-cases real-scenes preview contact-sheet clean-data help
+.PHONY: setup dataset estimate test bench train report compare compare-realtime compare-temporal compare-nppd scaling hard-cases real-scenes chaos preview contact-sheet clean-data help
 
 help:            ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*##/\t/'
@@ -124,6 +124,11 @@ hard-cases: setup ## render configs/hard-cases.yaml, then evaluate RUNS (default
 
 REAL_SCENES ?=
 REAL_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt data/runs-nppd/*/checkpoint.pt)
+CHAOS_SEED ?= 0
+CHAOS_FAULTS ?= 20
+chaos: setup     ## configs/chaos.yaml (300 frames) into a local S3 server through CHAOS_FAULTS random faults, then training through 5 SIGKILLs; compared with clean runs (seeded: CHAOS_SEED)
+	$(PY) scripts/chaos.py --seed $(CHAOS_SEED) --faults $(CHAOS_FAULTS)
+
 real-scenes: setup ## the held-out real-scene suite (box and Gaussian filters; REAL_SCENES=DIR adds your folder of scene files): every trained run, its input and OIDN per scene (about 7 min on 2 cores)
 	$(PY) -m scene_gen real-scenes --out $(DENOISE_DATA)/real-scenes
 	$(PY) -m pipeline dataset --config configs/real-scenes.yaml

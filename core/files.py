@@ -23,6 +23,21 @@ def new_file_mode() -> int:
     return 0o666 & ~mask
 
 
+def temp_name_pattern(path) -> str:
+    """The glob of the temporary files :func:`write_atomically` makes beside ``path``."""
+    return f".{Path(path).name}-*.tmp"
+
+
+def remove_stale_temps(path) -> list[Path]:
+    """Delete what a write of ``path`` cut short by a SIGKILL left (:func:`write_atomically`'s temporary
+    files beside it; its ``finally`` never ran). Call it only where no other process writes ``path``."""
+    path = Path(path)
+    gone = sorted(path.parent.glob(temp_name_pattern(path))) if path.parent.is_dir() else []
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
+
+
 def write_atomically(path, write: Callable[[IO], None], binary: bool = False) -> Path:
     """``write(f)`` into a temporary file beside ``path``, then rename it to ``path``, with the
     permissions of any other new file (``tempfile.mkstemp`` makes its files 0600: a JSON or a checkpoint

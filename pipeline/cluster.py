@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import ssl
 import sys
 import threading
@@ -269,18 +270,40 @@ def local_cluster(cfg: ClusterConfig, workers: int | None = None, *, say=print):
     kw = dict(threads_per_worker=cfg.threads_per_worker, processes=True, memory_limit=cfg.memory_limit, **dash,
               host=LOCALHOST, silence_logs=logging.ERROR, preload=[PRELOAD], security=make_security(cfg.security),
               env={worker_init.LOCAL_WORKER_ENV: "1"})    # its workers leave Ctrl-C to us
+    worker_init.spawn_ignoring_interrupts()
+    # Ctrl-C waits until the cluster stands: one that cut LocalCluster's start short left workers half
+    # started, and distributed's own close of them at exit printed an AssertionError (the chaos run)
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    cluster = None
     try:
-        if not gpus:
-            return LocalCluster(n_workers=n, **kw)
-        if workers or cfg.workers:
-            say(f"cluster: one worker per GPU ({n}: {', '.join(gpus)}); --workers / cluster.workers apply to CPU "
-                "workers (cluster.gpus: null for those)", flush=True)
-        cluster = GPULocalCluster(gpus, **kw)
-        cluster.wait_for_workers(n, timeout=120)
-        return cluster
-    except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
-        cause = e.__cause__ or e
-        raise ClusterError(f"cannot start a LocalCluster of {n} worker(s): {type(cause).__name__}: {cause}") from None
+        for attempt in (1, 2):
+            try:
+                if not gpus:
+                    cluster = LocalCluster(n_workers=n, **kw)
+                else:
+                    if workers or cfg.workers:
+                        say(f"cluster: one worker per GPU ({n}: {', '.join(gpus)}); --workers / cluster.workers "
+                            "apply to CPU workers (cluster.gpus: null for those)", flush=True)
+                    cluster = GPULocalCluster(gpus, **kw)
+                    cluster.wait_for_workers(n, timeout=120)
+                break
+            except RuntimeError as e:          # distributed: "Cluster failed to start: <cause>"
+                cause = e.__cause__ or e
+                if attempt == 1 and "failed to start worker process" in str(cause):
+                    # a worker process died while it started (killed, out of memory): once more, then give up
+                    say(f"cluster: a worker process died while the LocalCluster started ({cause}); starting it "
+                        "again", flush=True)
+                    continue
+                raise ClusterError(f"cannot start a LocalCluster of {n} worker(s): {type(cause).__name__}: "
+                                   f"{cause}") from None
+    finally:
+        try:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)   # a Ctrl-C pressed meanwhile is raised here
+        except KeyboardInterrupt:
+            if cluster is not None:
+                cluster.close()
+            raise
+    return cluster
 
 
 def jobqueue_cluster(cfg: ClusterConfig):

@@ -98,6 +98,42 @@ def ignore_interrupts() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def spawn_ignoring_interrupts() -> None:
+    """Start this process's multiprocessing children (a LocalCluster's worker processes, and the resource
+    tracker) with SIGINT ignored from their first instruction, through a two-line ``sh`` wrapper around
+    this Python (``trap '' INT``: an ignored signal stays ignored across ``exec``, and Python then leaves
+    it so). :func:`ignore_interrupts` runs only once a worker has imported Dask; a terminal's Ctrl-C that
+    reached a worker still importing printed its ``KeyboardInterrupt`` traceback (the chaos run,
+    ``scripts/chaos.py``, met it). multiprocessing takes one executable path, no arguments, so the
+    wrapper is a file, written once a process into a temporary folder.
+
+    And the resource tracker's warning of the semaphores it cleans up after a main process that was
+    killed (``resource_tracker: There appear to be N leaked semaphore objects``) is off: they are Dask's,
+    the tracker frees them, and the run resumes; the warning only told the user what was already done."""
+    import atexit
+    import multiprocessing
+    import shlex
+    import shutil
+    import sys
+    import tempfile
+    global _WRAPPER
+    if _WRAPPER is None:
+        folder = tempfile.mkdtemp(prefix="denoise-spawn-")
+        atexit.register(shutil.rmtree, folder, True)
+        path = os.path.join(folder, "python")
+        with open(path, "w") as f:
+            f.write(f"#!/bin/sh\ntrap '' INT\nexec {shlex.quote(sys.executable)} \"$@\"\n")
+        os.chmod(path, 0o755)
+        _WRAPPER = path
+    multiprocessing.get_context("spawn").set_executable(_WRAPPER)
+    quiet = "ignore:resource_tracker:UserWarning"      # -W of every Python that multiprocessing spawns
+    if quiet not in sys.warnoptions:
+        sys.warnoptions.append(quiet)
+
+
+_WRAPPER: str | None = None
+
+
 def quiet_task_failures() -> None:
     """Drop distributed's "Compute Failed" log record (the task's whole traceback, once per attempt), and
     the failed heartbeat of a run's last moments, in this worker: the client that started it records
