@@ -73,12 +73,27 @@ def clip_sequences(store, frames: list[int], left_out=None) -> tuple[list[tuple[
     left out. Refused (ExportError): clips that ``frames`` covers in part, a frame inside a clip that is
     not complete and not left out, stills, whole clips of different lengths, and no sequence at all."""
     chosen = set(int(i) for i in frames)
-    skipped = {int(i) for i in (left_out or {})}
+    whole, split = _sort_clips(store, chosen, {int(i) for i in (left_out or {})})
+    size = _sequence_length(whole, split)
+    out, notes = list(whole), []
+    for c, runs, cut in split:
+        kept = [r for r in runs if len(r) == size]
+        out += [(c, r) for r in kept]
+        notes.append(_split_note(c, runs, cut, kept, size))
+    if not out:
+        raise ExportError("no Noisebase sequence is left to write: " + "; ".join(notes[:5])
+                          + (f" (and {len(notes) - 5} more)" if len(notes) > 5 else ""))
+    return sorted(out, key=lambda t: t[1][0]), notes
+
+
+def _sort_clips(store, chosen: set, skipped: set) -> tuple[list, list]:
+    """``(whole, split)``: the clips ``chosen`` covers whole, as ``(clip id, frames)``, and those to split
+    at frames of ``skipped``, as ``(clip id, runs of chosen frames, frames cut)``; ExportError for what
+    :func:`clip_sequences` refuses."""
     clip_of = store.meta_column("clip_id")
     position, length = store.meta_column("frame"), store.meta_column("num_frames")
-    members = store.clips(None)
     whole, split, partial, gaps, touched = [], [], [], [], set()
-    for c, idx in members.items():
+    for c, idx in store.clips(None).items():
         first, n = idx[0] - int(position[idx[0]]), int(length[idx[0]])     # a clip's frames are consecutive
         # the clip's frames left out: those between its complete ones, and those its recorded metadata places in it
         cut = sorted(i for i in skipped if idx[0] < i < idx[-1] or (
@@ -87,8 +102,8 @@ def clip_sequences(store, frames: list[int], left_out=None) -> tuple[list[tuple[
         if not have and not cut:
             continue
         touched.update(idx)
-        complete = set(idx)
         span = range(min([idx[0]] + cut), max([idx[-1]] + cut) + 1)
+        complete = set(idx)
         absent = [i for i in span if i not in complete and i not in skipped]
         other = [i for i in idx if i not in chosen and i not in skipped]
         if absent:                  # a frame inside the clip is not complete: never join its neighbours across it
@@ -113,6 +128,13 @@ def clip_sequences(store, frames: list[int], left_out=None) -> tuple[list[tuple[
         raise ExportError("a Noisebase sequence is a whole clip; --frames covers only part of "
                           + "; ".join(partial[:5]) + ": choose every frame of those clips (--frames all takes "
                           "every clip whole)")
+    return whole, split
+
+
+def _sequence_length(whole: list, split: list) -> int:
+    """The frames of every sequence: the whole clips' one length, or without whole clips the run length
+    that keeps the most frames (the longer on a tie; 0 when no run has two frames). ExportError for stills
+    and whole clips of different lengths."""
     stills = [c for c, idx in whole if len(idx) == 1]
     if stills:
         raise ExportError(f"{len(stills)} of the {len(whole)} clips chosen are stills (clips {stills[:8]}): Noisebase "
@@ -124,31 +146,25 @@ def clip_sequences(store, frames: list[int], left_out=None) -> tuple[list[tuple[
         raise ExportError(f"the clips chosen have different lengths {by} (length: first clip ids); Noisebase has one "
                           "frames_per_sequence for a dataset: export the clips of one length at a time (--frames)")
     if lengths:
-        size = lengths[0]
-    else:                           # no whole clip: the run length that keeps the most frames (the longer on a tie)
-        counts = {}
-        for _, runs, _ in split:
-            for r in runs:
-                if len(r) >= 2:
-                    counts[len(r)] = counts.get(len(r), 0) + len(r)
-        size = max(counts, key=lambda k: (counts[k], k)) if counts else 0
-    out, notes = list(whole), []
-    for c, runs, cut in split:
-        kept = [r for r in runs if len(r) == size]
-        out += [(c, r) for r in kept]
-        where = f"at its flagged frame{'s' if len(cut) > 1 else ''} {', '.join(map(str, cut[:5]))}"
-        if kept:
-            rest = [r for r in runs if len(r) != size]
-            notes.append(f"clip {c} split {where} into frames {' and '.join(_span(r) for r in kept)}"
-                         + (f" (frames {', '.join(_span(r) for r in rest)} left out: not {size} frames)" if rest else ""))
-        else:
-            notes.append(f"clip {c} left out {where}: "
-                         + (f"its frames {', '.join(_span(r) for r in runs)} are no sequence of {size} frames" if runs
-                            and size else "no run of two frames or more is left" if runs else "no frame is left"))
-    if not out:
-        raise ExportError("no Noisebase sequence is left to write: " + "; ".join(notes[:5])
-                          + (f" (and {len(notes) - 5} more)" if len(notes) > 5 else ""))
-    return sorted(out, key=lambda t: t[1][0]), notes
+        return lengths[0]
+    counts: dict = {}
+    for _, runs, _ in split:
+        for r in runs:
+            if len(r) >= 2:
+                counts[len(r)] = counts.get(len(r), 0) + len(r)
+    return max(counts, key=lambda k: (counts[k], k)) if counts else 0
+
+
+def _split_note(c: int, runs: list, cut: list, kept: list, size: int) -> str:
+    """The line saying what became of clip ``c``, split at the frames ``cut``."""
+    where = f"at its flagged frame{'s' if len(cut) > 1 else ''} {', '.join(map(str, cut[:5]))}"
+    if kept:
+        rest = [r for r in runs if len(r) != size]
+        return (f"clip {c} split {where} into frames {' and '.join(_span(r) for r in kept)}"
+                + (f" (frames {', '.join(_span(r) for r in rest)} left out: not {size} frames)" if rest else ""))
+    return (f"clip {c} left out {where}: "
+            + (f"its frames {', '.join(_span(r) for r in runs)} are no sequence of {size} frames" if runs and size
+               else "no run of two frames or more is left" if runs else "no frame is left"))
 
 
 def render_config_of(store):
