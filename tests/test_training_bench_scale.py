@@ -10,16 +10,16 @@ import numpy as np
 
 def test_every_consumer_is_timed_at_every_size_and_layout():
     from training import bench_scale as B
-    table = B.run(frames=(20, 40), say=lambda *a, **k: None)
+    table = B.run(frames=(16, 24), say=lambda *a, **k: None)
     consumers = {f"datasets_{k}" for k in B.KINDS} | {"evaluate", "hard_cases", "report", "export_exr",
                                                       "export_layerdenoise", "export_oidn"}
     assert set(table) == {"stills", "clips", "pairs"}
     assert set(table["stills"]) == set(table["clips"]) == consumers and set(table["pairs"]) == {"export_noisebase"}
     for layout, stages in table.items():
         for stage, per in stages.items():
-            assert set(per) == {20, 40} and all(math.isfinite(v) and v > 0 for v in per.values()), (layout, stage, per)
+            assert set(per) == {16, 24} and all(math.isfinite(v) and v > 0 for v in per.values()), (layout, stage, per)
     md = B.markdown(table)
-    assert "| stills | 20 | 40 | 40 / 20 |" in md and "| export_noisebase |" in md
+    assert "| stills | 16 | 24 | 24 / 16 |" in md and "| export_noisebase |" in md
 
 
 def test_the_stores_hold_what_the_layouts_say(tmp_path):
