@@ -445,37 +445,38 @@ def test_ctrl_c_stops_training_with_130_and_no_traceback(store, tmp_path):
     assert "Traceback" not in err and "interrupted" in err and "resumes" in err
 
 
-def _train_until_ctrl_c(store, tmp_path, workers: int, before_ctrl_c=None) -> tuple[int, str, Path]:
+def _train_until_ctrl_c(store, tmp_path, workers: int, before_ctrl_c=None, *, ctrl_c=None, hook: str = "",
+                        extra: tuple = ()) -> tuple[int, str, Path]:
     """``train`` (tiny layer model, a step a metrics line) in its own process group: once a few steps are
-    logged, ``before_ctrl_c(proc, steps)`` if given, then SIGINT to the group (a terminal's Ctrl-C).
-    Returns the exit code, stderr and the run's folder."""
+    logged, ``before_ctrl_c(proc, steps)`` if given, then ``ctrl_c(proc, steps)``, by default one SIGINT to
+    the group (a terminal's Ctrl-C). ``proc``: a :class:`procs.Command` (its markers on stdout, lines to its
+    stdin); ``hook``: Python code the process runs first (:func:`procs.python_m`); ``extra``: more train
+    options (the last of two wins). Returns the exit code, stderr and the run's folder."""
     import json
-    import signal
-    import subprocess
-    import sys
     import time
+
+    from procs import Command, kill_group, python_m
     out = tmp_path / "r"
-    argv = [sys.executable, "-m", "training", "train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
-            store, "--out", str(out), "--steps", "100000", "--crop", "16", "--batch", "2", "--spp", "2", "--workers",
-            str(workers), "--checkpoint-every", "100000", "--log-every", "1", "--no-progress"]
+    argv = python_m("training", hook) + [
+        "train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store", store, "--out", str(out), "--steps",
+        "100000", "--crop", "16", "--batch", "2", "--spp", "2", "--workers", str(workers), "--checkpoint-every",
+        "100000", "--log-every", "1", "--no-progress", *extra]
 
     def steps():
         return len((out / "metrics.csv").read_text().splitlines()) if (out / "metrics.csv").exists() else 0
-    with open(tmp_path / "err.txt", "w") as err_file:
-        proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], stdout=subprocess.DEVNULL,
-                                stderr=err_file, text=True, start_new_session=True)
-        try:
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 120 and steps() < 4:
-                time.sleep(0.1)                           # a few steps logged (one a step): training is under way
-            if before_ctrl_c:
-                before_ctrl_c(proc, steps)
-            os.killpg(proc.pid, signal.SIGINT)
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-    return proc.returncode, (tmp_path / "err.txt").read_text(), out
+    proc = Command(argv)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 120 and steps() < 4 and proc.poll() is None:
+            time.sleep(0.1)                           # a few steps logged (one a step): training is under way
+        if before_ctrl_c:
+            before_ctrl_c(proc, steps)
+        (ctrl_c or (lambda p, _: p.ctrl_c()))(proc, steps)
+    except BaseException:
+        kill_group(proc)
+        raise
+    code, _, err = proc.finish(timeout=60)
+    return code, err, out
 
 
 def test_a_ctrl_c_that_reaches_the_loader_workers_alone_does_not_stop_training(store, tmp_path):
@@ -508,6 +509,7 @@ def test_ctrl_c_before_the_first_checkpoint_keeps_the_steps_done(store, tmp_path
     written at it and the line says so (exit 130, no traceback, the loader's workers' included); the same
     command resumes from that step. Before, the line promised a checkpoint that did not exist."""
     import torch
+    from procs import last_line
     code, err, out = _train_until_ctrl_c(store, tmp_path, workers)
     assert code == 130, err
     assert "Traceback" not in err and "leaked semaphore" not in err, err
@@ -515,6 +517,126 @@ def test_ctrl_c_before_the_first_checkpoint_keeps_the_steps_done(store, tmp_path
     assert len(line) == 1 and "checkpoint.pt holds it" in line[0] and "resumes" in line[0], err
     step = int(line[0].split("at step ")[1].split(":")[0])
     assert step >= 3 and torch.load(out / "checkpoint.pt", weights_only=False)["step"] == step
+    last_line(err, line[0])                         # nothing after it
+
+
+# Points inside `train` where the test holds the process (a line on stdout, then a wait for one on stdin)
+# while it presses Ctrl-C: the stop's checkpoint write, the loader's shut-down, the interpreter's exit.
+HOLD = {
+    "checkpoint write": """
+import sys
+import training.checkpoint as ck
+write = ck._write
+def held(path, payload):
+    print("held: checkpoint write", flush=True)
+    sys.stdin.readline()
+    write(path, payload)
+ck._write = held
+""",
+    "loader shut-down": """
+import sys
+from torch.utils.data import dataloader
+shut_down = dataloader._MultiProcessingDataLoaderIter._shutdown_workers
+def held(self):
+    if not self._shutdown:
+        print("held: loader shut-down", flush=True)
+        sys.stdin.readline()
+    shut_down(self)
+dataloader._MultiProcessingDataLoaderIter._shutdown_workers = held
+""",
+    "exit": """
+import atexit
+import sys
+def held():
+    print("held: exit", flush=True)
+    sys.stdin.readline()
+atexit.register(held)
+""",
+}
+
+
+@pytest.mark.parametrize("where", list(HOLD))
+def test_ctrl_c_pressed_again_while_train_stops_changes_nothing(store, tmp_path, where):
+    """Ctrl-C, then four more presses 0.1 s apart while the run stops: during the checkpoint write of the
+    step it stops at, during the loader's shut-down before it, or during the interpreter's exit (each held
+    by the test until the presses are sent). The write completes, the run stops at that step, and its one
+    line is the last thing on stderr (exit 130). Before, a press during the write cut it short (the steps
+    since the last checkpoint were lost, here every one), one during the shut-down printed "Exception
+    ignored in ... __del__" ending at the loop's handler, and one during the exit "Exception ignored in
+    atexit callback"."""
+    from procs import last_line
+
+    def ctrl_c(proc, steps):
+        proc.ctrl_c()
+        proc.wait_for(f"held: {where}")
+        proc.ctrl_c(presses=4)
+        proc.send()
+    code, err, out = _train_until_ctrl_c(store, tmp_path, 1, ctrl_c=ctrl_c, hook=HOLD[where])
+    assert code == 130, err
+    step = ckpt.load(out / "checkpoint.pt")["step"]
+    assert step >= 4
+    last_line(err, f"interrupted: at step {step}: {out / 'checkpoint.pt'} holds it, and the same command resumes "
+                   "from there")
+
+
+def test_ctrl_c_twice_before_the_step_under_way_ends_stops_at_once(store, tmp_path):
+    """Ctrl-C while the step under way waits for its batch (the test has stopped the loader's worker), then
+    again: the first press waits for the step, the second stops the run at once, without that step and in
+    one line naming the checkpoint that is kept (the last --checkpoint-every step); exit 130, nothing after
+    the line."""
+    import time
+
+    import psutil
+    from procs import last_line
+
+    def ctrl_c_twice(proc, steps):
+        worker, = psutil.Process(proc.pid).children()
+        worker.suspend()
+        n = -1
+        while steps() != n:                         # the batches the worker had made are used up
+            n = steps()
+            time.sleep(1.0)
+        proc.ctrl_c()
+        time.sleep(1.0)
+        assert proc.poll() is None and steps() == n     # the first press waits for the step under way
+        proc.ctrl_c()
+        time.sleep(0.5)
+        worker.resume()
+    code, err, out = _train_until_ctrl_c(store, tmp_path, 1, ctrl_c=ctrl_c_twice, extra=("--checkpoint-every", "2"))
+    assert code == 130, err
+    kept = ckpt.load(out / "checkpoint.pt")["step"]
+    logged = [int(r["step"]) for r in csv.DictReader(open(out / "metrics.csv")) if r["kind"] == "train"]
+    assert kept % 2 == 0 and 2 <= kept <= max(logged), (kept, logged)
+    last_line(err, f"interrupted: {out / 'checkpoint.pt'} (its last --checkpoint-every step) is kept, and the same "
+                   "command resumes from it")
+
+
+def test_ctrl_c_pressed_during_the_imports_is_one_line(store, tmp_path):
+    """Five presses 0.1 s apart while `train` imports torch (from the moment the process has mapped
+    libtorch): exit 130 and one line. Before, a KeyboardInterrupt traceback and no line."""
+    import json
+    import time
+
+    from procs import Command, kill_group, last_line, python_m
+    proc = Command(python_m("training") + ["train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
+                                           store, "--out", str(tmp_path / "r"), "--steps", "5", "--no-progress"])
+    def mapped() -> str:
+        try:
+            return Path(f"/proc/{proc.pid}/maps").read_text()
+        except OSError:                             # it ended
+            return ""
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 60 and proc.poll() is None and "libtorch" not in mapped():
+            time.sleep(0.005)
+        proc.ctrl_c(presses=5)
+    except BaseException:
+        kill_group(proc)
+        raise
+    code, _, err = proc.finish()
+    assert code == 130, err
+    last_line(err, "interrupted: before training started: nothing was written")
+    assert not (tmp_path / "r").exists()
 
 
 def test_an_incomplete_frame_is_refused_by_name_or_left_out_and_recorded(tmp_path, capsys):

@@ -5,8 +5,6 @@ import argparse
 import json
 import sys
 
-from .jsonio import dumps
-
 
 def _model_cfg(text: str) -> dict:
     """``--model-cfg`` as a dict; strict JSON (``NaN`` and ``Infinity`` are not JSON values). The model
@@ -27,6 +25,7 @@ def _model_cfg(text: str) -> dict:
 
 def _train(a) -> int:
     from .cli import config_from
+    from .jsonio import dumps
     from .loop import train
     cfg = config_from(a, _model_cfg(a.model_cfg))
     out = a.out or f"data/runs/{a.model}"
@@ -41,6 +40,7 @@ def _train(a) -> int:
 
 def _evaluate(a) -> int:
     from .evaluate import evaluate, write_json
+    from .jsonio import dumps
     res = evaluate(a.checkpoint, a.store, split=a.split, spp=a.spp, max_frames=a.frames, with_flip=not a.no_flip,
                    skip_bad_frames=a.skip_bad_frames, device=a.device, precision=a.precision, compile=a.compile)
     write_json(res, a.out)
@@ -271,10 +271,22 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run a command; its exit code. Ctrl-C anywhere, the imports that parsing the arguments makes (torch)
+    included, ends in one line and 130 (``__main__`` installs :mod:`core.interrupts` before them)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["scaling"]:
-        return run_study_command(argv[1:])
-    a = parser().parse_args(argv)
+    a = None
+    try:
+        if argv[:1] == ["scaling"]:
+            return run_study_command(argv[1:])
+        a = parser().parse_args(argv)
+        return _run(a)
+    except KeyboardInterrupt as err:
+        kept = _kept(err, a, argv)
+        print(f"interrupted{': ' + kept if kept else ''}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _run(a) -> int:
     from stores.errors import StoreError, exit_status, store_unreachable, unreachable_cause, unreachable_exit
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
 
@@ -295,10 +307,6 @@ def main(argv=None) -> int:
             err = store_unreachable(getattr(a, "store", None) or "the store", err)
         print(f"error: {type(err).__name__}: {_message(err)}", file=sys.stderr)
         return code
-    except KeyboardInterrupt as err:
-        kept = _kept(err, a)
-        print(f"interrupted{': ' + kept if kept else ''}", file=sys.stderr)
-        return EXIT_INTERRUPTED
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
         hint = ("free space and run the same command again: the run resumes from its last checkpoint.pt"
                 if a.cmd == "train" else None)
@@ -319,14 +327,18 @@ EXIT_CODES_HELP = ("exit codes: 0 done; 1 the run failed (the loss became NaN/In
                    "could not be reached (run again once it is back); 130 interrupted")
 
 
-def _kept(err: KeyboardInterrupt, a) -> str:
+def _kept(err: KeyboardInterrupt, a, argv: list[str]) -> str:
     """What an interrupted training run kept, said plainly: the checkpoint it resumes from (and its
-    step), or that nothing was kept; '' for the other commands."""
-    from .loop import TrainingInterrupted
-    if isinstance(err, TrainingInterrupted):
+    step), or that nothing was kept; '' for the other commands. ``a``: None when Ctrl-C came before the
+    arguments were parsed. Imports nothing that may be half-imported (a Ctrl-C inside ``import torch``
+    leaves torch that cannot be imported again)."""
+    loop = sys.modules.get(f"{__package__}.loop")
+    if loop is not None and isinstance(err, loop.TrainingInterrupted):
         if err.checkpoint is None:
             return f"at step {err.step}, before any step was trained: nothing was kept"
         return f"at step {err.step}: {err.checkpoint} holds it, and the same command resumes from there"
+    if a is None:
+        return "before training started: nothing was written" if argv[:1] == ["train"] else ""
     if getattr(a, "cmd", None) != "train":
         return ""
     from pathlib import Path
@@ -347,5 +359,11 @@ def _message(err: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    from . import distributed
-    distributed.end_process(main())
+    from core import interrupts
+    interrupts.install()                # before any heavy import: Ctrl-C from here on ends in one line
+    code = main()
+    interrupts.stopping()               # done: a press during the exit does nothing
+    dist = sys.modules.get(f"{__package__}.distributed")     # imported by every command torchrun may run
+    if dist is not None:
+        dist.end_process(code)
+    sys.exit(code)

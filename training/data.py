@@ -14,6 +14,7 @@ the ranks' crops in a step together are exactly the one-process batch, whatever 
 """
 from __future__ import annotations
 
+import sys
 
 import numpy as np
 import torch
@@ -178,6 +179,16 @@ def _worker_init(_):
     # A terminal's Ctrl-C reaches the whole process group: the training process stops between steps and
     # shuts its loader down; a worker that died of it mid-transfer left a resource_sharer traceback.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.excepthook = _quiet_broken_transfer
+
+
+def _quiet_broken_transfer(kind, value, tb) -> None:
+    """A loader worker's ``sys.excepthook``, which multiprocessing's resource_sharer thread calls when the
+    training process stopped taking a batch from this worker half-way (a second Ctrl-C stops it at once):
+    the broken connection (``ConnectionError``) is no news, the worker is being shut down, and its
+    traceback came after the command's last line. Anything else is printed as Python prints it."""
+    if not issubclass(kind, ConnectionError):
+        sys.__excepthook__(kind, value, tb)
 
 
 def batch_loader(dataset, batch: int, seed: int, start: int, stop: int, workers: int = 0, rank: int = 0,

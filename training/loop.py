@@ -21,6 +21,7 @@ seed alike and no training step draws from the global RNGs (crops and augmentati
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core import interrupts
 from stores.errors import SplitError
 
 from . import accel, distributed, metrics
@@ -429,6 +431,7 @@ class _Run:
         self.model = distributed.wrap(self.module, dist, device)    # DDP under torchrun, else the module
         self.forward_loss = forward_loss_fn(self.model, self.loss_fn, device, precision, compiled=cfg.compile)
         self.log = _Log(out / "metrics.csv", self.step) if dist.is_main else None
+        self.ctrl_c = _CtrlC(enabled=False)     # the loop's, while it runs: a write is never cut short
 
     def _resume(self) -> int:
         """Load the checkpoint after checking it was trained with these settings on this store."""
@@ -453,9 +456,10 @@ class _Run:
 
     def save(self) -> None:
         if self.dist.is_main:
-            ckpt.save(self.ck_path, model=self.module, optimizer=self.optimizer, step=self.step, cfg=self.cfg,
-                      store_info=self.store_info,
-                      extra={"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else None)
+            with self.ctrl_c.deferred():
+                ckpt.save(self.ck_path, model=self.module, optimizer=self.optimizer, step=self.step, cfg=self.cfg,
+                          store_info=self.store_info,
+                          extra={"scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else None)
 
     def train_step(self, batch: dict) -> torch.Tensor:
         """One optimiser step; its loss stays on the device (:class:`LossReader`)."""
@@ -509,7 +513,7 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
     if progress and dist.is_main:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=run.step, desc=f"train {cfg.model}", unit="step", dynamic_ncols=True)
-    ctrl_c = _CtrlC(enabled=not dist.enabled and todo > 0)
+    ctrl_c = run.ctrl_c = _CtrlC(enabled=not dist.enabled and todo > 0)
     try:
         t_step = t_run = time.perf_counter()
         with ctrl_c:
@@ -527,13 +531,13 @@ def _loop(run: _Run, train_ds, val_ds, todo: int, progress: bool, t0: float,
                         bar.update(1)
                     done = _after_step(run, losses, val_ds, epoch, bar, t0)
                     val = val if done is None else done
-                    if ctrl_c.pressed:
+                    if ctrl_c.stop_now():
                         break
                     if seconds is not None and (not dist.enabled or run.step % cfg.log_every == 0) \
                             and _stop_on_time(dist, time.perf_counter() - t_run >= seconds):
                         break
             except Exception:       # the loader's workers got the Ctrl-C too and ended: a stop between steps
-                if not ctrl_c.pressed:
+                if not ctrl_c.stop_now():
                     raise
             if todo > 0 and run.step % cfg.checkpoint_every and run.step != cfg.steps:
                 losses.read()
@@ -556,16 +560,22 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 
 class _CtrlC:
-    """Ctrl-C (SIGINT) during training: the step under way finishes, the run is checkpointed at it and
-    :class:`TrainingInterrupted` is raised (``pressed``, read between steps); a second Ctrl-C stops at
-    once (KeyboardInterrupt). An interruption inside an optimiser step would leave the weights half
-    updated, so the first one never does that. Only in the main thread of a one-process run (under
-    torchrun the ranks must stop at the same step: there Ctrl-C stops at once, the last checkpoint
-    stays)."""
+    """Ctrl-C (SIGINT) during training, in the main thread of a one-process run. The first press: the step
+    under way finishes, the run is checkpointed at it and :class:`TrainingInterrupted` is raised
+    (``pressed``, read between steps: an interruption inside an optimiser step would leave the weights half
+    updated). A second press before that step has finished stops at once (KeyboardInterrupt, for a step
+    that hangs: the steps since the last checkpoint are not kept). Once it has finished (:meth:`stop_now`)
+    and during every checkpoint write (:meth:`deferred`), a press only asks for the stop: the loader's
+    shut-down and the write are never cut short, and the run stops at the step written. Once the run
+    stops, Ctrl-C is ignored (:func:`core.interrupts.stopping`): the command's one line is its last word.
+    Under torchrun the ranks must stop at the same step: there Ctrl-C stops at once (the process's
+    handler, :mod:`core.interrupts`) and the last checkpoint stays. A process that ignores Ctrl-C leaves
+    it to its parent (the scaling study's workers, which the study ends): that stays so."""
 
     def __init__(self, enabled: bool):
-        self.enabled = enabled and threading.current_thread() is threading.main_thread()
-        self.pressed, self._previous = False, None
+        self.enabled = enabled and threading.current_thread() is threading.main_thread() \
+            and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+        self.pressed, self.stopping, self.writing, self._previous = False, False, 0, None
 
     def __enter__(self):
         if self.enabled:
@@ -573,13 +583,31 @@ class _CtrlC:
         return self
 
     def _handle(self, signum, frame) -> None:
-        if self.pressed:
+        if self.pressed and not (self.stopping or self.writing):
+            interrupts.stopping()
             raise KeyboardInterrupt
         self.pressed = True
 
+    def stop_now(self) -> bool:
+        """Whether Ctrl-C was pressed; if so the run stops here and later presses wait for it."""
+        self.stopping = self.stopping or self.pressed
+        return self.pressed
+
+    @contextlib.contextmanager
+    def deferred(self):
+        """A checkpoint write: a press meanwhile only asks for the stop (the write completes)."""
+        self.writing += 1
+        try:
+            yield
+        finally:
+            self.writing -= 1
+
     def __exit__(self, *exc) -> None:
         if self.enabled:
-            signal.signal(signal.SIGINT, self._previous)
+            if self.pressed:
+                interrupts.stopping()
+            else:
+                signal.signal(signal.SIGINT, self._previous)
 
 
 def _stop_on_time(dist: distributed.Dist, due: bool) -> bool:
