@@ -31,6 +31,17 @@ EXIT_CODES_HELP = ("exit status: 0 ok; 1 problems found (validate) or frames fai
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command; its exit code. Ctrl-C anywhere, the chosen command's imports included, ends in one
+    line and 130: ``interrupted``, with what stays when the command says (``__main__`` installs
+    :mod:`core.interrupts` first)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as e:            # e.g. pipeline.cli_dataset.DatasetInterrupted: what stays
+        print(f"interrupted: {e}" if str(e) else "interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.splitlines()[0],
                                      epilog=EXIT_CODES_HELP)
@@ -61,13 +72,14 @@ def main(argv: list[str] | None = None) -> int:
     except (PipelineError, StoreError, SceneGenError) as e:
         print(f"error: {e}", file=sys.stderr)
         return exit_status(e)                 # 2, or the error's own: 4 a full disk, 5 an unreachable endpoint
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
     except Exception as e:                    # an s3:// store's endpoint is gone: 5; anything else is raised
         return unreachable_exit(e, getattr(args, "store", None) or getattr(args, "out", None),
                                 getattr(args, "out", None))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from core import interrupts
+    interrupts.install()                # before the command's imports: Ctrl-C from here on ends in one line
+    code = main()
+    interrupts.stopping()               # done: a press during the exit (a cluster closing) does nothing
+    sys.exit(code)

@@ -14,8 +14,9 @@ Order of work (everything that can be wrong is checked before a pixel is rendere
    and the rest goes on;
 6. validate the store and print the summary: store path, frames, elapsed time, dashboard address.
 
-Ctrl-C stops the run; frames already written stay complete and re-running the same command finishes
-the others. Exit codes: 0 all frames complete and the store valid, 1 some frames failed or the
+Ctrl-C stops the run, in one line on stderr (``interrupted: complete frames stay in STORE; ...``; more
+presses do nothing while the cluster closes); frames already written stay complete and re-running the
+same command finishes the others. Exit codes: 0 all frames complete and the store valid, 1 some frames failed or the
 validator found problems, 2 bad config / unreachable cluster, 130 interrupted.
 """
 from __future__ import annotations
@@ -37,6 +38,35 @@ DEFAULT_CONFIG = "configs/default.yaml"
 
 class StoreMismatchError(ConfigError):
     """The store at the target path was made from a different dataset config."""
+
+
+class DatasetInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a run: its message, the one line ``python -m pipeline`` prints after ``interrupted:``,
+    says where the complete frames stay and that the same command resumes."""
+
+    def __init__(self, store: str):
+        super().__init__(f"complete frames stay in {store}; run the same command again to resume")
+
+
+def _quiet_interrupted_sync() -> None:
+    """Leave out the one error distributed logs when Ctrl-C lands at the start of a blocking client call:
+    its ``sync()`` asks the event loop to cancel a future it has not made yet, which fails there
+    (NameError: cannot access free variable 'future'), and tornado printed that with its traceback before
+    the command's line. Nothing is lost: the call was interrupted and the run stops. Anything else the
+    loop logs is printed as before."""
+    import logging
+    log = logging.getLogger("tornado.application")
+    if not any(f is _drop_interrupted_sync for f in log.filters):
+        log.addFilter(_drop_interrupted_sync)
+
+
+def _drop_interrupted_sync(record) -> bool:
+    kind, err, tb = record.exc_info or (None, None, None)
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return not (kind is NameError and "'future'" in str(err) and tb is not None
+                and tb.tb_frame.f_code.co_name == "cancel"
+                and tb.tb_frame.f_code.co_filename.endswith(os.path.join("distributed", "utils.py")))
 
 
 def add_arguments(p) -> None:
@@ -201,6 +231,8 @@ def run_dataset(cfg: DatasetConfig, *, out: str | None = None, scheduler: str | 
     try:
         return _run_dataset(cfg, store, scheduler=scheduler, workers=workers, progress=progress,
                             functions=functions, overwrite=overwrite)
+    except KeyboardInterrupt:                   # anywhere in the run: the one line says what stays
+        raise DatasetInterrupted(store) from None
     except Exception as e:
         from stores.errors import store_unreachable, unreachable_cause
         if "://" in store and unreachable_cause(e) is not None:
@@ -255,6 +287,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
         return _summary(cfg, store, t0, results=[], failed={}, skipped=cfg.num_frames, dashboard=None,
                         cluster="none (nothing to render)", validation=_validate_run(store, []))
     tc = time.perf_counter()
+    _quiet_interrupted_sync()
     conn = cl.connect(cfg.cluster, scheduler=scheduler, workers=workers)
     results: list[dict] = []
     timings: dict = {"start_s": tc - t0, "cluster_start_s": time.perf_counter() - tc}
@@ -278,9 +311,6 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
                                                                         space_needed(cfg, store, left)))
         timings.update(commits=committer.commits, commit_latency_s=committer.latencies,
                        frames_s=time.perf_counter() - tr)
-    except KeyboardInterrupt:
-        _print(f"\ninterrupted: complete frames stay in {store}; run the same command again to resume")
-        raise
     finally:
         tc = time.perf_counter()
         conn.close()

@@ -43,6 +43,20 @@ def _scaling(a) -> int:
 
 
 def main(argv=None) -> int:
+    """Run the study; its exit code. Ctrl-C anywhere, the imports included, ends in one line and 130
+    (``__main__`` installs :mod:`core.interrupts` first)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        return 130
+
+
+INTERRUPTED = ("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same command "
+               "resumes")
+
+
+def _main(argv) -> int:
     a = parser().parse_args(argv)
     from stores.objectstore import quiet_abandoned_requests, retry_defaults
     from training.accel import tune_allocator
@@ -59,13 +73,13 @@ def main(argv=None) -> int:
     except (TrainingError, PipelineError, StoreError) as err:
         print(f"error: {type(err).__name__}: {err}", file=sys.stderr)
         return exit_status(err, 2)
-    except KeyboardInterrupt:
-        print("interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same command "
-              "resumes", file=sys.stderr)
-        return 130
     except Exception as err:                        # an s3:// store whose endpoint is gone: 5; others raised
         return unreachable_exit(err, None, getattr(a, "out", None))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from core import interrupts
+    interrupts.install()                # before the imports: Ctrl-C from here on ends in one line
+    code = main()
+    interrupts.stopping()               # done: a press during the exit does nothing
+    sys.exit(code)

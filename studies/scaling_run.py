@@ -19,6 +19,7 @@ import time
 import warnings
 from pathlib import Path
 
+from core import interrupts
 from training.errors import DataError
 from training.jsonio import write as write_json
 from .scaling import Job, ScalingConfig, clip_table, plan
@@ -131,9 +132,17 @@ def job_heldout(job: Job, heldout: dict, suite: dict | None) -> dict:
 def _ignore_interrupt() -> None:
     """Pool worker initializer: Ctrl-C is the parent's to handle (it terminates the workers), so a worker
     prints no traceback of its own; checkpoints and records are written atomically, so a killed run
-    resumes from its last checkpoint."""
+    resumes from its last checkpoint. The parent's terminate (SIGTERM) ends a worker through ``sys.exit``,
+    so that it cleans up as it exits: killed outright, it left the semaphores it had made (numcodecs'
+    Blosc lock) to multiprocessing's resource tracker, which warned of them after the study's last line."""
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_terminate)
+
+
+def _exit_on_terminate(signum, frame) -> None:
+    import sys
+    sys.exit(128 + signum)
 
 
 def _next(done, timeout: float = 1.0):
@@ -169,9 +178,10 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
         f"({parallel} at a time, {threads} thread(s) each)")
     if not todo:
         return records
-    t0, done = time.perf_counter(), queue.Queue()
-    pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
+    t0, done, pool = time.perf_counter(), queue.Queue(), None
     try:
+        with interrupts.held_back():     # the workers begin with Ctrl-C blocked (before _ignore_interrupt runs)
+            pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
         for j in todo:
             args = (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
                     job_heldout(j, heldout, suite), hard_store)
@@ -187,8 +197,9 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
             log(f"  [{k}/{len(todo)}] {res['name']}: relMSE {m['relmse']:.4g}, PSNR {m['psnr']:.2f} dB "
                 f"({res['seconds']:.0f} s, {res['cpu_seconds']:.0f} CPU-s; {time.perf_counter() - t0:.0f} s so far)")
     except BaseException:
-        pool.terminate()
-        pool.join()
+        if pool is not None:
+            pool.terminate()
+            pool.join()
         raise
     pool.close()
     pool.join()

@@ -194,6 +194,27 @@ def test_sigint_to_the_local_workers_neither_kills_them_nor_stores_a_cut_render(
         np.testing.assert_array_equal(a[path][:], b[path][:], err_msg=path)
 
 
+def test_ctrl_c_pressed_five_times_is_one_line_on_stderr(tmp_path):
+    """Five presses 0.1 s apart once the cluster is up (its line on stdout): exit 130 and one line, on stderr
+    and last, ``interrupted: complete frames stay in STORE; ...``. Before, the run printed that line on
+    stdout and then a bare ``interrupted`` on stderr, and a press while the cluster closed left it to close
+    at exit: a traceback from an atexit callback, or the process ended by SIGINT (exit -2)."""
+    from procs import Command, last_line, python_m
+    out = tmp_path / "s.zarr"
+    proc = Command(python_m("pipeline") + ["dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress"],
+                   env=_env())
+    try:
+        proc.wait_for("cluster: ")
+        proc.ctrl_c(presses=5)
+    except BaseException:
+        kill_group(proc)
+        raise
+    code, stdout, err = proc.finish(timeout=120)
+    assert code == 130, stdout[-2000:] + err[-3000:]
+    last_line(err, f"interrupted: complete frames stay in {out}; run the same command again to resume")
+    assert "interrupted" not in stdout, stdout[-2000:]
+
+
 # ---- 9: a full disk --------------------------------------------------------------------------------
 @pytest.fixture()
 def small_disk(tmp_path):

@@ -244,6 +244,48 @@ def test_the_smoke_study_runs_end_to_end_and_resumes(tmp_path):
     assert f"{n} finished, 0 to run" in again.stdout + again.stderr, again.stdout[-2000:]
 
 
+HELD_STORES = """
+import studies.scaling_run
+stores = {stores!r}
+studies.scaling_run.ensure_store = lambda dcfg, *a, **k: stores[dcfg.name]
+"""
+
+
+@pytest.mark.parametrize("when", ["starting", "training"])
+def test_ctrl_c_pressed_five_times_is_one_line(stores, tmp_path, when):
+    """`python -m studies scaling` (its stores the synthetic ones, by a hook) pressed Ctrl-C five times 0.1 s
+    apart as its pool's workers start, and once a run trains: exit 130 and the study's one line, last on
+    stderr. Before, a press while the study exited ended it by SIGINT (exit -2; the pool's semaphores could
+    leak, and resource_tracker warned after the line), and one that reached a worker before it ignored
+    Ctrl-C printed the worker's KeyboardInterrupt traceback."""
+    import time
+
+    import yaml
+    from procs import Command, kill_group, last_line, python_m
+    smoke = yaml.safe_load((ROOT / "configs" / "scaling-smoke.yaml").read_text())
+    study = {**smoke, "subsets": [0.5, 1.0], "seeds": [0], "variety": None,
+             "models": [{"model": "nbg", "steps": 100000}], "train": {**smoke["train"], "checkpoint_every": 100000}}
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(study))
+    names = (smoke["train_data"]["name"], smoke["heldout_data"]["name"])
+    out = tmp_path / "study"
+    proc = Command(python_m("studies", HELD_STORES.format(stores=dict(zip(names, stores)))) +
+                   ["scaling", "--config", str(tmp_path / "study.yaml"), "--out", str(out), "--no-progress"])
+    try:
+        proc.wait_for("scaling: ")
+        t0 = time.monotonic()
+        while when == "training" and time.monotonic() - t0 < 60 and \
+                not any("train nbg" in p.read_text() for p in out.glob("runs/**/run.log")):
+            time.sleep(0.1)
+        proc.ctrl_c(presses=5)
+    except BaseException:
+        kill_group(proc)
+        raise
+    code, _, err = proc.finish()
+    assert code == 130, err[-3000:]
+    last_line(err, "interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
+                   "command resumes")
+
+
 def test_hard_share_subsets_plan_and_checks():
     from studies.scaling import hard_subsets
     frames = {c: 1 for c in range(40)}
