@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from core import interrupts
+from core.files import remove_stale_temps
 from stores.errors import SplitError
 
 from . import accel, distributed, metrics
@@ -427,6 +428,8 @@ class _Run:
         self.optimizer = accel.adam(self.module.parameters(), cfg.lr)
         self.scaler = accel.grad_scaler(device, precision)
         self.ck_path = out / "checkpoint.pt"
+        if dist.is_main:                        # a write a SIGKILL cut short left its temporary file
+            remove_stale_temps(self.ck_path)
         self.step = self._resume() if self.ck_path.exists() else 0
         self.model = distributed.wrap(self.module, dist, device)    # DDP under torchrun, else the module
         self.forward_loss = forward_loss_fn(self.model, self.loss_fn, device, precision, compiled=cfg.compile)
