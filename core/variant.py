@@ -49,14 +49,27 @@ def find_libllvm() -> str | None:
     return None
 
 
-def cuda_available() -> bool:
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use: ``nvidia-smi -L``'s, within ``CUDA_VISIBLE_DEVICES`` when
+    it is set (its entries, indices or UUIDs, in its order); [] without a working driver or with
+    ``DENOISE_FORCE_CPU``. The one place GPUs are detected: the variant (:func:`cuda_available`) and
+    ``pipeline.cluster``'s one worker per GPU both ask it."""
     if os.environ.get("DENOISE_FORCE_CPU"):
-        return False
+        return []
     try:
-        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, timeout=10)
-        return out.returncode == 0 and b"GPU" in out.stdout
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.TimeoutExpired):
-        return False
+        return []
+    listed = [ln for ln in out.stdout.splitlines() if ln.startswith("GPU ")] if out.returncode == 0 else []
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is None:
+        return [str(i) for i in range(len(listed))]
+    return [d.strip() for d in env.split(",") if d.strip() and d.strip() != "-1"][:len(listed)]
+
+
+def cuda_available() -> bool:
+    """Whether this process sees a CUDA device (:func:`visible_gpus`)."""
+    return bool(visible_gpus())
 
 
 def _probe(variant: str, env: dict) -> str | None:

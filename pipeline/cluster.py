@@ -45,6 +45,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from pipeline.config import SECURITY_FILES, ClusterConfig, check_security, parse_dashboard
 from pipeline.errors import ConfigError, PipelineError
 from core.checks import is_int, is_number, need
+from core.variant import visible_gpus
 
 
 class ClusterError(PipelineError, ConnectionError):
@@ -188,24 +189,6 @@ def install_worker_init(client) -> None:
     except Exception as e:  # noqa: BLE001 - a worker's setup failed: say which, before anything runs
         raise ClusterError(f"cannot prepare the Dask workers (pipeline.cluster.WorkerInit): "
                            f"{type(e).__name__}: {e}") from e
-
-
-def visible_gpus() -> list[str]:
-    """The CUDA devices this process may use: ``nvidia-smi -L``'s, within ``CUDA_VISIBLE_DEVICES`` when
-    it is set (its entries, indices or UUIDs, in its order); [] without a working driver or with
-    ``DENOISE_FORCE_CPU``."""
-    import subprocess
-    if os.environ.get("DENOISE_FORCE_CPU"):
-        return []
-    try:
-        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return []
-    listed = [ln for ln in out.stdout.splitlines() if ln.startswith("GPU ")] if out.returncode == 0 else []
-    env = os.environ.get("CUDA_VISIBLE_DEVICES")
-    if env is None:
-        return [str(i) for i in range(len(listed))]
-    return [d.strip() for d in env.split(",") if d.strip() and d.strip() != "-1"][:len(listed)]
 
 
 def render_gpus(cfg: ClusterConfig) -> list[str]:

@@ -121,29 +121,10 @@ def test_missing_jobqueue_is_a_clear_error(monkeypatch):
 
 
 # ---- GPUs: one worker each (cluster.gpus) --------------------------------------------------------------
-def _fake_nvidia_smi(tmp_path, monkeypatch, n: int) -> None:
-    """An ``nvidia-smi`` on PATH that lists ``n`` GPUs, as the driver's does."""
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    lines = "\\n".join(f"GPU {i}: NVIDIA H200 (UUID: GPU-{i:08d})" for i in range(n))
-    (bin_dir / "nvidia-smi").write_text(f'#!/bin/sh\n[ "$1" = "-L" ] && printf "{lines}\\n"\n')
-    (bin_dir / "nvidia-smi").chmod(0o755)
-    monkeypatch.setenv("PATH", f"{bin_dir}:{__import__('os').environ['PATH']}")
-    monkeypatch.delenv("DENOISE_FORCE_CPU", raising=False)
-
-
-def test_visible_gpus_are_nvidia_smis_within_cuda_visible_devices(tmp_path, monkeypatch):
-    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
-    assert cl.visible_gpus() == [] or cl.visible_gpus()            # this machine: whatever it has
-    _fake_nvidia_smi(tmp_path, monkeypatch, 3)
-    assert cl.visible_gpus() == ["0", "1", "2"]
-    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,0")
-    assert cl.visible_gpus() == ["2", "0"]
-    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
-    assert cl.visible_gpus() == []
-    monkeypatch.setenv("DENOISE_FORCE_CPU", "1")
-    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
-    assert cl.visible_gpus() == []
+def test_the_cluster_asks_core_variant_for_gpus():
+    """One place detects GPUs (core.variant.visible_gpus, tests/test_variant.py); render_gpus asks it."""
+    import core.variant
+    assert cl.visible_gpus is core.variant.visible_gpus
 
 
 @pytest.mark.parametrize("gpus, want", [("auto", ["0", "1"]), (None, []), (0, []), (1, ["0"]), ([1], ["1"]),

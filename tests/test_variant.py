@@ -6,7 +6,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
 SNIPPET = ("from core.variant import mitsuba\n"
            "from core.errors import VariantError\n"
@@ -73,3 +72,53 @@ def test_the_variant_is_chosen_in_core_alone():
     assert issubclass(VariantError, ProjectError) and issubclass(VariantError, RuntimeError)
     root = Path(__file__).resolve().parent.parent
     assert not (root / "pipeline" / "variant.py").exists() and not (root / "scene_gen" / "variant.py").exists()
+
+# ---- GPUs: detected in core.variant alone ----------------------------------------------------------------
+def _fake_nvidia_smi(tmp_path, monkeypatch, n: int) -> None:
+    """An ``nvidia-smi`` on PATH that lists ``n`` GPUs, as the driver's does."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    lines = "\\n".join(f"GPU {i}: NVIDIA H200 (UUID: GPU-{i:08d})" for i in range(n))
+    (bin_dir / "nvidia-smi").write_text(f'#!/bin/sh\n[ "$1" = "-L" ] && printf "{lines}\\n"\n')
+    (bin_dir / "nvidia-smi").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
+    monkeypatch.delenv("DENOISE_FORCE_CPU", raising=False)
+
+
+def test_visible_gpus_are_nvidia_smis_within_cuda_visible_devices(tmp_path, monkeypatch):
+    from core.variant import visible_gpus
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    assert visible_gpus() == [] or visible_gpus()                  # this machine: whatever it has
+    _fake_nvidia_smi(tmp_path, monkeypatch, 3)
+    assert visible_gpus() == ["0", "1", "2"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,0")
+    assert visible_gpus() == ["2", "0"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
+    assert visible_gpus() == []
+    monkeypatch.setenv("DENOISE_FORCE_CPU", "1")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert visible_gpus() == []
+
+
+def test_the_variant_follows_the_visible_gpus(tmp_path, monkeypatch):
+    from core.variant import choose_variant
+    monkeypatch.delenv("MI_VARIANT", raising=False)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    _fake_nvidia_smi(tmp_path, monkeypatch, 2)
+    assert choose_variant() == "cuda_ad_rgb"
+    assert choose_variant("llvm_ad_rgb") == "llvm_ad_rgb"
+    monkeypatch.setenv("DENOISE_FORCE_CPU", "1")
+    assert choose_variant() == "llvm_ad_rgb"
+    monkeypatch.delenv("DENOISE_FORCE_CPU")
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")                # the driver is there, no device for us
+    assert choose_variant() == "llvm_ad_rgb"
+
+
+def test_only_core_variant_runs_nvidia_smi():
+    """The packages detect GPUs through core.variant.visible_gpus: no other module runs nvidia-smi."""
+    import ast
+    root = Path(__file__).resolve().parent.parent
+    found = sorted(str(p.relative_to(root)) for pkg in ("core", "scene_gen", "stores", "pipeline", "training", "studies")
+                   for p in (root / pkg).rglob("*.py")
+                   if any(isinstance(n, ast.Constant) and n.value == "nvidia-smi" for n in ast.walk(ast.parse(p.read_text()))))
+    assert found == ["core/variant.py"]
