@@ -10,7 +10,7 @@ EXIT_CODES_HELP = ("exit codes: 0 done; 2 bad settings, or a store that cannot b
 
 
 def scaling_options(s: argparse.ArgumentParser) -> None:
-    """The options of ``scaling`` (also those ``python -m training scaling`` takes and passes on)."""
+    """The options of ``scaling``."""
     s.add_argument("--config", required=True, help="a scaling config, e.g. configs/scaling-cpu.yaml")
     s.add_argument("--out", default=None, help="folder for the stores, runs and the three files (default: the "
                                                "config's out, else data/NAME)")

@@ -221,7 +221,7 @@ def test_a_run_is_trained_once_and_then_found_finished(stores, tmp_path):
 
 @pytest.mark.slow
 def test_the_smoke_study_runs_end_to_end_and_resumes(tmp_path):
-    """`python -m training scaling --config configs/scaling-smoke.yaml --out DIR` as a user runs it (about a
+    """`python -m studies scaling --config configs/scaling-smoke.yaml --out DIR` as a user runs it (about a
     minute): it renders its stores, trains and evaluates every run and writes the three files, with every
     run's mean in the JSON; run again, it trains nothing and reads every run as finished."""
     import subprocess
@@ -229,7 +229,7 @@ def test_the_smoke_study_runs_end_to_end_and_resumes(tmp_path):
 
     from test_pipeline_safety import _env
     root = Path(__file__).resolve().parent.parent
-    argv = [sys.executable, "-m", "training", "scaling", "--config", str(root / "configs" / "scaling-smoke.yaml"),
+    argv = [sys.executable, "-m", "studies", "scaling", "--config", str(root / "configs" / "scaling-smoke.yaml"),
             "--out", str(tmp_path), "--no-progress"]
     first = subprocess.run(argv, env=_env(), cwd=root, capture_output=True, text=True, timeout=900)
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
@@ -284,6 +284,20 @@ def test_ctrl_c_pressed_five_times_is_one_line(stores, tmp_path, when):
     assert code == 130, err[-3000:]
     last_line(err, "interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "
                    "command resumes")
+
+
+def test_training_has_no_scaling_command_and_names_the_studies_one(capsys, monkeypatch):
+    """The study lives above training: `python -m training scaling` starts nothing (no `python -m studies`
+    child) and says in one line where the command is."""
+    import subprocess
+
+    from training.__main__ import main, parser
+    started = []
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
+    assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--out", "x"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and "`python -m studies scaling`" in err, err
+    assert started == [] and "scaling" not in parser().format_help()
 
 
 def test_hard_share_subsets_plan_and_checks():

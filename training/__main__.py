@@ -1,4 +1,4 @@
-"""``python -m training train|evaluate|report|bench|denoise|hard-cases|real-scenes|scaling|fma`` (see ``--help`` of each)."""
+"""``python -m training train|evaluate|report|bench|denoise|hard-cases|real-scenes|fma`` (see ``--help`` of each)."""
 from __future__ import annotations
 
 import argparse
@@ -98,19 +98,6 @@ def _hard_cases(a) -> int:
 def _real_scenes(a) -> int:
     from .realscenes import real_scenes_cli
     return real_scenes_cli(a)
-
-
-def run_study_command(argv: list[str]) -> int:
-    """``python -m training scaling ARGS``: the study lives above training and pipeline (``studies``, which
-    neither imports), so this command runs ``python -m studies scaling ARGS`` as a program of its own and
-    ends with its exit code. Ctrl-C reaches both; this one waits for the study to stop by itself."""
-    import subprocess
-    p = subprocess.Popen([sys.executable, "-m", "studies", "scaling", *argv])
-    while True:
-        try:
-            return p.wait()
-        except KeyboardInterrupt:
-            continue
 
 
 def _model_names() -> str:
@@ -254,20 +241,19 @@ def _denoise_parser(sub) -> None:
     d.set_defaults(fn=_denoise)
 
 
-def _scaling_parser(sub) -> None:
-    sub.add_parser("scaling", add_help=False,
-                   help="the scaling study (quality against training frames, scene variety and hard-case share): "
-                        "runs `python -m studies scaling` with the same options (see its --help)")
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m training", description=__doc__, epilog=EXIT_CODES_HELP)
     sub = p.add_subparsers(dest="cmd", required=True)
     for add in (_train_parser, _evaluate_parser, _report_parser, _hard_cases_parser, _real_scenes_parser,
-                _bench_parser, _denoise_parser, _scaling_parser):
+                _bench_parser, _denoise_parser):
         add(sub)
     sub.add_parser("fma", help="figure 10: FMAs against spp").set_defaults(fn=_fma)
     return p
+
+
+# Commands that live in another package now: one line naming where, instead of argparse's list of choices.
+MOVED = {"scaling": "python -m training has no command 'scaling': the scaling study is "
+                    "`python -m studies scaling` (the same options; see its --help)"}
 
 
 def main(argv=None) -> int:
@@ -276,8 +262,9 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     a = None
     try:
-        if argv[:1] == ["scaling"]:
-            return run_study_command(argv[1:])
+        if argv and argv[0] in MOVED:
+            print(f"error: {MOVED[argv[0]]}", file=sys.stderr)
+            return EXIT_ERROR
         a = parser().parse_args(argv)
         return _run(a)
     except KeyboardInterrupt as err:
