@@ -1,4 +1,6 @@
-"""``python -m studies scaling`` (see ``--help``): the scaling study of :mod:`studies.scaling`."""
+"""``python -m studies scaling|bench-scale`` (see ``--help`` of each): the scaling study of
+:mod:`studies.scaling`, and what a frame costs the stages that read the stores as a store grows
+(:mod:`studies.bench_scale`)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +8,7 @@ import sys
 
 EXIT_CODES_HELP = ("exit codes: 0 done; 2 bad settings, or a store that cannot be used as asked; 3 a store is "
                    "damaged (see python -m pipeline validate); 4 a disk is full; 5 the S3 endpoint of an s3:// "
-                   "store could not be reached; 130 interrupted (the same command resumes)")
+                   "store could not be reached; 130 interrupted (scaling: the same command resumes)")
 
 
 def scaling_options(s: argparse.ArgumentParser) -> None:
@@ -30,6 +32,16 @@ def parser() -> argparse.ArgumentParser:
                                        "their share of hard cases, with fits and intervals: OUT/scaling.md, "
                                        "scaling.png, scaling.json (resumes)")
     scaling_options(s)
+    s.set_defaults(fn=_scaling)
+    b = sub.add_parser("bench-scale", help="what a frame costs evaluate, hard-cases, report, export and the training "
+                                           "datasets as a store grows (stills, clips, pairs), in ms a frame")
+    b.add_argument("--frames", nargs="+", type=int, default=None,
+                   help="the store sizes to measure (default 100 1000 10000)")
+    b.add_argument("--source", default=None,
+                   help="the rendered store whose frames are written again (default: configs/smoke.yaml, "
+                        "rendered first)")
+    b.add_argument("--json", help="also write the table ({layout: {stage: {frames: ms}}}) to this file")
+    b.set_defaults(fn=_bench_scale)
     return p
 
 
@@ -42,13 +54,25 @@ def _scaling(a) -> int:
     return 0
 
 
+def _bench_scale(a) -> int:
+    from .bench_scale import DEFAULT_FRAMES, check_frames, markdown, run
+    check_frames(a.frames or DEFAULT_FRAMES, "--frames")
+    res = run(frames=tuple(a.frames or DEFAULT_FRAMES), source=a.source)
+    print(markdown(res))
+    if a.json:
+        from training.jsonio import write
+        write(a.json, res)
+    return 0
+
+
 def main(argv=None) -> int:
-    """Run the study; its exit code. Ctrl-C anywhere, the imports included, ends in one line and 130
+    """Run a command; its exit code. Ctrl-C anywhere, the imports included, ends in one line and 130
     (``__main__`` installs :mod:`core.interrupts` first)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     try:
         return _main(argv)
     except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
+        print(INTERRUPTED if argv[:1] == ["scaling"] else "interrupted", file=sys.stderr)
         return 130
 
 
@@ -69,7 +93,7 @@ def _main(argv) -> int:
     from core.notices import plain_warnings
     try:
         with plain_warnings():                      # a notice (frames left out, ...) is one plain line
-            return _scaling(a)
+            return a.fn(a)
     except (TrainingError, PipelineError, StoreError) as err:
         print(f"error: {type(err).__name__}: {err}", file=sys.stderr)
         return exit_status(err, 2)

@@ -1,11 +1,14 @@
 """The import graph reads in the data's order (docs/architecture.md): ``core`` at the ground, imported by
 every stage and importing none; ``scene_gen`` and ``stores`` on it; ``pipeline`` (renders scenes into
 stores) and ``training`` (reads stores) side by side above those, neither importing the other and training
-never reaching into the scene generator; ``studies`` (what both renders and trains: the scaling study) on
-top of both, imported by neither; and no cycle between modules,
+never reaching into the scene generator; ``studies`` (what both renders and trains: the scaling study,
+bench-scale) on top of all of them, imported by none; and no cycle between modules,
 imports inside functions and modules named as strings (``importlib.import_module``) included, and those
 built from f-strings: ``f"{__name__}.{m.name}"`` (a registry that imports every module of its folder)
-stands for every module of the folder."""
+stands for every module of the folder. Two more ways one module reaches another count as imports: an
+entry point of pyproject.toml (the module holding the group's name, which loads the group, imports every
+module the group's entry points name) and a program it starts (``[sys.executable, "-m", "pipeline", ...]``:
+the module depends on ``pipeline.__main__``)."""
 from __future__ import annotations
 
 import ast
@@ -23,7 +26,7 @@ ALLOWED = {                                 # package -> the packages it may imp
     "stores": {"core"},
     "pipeline": {"core", "scene_gen", "stores"},
     "training": {"core", "stores"},         # a sibling of pipeline: neither imports the other
-    "studies": {"core", "stores", "pipeline", "training"},   # what both renders and trains
+    "studies": {"core", "scene_gen", "stores", "pipeline", "training"},   # what both renders and trains: all below
 }
 
 
@@ -48,13 +51,52 @@ def _pattern(node: ast.JoinedStr, mod: str, package: str) -> str | None:
     return name if ok and "*" in name and name.split(".")[0] in PACKAGES else None
 
 
-def _imports(path: Path) -> set[str]:
-    """Every project module ``path`` imports, anywhere in the file (relative imports resolved); a name
-    holding ``*`` is a pattern (:func:`_pattern`)."""
+def _entry_points() -> dict[str, set[str]]:
+    """pyproject.toml's entry-point groups: group name -> the project modules its entry points name."""
+    import tomllib
+    groups = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"].get("entry-points", {})
+    return {g: {v.partition(":")[0].strip() for v in eps.values()} for g, eps in groups.items()}
+
+
+def _programs(tree: ast.AST) -> set[str]:
+    """The modules a file starts as new programs, ``python -m NAME`` (as ``NAME.__main__``): the item after
+    ``"-m"`` in a list, tuple or call's arguments, a string or a parameter of the function it sits in (as
+    ``[sys.executable, "-m", *args]``: then every call of that function in the file names the module)."""
+    out, params = set(), []
+    for fn in [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))] + [None]:
+        positional = [a.arg for a in fn.args.posonlyargs + fn.args.args] if fn else []
+        star = fn.args.vararg.arg if fn and fn.args.vararg else None
+        for node in ast.walk(fn or tree):
+            items = node.elts if isinstance(node, (ast.List, ast.Tuple)) else \
+                node.args if isinstance(node, ast.Call) else []
+            for i, item in enumerate(items[:-1]):
+                if not (isinstance(item, ast.Constant) and item.value == "-m"):
+                    continue
+                nxt = items[i + 1]
+                name = getattr(nxt.value if isinstance(nxt, ast.Starred) else nxt, "id", None)
+                if isinstance(nxt, ast.Constant) and isinstance(nxt.value, str):
+                    out.add(nxt.value)
+                elif fn and name == star:
+                    params.append((fn.name, len(positional)))
+                elif fn and name in positional:
+                    params.append((fn.name, positional.index(name)))
+    for node in ast.walk(tree):                     # the calls of a function that starts ``python -m ARG``
+        called = getattr(node.func, "id", getattr(node.func, "attr", None)) if isinstance(node, ast.Call) else None
+        for fname, pos in params:
+            if called == fname and len(node.args) > pos and isinstance(node.args[pos], ast.Constant):
+                out.add(str(node.args[pos].value))
+    return {f"{n}.__main__" for n in out}
+
+
+def _imports(path: Path, programs: bool = True) -> set[str]:
+    """Every project module ``path`` imports, anywhere in the file (relative imports resolved), loads
+    through an entry-point group it names (:func:`_entry_points`) or starts as a program
+    (:func:`_programs`); a name holding ``*`` is a pattern (:func:`_pattern`)."""
     mod = _module_name(path)
     package = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
-    out = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree, groups = ast.parse(path.read_text()), _entry_points()
+    out = {n for n in _programs(tree) if n.split(".")[0] in PACKAGES} if programs else set()
+    for node in ast.walk(tree):
         names = []
         if isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.JoinedStr) and \
                 getattr(node.func, "attr", getattr(node.func, "id", "")) in ("import_module", "__import__"):
@@ -67,6 +109,8 @@ def _imports(path: Path) -> set[str]:
                 up = package.split(".")[:len(package.split(".")) - node.level + 1]
                 base = ".".join(up + ([base] if base else []))
             names = [base] + [f"{base}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Constant) and node.value in groups:
+            names = sorted(groups[node.value])      # an entry-point group: loading it imports what it names
         elif isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.isidentifier() is False \
                 and all(part.isidentifier() for part in node.value.split(".")):
             names = [node.value]            # a module named as a string (importlib.import_module, a table of them)
@@ -74,15 +118,16 @@ def _imports(path: Path) -> set[str]:
     return out
 
 
-def _graph(plugins: set | None = None) -> dict[str, set[str]]:
-    """Module -> the project modules it imports. ``plugins`` (when given) collects ``(plugin, registry)``:
-    a module that ``registry`` imports through a pattern (it finds the modules of its folder)."""
+def _graph(plugins: set | None = None, programs: bool = True) -> dict[str, set[str]]:
+    """Module -> the project modules it imports (and, with ``programs``, starts). ``plugins`` (when given)
+    collects ``(plugin, registry)``: a module that ``registry`` imports through a pattern (it finds the
+    modules of its folder)."""
     files = [p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")]
     mods = {_module_name(p): p for p in files}
     graph = {}
     for m, p in mods.items():
         deps = set()
-        for name in _imports(p):        # ``from a.b import c``: the module a.b.c where it is one, else a.b
+        for name in _imports(p, programs):        # ``from a.b import c``: the module a.b.c where it is one, else a.b
             if "*" in name:
                 rx = re.compile(re.escape(name).replace(r"\*", r"[^.]+") + "$")
                 found = {n for n in mods if rx.match(n) and n != m}
@@ -98,17 +143,49 @@ def _graph(plugins: set | None = None) -> dict[str, set[str]]:
     return graph
 
 
+# The edges against the floor plan it keeps on purpose, each with why.
+INTENDED = {
+    # The export formats are plug-ins found by name (the entry-point group stores.export.PLUGINS): stores
+    # lists them without importing anything (test_registries_import_their_plugins_only_when_asked) and
+    # loads pipeline's noisebase writer only when that format is asked for, as a registry loads its
+    # plug-ins. Noisebase re-traces the samples, so its writer needs the renderer above the stores, and
+    # `python -m stores export` and `python -m pipeline export` offer the same formats.
+    ("stores.export", "pipeline.noisebase"),
+}
+
+
+def _against_the_plan() -> set[tuple[str, str]]:
+    return {(m, d) for m, deps in _graph().items() for d in deps
+            if d.split(".")[0] != m.split(".")[0] and d.split(".")[0] not in ALLOWED[m.split(".")[0]]}
+
+
 def test_packages_import_only_what_sits_below_them():
-    wrong = sorted(f"{m} -> {d}" for m, deps in _graph().items() for d in deps
-                   if d.split(".")[0] != m.split(".")[0] and d.split(".")[0] not in ALLOWED[m.split(".")[0]])
+    wrong = sorted(f"{m} -> {d}" for m, d in _against_the_plan() - INTENDED)
     assert not wrong, "imports against the floor plan:\n" + "\n".join(wrong)
+    stale = sorted(f"{m} -> {d}" for m, d in INTENDED - _against_the_plan())
+    assert not stale, "INTENDED lists edges that are gone:\n" + "\n".join(stale)
+
+
+def test_entry_points_and_started_programs_count_as_imports():
+    """The noisebase export, an entry point (pyproject.toml) that stores.export loads by its group's name,
+    is an edge of stores.export; a module that runs ``python -m PACKAGE`` depends on ``PACKAGE.__main__``,
+    whether it names the package in the list or passes it to a helper that starts ``[..., "-m", *args]``."""
+    assert _entry_points()["denoise_datagen.export_formats"] == {"pipeline.noisebase"}
+    assert "pipeline.noisebase" in _graph()["stores.export"]
+    assert "pipeline.__main__" in _graph()["pipeline.bench_render"]
+    tree = ast.parse('import subprocess, sys\n'
+                     'def prog(*args):\n    return subprocess.run([sys.executable, "-m", *args])\n'
+                     'def one(pkg, x):\n    subprocess.run([sys.executable, "-m", pkg, x])\n'
+                     'prog("scene_gen", "spec")\none("studies", "scaling")\n'
+                     'subprocess.Popen(("python", "-m", "training", "train"))\n')
+    assert _programs(tree) == {"scene_gen.__main__", "studies.__main__", "training.__main__"}
 
 
 def test_no_module_imports_itself_back():
     """No cycle, but a plugin's import of the registry that finds it (the registry's decorator): the
     registry imports its plugins only when first asked, and nothing else may lead back through them."""
     plugins: set = set()
-    graph = _graph(plugins)
+    graph = _graph(plugins, programs=False)     # a program started is a new process: it imports nothing here
     for plugin, registry in plugins:
         graph[plugin].discard(registry)
     index, low, stack, on, cycles = {}, {}, [], set(), []

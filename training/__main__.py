@@ -58,12 +58,7 @@ def _report(a) -> int:
 
 
 def _bench(a) -> int:
-    if a.scale:
-        from .bench_scale import DEFAULT_FRAMES, check_frames, markdown, run as scale_run
-        check_frames(a.frames or DEFAULT_FRAMES, "--frames")
-        res = scale_run(frames=tuple(a.frames or DEFAULT_FRAMES), source=a.source)
-        print(markdown(res))
-    elif a.train:
+    if a.train:
         from .accel import pick_device, precision_for
         from .bench import train_run
         res = train_run(models=a.models or None, seconds=a.seconds, device=a.device,
@@ -207,14 +202,6 @@ def _bench_parser(sub) -> None:
                    help="with --train: crop edge for every model (default: the paper's)")
     b.add_argument("--batch", type=int, default=None,
                    help="with --train: at most this batch (default: the paper's)")
-    b.add_argument("--scale", action="store_true",
-                   help="what a frame costs evaluate, hard-cases, report, export and the training datasets as a "
-                        "store grows (stills, clips; training.bench_scale), instead of the models' speed")
-    b.add_argument("--frames", nargs="+", type=int, default=None,
-                   help="with --scale: the store sizes to measure (default 100 1000 10000)")
-    b.add_argument("--source", default=None,
-                   help="with --scale: the rendered store whose frames are written again (default: "
-                        "configs/smoke.yaml, rendered first)")
     b.set_defaults(fn=_bench)
 
 
@@ -251,9 +238,18 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-# Commands that live in another package now: one line naming where, instead of argparse's list of choices.
-MOVED = {"scaling": "python -m training has no command 'scaling': the scaling study is "
-                    "`python -m studies scaling` (the same options; see its --help)"}
+# Commands that live in ``studies`` now (they render as well as train): the command and the option that
+# names one -> one line naming where it is, instead of argparse's list of choices.
+MOVED = {("scaling", None): "python -m training has no command 'scaling': the scaling study is "
+                            "`python -m studies scaling` (the same options; see its --help)",
+         ("bench", "--scale"): "python -m training bench has no --scale: what a frame costs the stages that read "
+                               "the stores as a store grows is `python -m studies bench-scale` (--frames, --source "
+                               "and --json as before; see its --help)"}
+
+
+def _moved(argv: list[str]) -> str | None:
+    return next((say for (cmd, opt), say in MOVED.items() if argv[:1] == [cmd] and (opt is None or opt in argv)),
+                None)
 
 
 def main(argv=None) -> int:
@@ -262,8 +258,8 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     a = None
     try:
-        if argv and argv[0] in MOVED:
-            print(f"error: {MOVED[argv[0]]}", file=sys.stderr)
+        if _moved(argv):
+            print(f"error: {_moved(argv)}", file=sys.stderr)
             return EXIT_ERROR
         a = parser().parse_args(argv)
         return _run(a)

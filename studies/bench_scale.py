@@ -1,12 +1,12 @@
 """What a frame costs the stages that read the stores, as a store grows: the downstream side of
 ``python -m pipeline bench --only scale`` (docs/cluster.md, "Cost per frame").
 
-``python -m training bench --scale [--frames 100 1000 10000] [--json FILE]`` builds, at each size F,
+``python -m studies bench-scale [--frames 100 1000 10000] [--json FILE]`` builds, at each size F,
 stores of F frames: **stills** (each frame its own scene, so its own clip and scene JSON) and **clips**
 (two clips of F/2 frames, one in the train split and one in the test split, their JSON the generator's
 for a clip of that length: a camera a frame, ``python -m scene_gen spec --frames``). Their frames are the frames
 of a small rendered store (``configs/smoke.yaml``, made by ``python -m pipeline dataset`` as a new
-program: training does not import the pipeline), written again and again through ``stores.writer`` (the
+program), written again and again through ``stores.writer`` (the
 pipeline's writer) under new scene seeds and clip ids, so the splits hold 80/10/10% of the scenes and
 every frame is a real render whose content repeats; one frame in ten is tagged with a hard case
 (``fireflies``, ``sun_in_view``), as the hard-case suite's frames are. The stages' cost does not depend on
@@ -29,6 +29,9 @@ Per frame (milliseconds), at each size and layout:
   ``layerdenoise`` scales depth by the clip's largest, so it reads every frame of the clip once.)
 
 The table gives each stage's largest size over its smallest (the target: at most 1.5).
+
+It is a study's, not training's: it renders (``python -m pipeline``, ``python -m scene_gen``, and the
+renderer inside the noisebase export) and times training's readers, so it sits above both.
 """
 from __future__ import annotations
 
@@ -70,7 +73,7 @@ def source_store(tmp: Path) -> str:
 
 def _clip_json(kind: str, seed: int, frames: int) -> str:
     """A clip's scene JSON of ``frames`` frames (a camera a frame), as the scene generator writes it:
-    ``python -m scene_gen spec`` as a new program (training does not read the generator's JSON)."""
+    ``python -m scene_gen spec`` as a new program."""
     return _program("scene_gen", "spec", "--kind", kind, "--seed", str(seed), "--frames", str(frames), "--res", "16")
 
 
@@ -222,7 +225,7 @@ def check_frames(frames, name: str = "frames", layouts=LAYOUTS) -> None:
 def run(frames=DEFAULT_FRAMES, layouts=LAYOUTS, source: str | None = None, say=print) -> dict:
     """``{layout: {stage: {F: ms a frame}}}`` at each size, printed as it goes."""
     check_frames(frames, layouts=layouts)
-    tmp = Path(tempfile.mkdtemp(prefix="training-scale-"))
+    tmp = Path(tempfile.mkdtemp(prefix="bench-scale-"))
     try:
         source = source or source_store(tmp)
         run_dir = tiny_run(source, tmp / "nbg")
