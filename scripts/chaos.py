@@ -256,7 +256,7 @@ def _faulted_runs(args, rng: random.Random, url: str, env: dict, server: S3Serve
     while len(runs) <= 4 * args.faults + 10:
         run = Run(_dataset_cmd(args.config, url), env)
         while len(faults) < len(kinds):
-            delay = rng.uniform(0.5, 2.0) * gap
+            delay = rng.uniform(0.5, 1.5) * gap
             if not run.alive_after(delay):
                 break
             fault = _inject(kinds[len(faults)], run, rng, server)
@@ -302,7 +302,9 @@ def dataset_chaos(args, rng: random.Random, report: dict) -> list[str]:
     bad = _clean_run(args, report)
     if bad:
         return [bad]
-    gap = args.gap or max(2.0, 0.8 * report["clean_s"] / max(1, args.faults))
+    # a fault every 0.4 / faults of the clean run's time on average: the faults the main process takes cost
+    # restarts, and every fault must land before the run completes
+    gap = args.gap or max(2.0, 0.4 * report["clean_s"] / max(1, args.faults))
     server = S3Server()
     server.start()
     aws = {"AWS_ENDPOINT_URL": server.endpoint, "AWS_ACCESS_KEY_ID": "chaos", "AWS_SECRET_ACCESS_KEY": "chaos",
@@ -388,7 +390,7 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint-every", type=int, default=10)
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds a run may take before it counts as hung")
     p.add_argument("--gap", type=float, default=0.0, help="mean seconds between faults (0: the clean run's time "
-                   "spread over the faults)")
+                   "times 0.4 spread over the faults)")
     p.add_argument("--fresh", action="store_true", help="render the clean store again")
     p.add_argument("--skip-training", action="store_true")
     p.add_argument("--skip-dataset", action="store_true", help="only the training part (on the clean store made "
