@@ -1,4 +1,4 @@
-"""The chaos run (``scripts/chaos.py``, ``make chaos``) at a small size: a 13-frame dataset rendered into an
+"""The chaos run (``scripts/chaos.py``, ``make chaos``) at a small size: a 6-frame dataset on one worker rendered into an
 ``s3://`` store through one fault of each kind (a worker SIGKILLed, the S3 server stopped and started
 again, the main process Ctrl-C'd and SIGKILLed), then a training run SIGKILLed twice; the store must equal
 a clean run's, every exit code and stderr line be documented, nothing be left behind, and the weights be
@@ -22,8 +22,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _small_config(tmp_path: Path) -> Path:
     cfg = yaml.safe_load((ROOT / "configs" / "chaos.yaml").read_text())
-    cfg["scenes"] = [{"kind": "indoor", "count": 4}, {"kind": "outdoor", "count": 4},
-                     {"kind": "outdoor", "count": 1, "frames": 4}]
+    cfg["scenes"] = [{"kind": "indoor", "count": 2}, {"kind": "outdoor", "count": 2},
+                     {"kind": "outdoor", "count": 1, "frames": 2}]
+    cfg["cluster"]["workers"] = 1          # the suite runs beside it on the same cores
     path = tmp_path / "chaos-small.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -34,7 +35,7 @@ def test_a_small_chaos_run_loses_nothing_and_prints_only_documented_lines(tmp_pa
     out = tmp_path / "chaos"
     r = subprocess.run([sys.executable, str(ROOT / "scripts" / "chaos.py"), "--config", str(_small_config(tmp_path)),
                         "--out", str(out), "--seed", "0", "--faults", "4", "--gap", "3", "--train-kills", "2",
-                        "--train-steps", "150", "--timeout", "600"], cwd=ROOT, capture_output=True, text=True,
+                        "--train-steps", "100", "--timeout", "600"], cwd=ROOT, capture_output=True, text=True,
                        timeout=1200)
     report = json.loads((out / "chaos.json").read_text())
     assert r.returncode == 0 and report["failed"] == [], r.stdout[-3000:] + r.stderr[-3000:]
