@@ -574,7 +574,7 @@ def test_ctrl_c_pressed_again_while_train_stops_changes_nothing(store, tmp_path,
     code, err, out = _train_until_ctrl_c(store, tmp_path, 1, ctrl_c=ctrl_c, hook=HOLD[where])
     assert code == 130, err
     step = ckpt.load(out / "checkpoint.pt")["step"]
-    assert step >= 4
+    assert step >= 3          # the steps logged before the first press (it may land between two steps)
     last_line(err, f"interrupted: at step {step}: {out / 'checkpoint.pt'} holds it, and the same command resumes "
                    "from there")
 
