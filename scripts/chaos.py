@@ -30,6 +30,7 @@ Exit 0 when every check holds, 1 otherwise; the faults and figures go to ``OUT/c
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -123,10 +124,9 @@ def _worker_pids(pid: int) -> list[int]:
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
-    try:
+    """SIGKILL what is left of ``proc``'s process group (a killed main process's workers die with it, or here)."""
+    with contextlib.suppress(ProcessLookupError):
         os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
     proc.wait(timeout=60)
 
 
