@@ -93,6 +93,18 @@ class Command(subprocess.Popen):
             except ProcessLookupError:
                 return
 
+    def ctrl_c_when(self, ready, presses: int = 5, poll: float = 0.1, timeout: float = 60.0) -> None:
+        """Ctrl-C ``presses`` times once ``ready()`` holds (or after ``timeout`` s, or once the command has
+        ended), polling every ``poll`` s; on any error the whole process group is killed first."""
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < timeout and self.poll() is None and not ready():
+                time.sleep(poll)
+            self.ctrl_c(presses=presses)
+        except BaseException:
+            kill_group(self)
+            raise
+
     def send(self, line: str = "") -> None:
         """A line on the command's stdin (nothing if it has closed it)."""
         try:

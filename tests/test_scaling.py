@@ -258,8 +258,6 @@ def test_ctrl_c_pressed_five_times_is_one_line(stores, tmp_path, when):
     stderr. Before, a press while the study exited ended it by SIGINT (exit -2; the pool's semaphores could
     leak, and resource_tracker warned after the line), and one that reached a worker before it ignored
     Ctrl-C printed the worker's KeyboardInterrupt traceback."""
-    import time
-
     import yaml
     from procs import Command, kill_group, last_line, python_m
     smoke = yaml.safe_load((ROOT / "configs" / "scaling-smoke.yaml").read_text())
@@ -272,14 +270,11 @@ def test_ctrl_c_pressed_five_times_is_one_line(stores, tmp_path, when):
                    ["scaling", "--config", str(tmp_path / "study.yaml"), "--out", str(out), "--no-progress"])
     try:
         proc.wait_for("scaling: ")
-        t0 = time.monotonic()
-        while when == "training" and time.monotonic() - t0 < 60 and \
-                not any("train nbg" in p.read_text() for p in out.glob("runs/**/run.log")):
-            time.sleep(0.1)
-        proc.ctrl_c(presses=5)
     except BaseException:
         kill_group(proc)
         raise
+    proc.ctrl_c_when(lambda: when != "training" or any("train nbg" in p.read_text()
+                                                        for p in out.glob("runs/**/run.log")))
     code, _, err = proc.finish()
     assert code == 130, err[-3000:]
     last_line(err, "interrupted: rendered frames, finished runs and the runs' last checkpoints stay; the same "

@@ -615,9 +615,8 @@ def test_ctrl_c_pressed_during_the_imports_is_one_line(store, tmp_path):
     """Five presses 0.1 s apart while `train` imports torch (from the moment the process has mapped
     libtorch): exit 130 and one line. Before, a KeyboardInterrupt traceback and no line."""
     import json
-    import time
 
-    from procs import Command, kill_group, last_line, python_m
+    from procs import Command, last_line, python_m
     proc = Command(python_m("training") + ["train", "--model", "layer", "--model-cfg", json.dumps(TINY), "--store",
                                            store, "--out", str(tmp_path / "r"), "--steps", "5", "--no-progress"])
     def mapped() -> str:
@@ -625,14 +624,7 @@ def test_ctrl_c_pressed_during_the_imports_is_one_line(store, tmp_path):
             return Path(f"/proc/{proc.pid}/maps").read_text()
         except OSError:                             # it ended
             return ""
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 60 and proc.poll() is None and "libtorch" not in mapped():
-            time.sleep(0.005)
-        proc.ctrl_c(presses=5)
-    except BaseException:
-        kill_group(proc)
-        raise
+    proc.ctrl_c_when(lambda: "libtorch" in mapped(), poll=0.005)
     code, _, err = proc.finish()
     assert code == 130, err
     last_line(err, "interrupted: before training started: nothing was written")
