@@ -546,17 +546,9 @@ class Committer:
         self.last = time.monotonic()
 
 
-COMMIT_HOOK_ENV = "DENOISE_TEST_COMMIT_PAUSE"   # tests: a file to touch, then sleep, after the first commit
-
-
 def _commit_hook() -> None:
-    """Test hook: with ``$DENOISE_TEST_COMMIT_PAUSE`` set to a file path, touch it and sleep after the run's
-    first commit (a test kills the run there: some frames complete, the others not, whatever the timing)."""
-    flag = os.environ.get(COMMIT_HOOK_ENV)
-    if flag and not os.path.exists(flag):
-        with open(flag, "w") as f:
-            f.write(str(os.getpid()))
-        time.sleep(120)
+    """A seam after each commit of the run, doing nothing: a test replaces it (``tests/procs.pause_at``) to
+    kill the run there (some frames complete, the others not, whatever the timing)."""
 
 
 def _execute(client, graph, writer, progress: bool, as_completed, *, watch_workers: bool = False,

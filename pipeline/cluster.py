@@ -551,9 +551,6 @@ HOPELESS = ("PartitionConfig", "PartitionNodeLimit", "PartitionTimeLimit", "BadC
             "InvalidQOS", "DependencyNeverSatisfied")
 
 
-KEEPER_EVERY_ENV = "DENOISE_TEST_KEEPER_EVERY"    # tests: seconds between the keeper's checks (default 2)
-
-
 def _join_log_class():
     from distributed.diagnostics.plugin import SchedulerPlugin
 
@@ -590,9 +587,9 @@ class JobKeeper:
     that joins and ends between two checks is replaced too. Jobs that never had a worker are left to
     :func:`wait_for_jobs`. ``replaced`` lists ``(worker name, job id)`` of each ended job."""
 
-    def __init__(self, cluster, jobs: int, *, every: float | None = None, grace: float = JOB_GONE_GRACE, say=print):
-        import os
+    EVERY = 2.0                     # seconds between checks (a test sets it longer)
 
+    def __init__(self, cluster, jobs: int, *, every: float | None = None, grace: float = JOB_GONE_GRACE, say=print):
         from tornado.ioloop import PeriodicCallback
         self.cluster, self.jobs, self.grace, self.say = cluster, jobs, grace, say
         self.seen: set = set()
@@ -601,7 +598,7 @@ class JobKeeper:
         self.used: set = set()          # every job (worker spec) name this cluster has had
         self.job_ids: dict = {}         # job (worker spec) name -> its batch job id, noted when a worker joins
         self.joined = _join_log_class()(on_join=self._note_job)
-        every = float(os.environ.get(KEEPER_EVERY_ENV) or 2.0) if every is None else every
+        every = self.EVERY if every is None else every
         self._pc = PeriodicCallback(self.check, every * 1000)
         cluster.loop.add_callback(self._start)
 

@@ -667,7 +667,6 @@ def _zarr_store(path_or_url):
 
 LOCK_NAME = "dataset.lock"   # the writer's lock file in a store's folder (stores.lock); not store data
 CREATION_ATTR = "creating"   # root attribute present only while create_store is running
-CREATE_HOOK_ENV = "DENOISE_TEST_CREATE_PAUSE"   # tests: a file to touch, then sleep, inside creation
 
 
 def _is_local(p) -> bool:
@@ -787,14 +786,8 @@ def _clear(path_or_url) -> None:
 
 
 def _creation_hook() -> None:
-    """Test hook: with ``$DENOISE_TEST_CREATE_PAUSE`` set to a file path, touch it and sleep (a test
-    kills the process here, inside the creation window)."""
-    flag = os.environ.get(CREATE_HOOK_ENV)
-    if flag:
-        import time
-        with open(flag, "w") as f:
-            f.write(str(os.getpid()))
-        time.sleep(120)
+    """A seam inside the creation window, doing nothing: a test replaces it (``tests/procs.pause_at``) to
+    stop a process there and kill it."""
 
 
 def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False,

@@ -45,6 +45,28 @@ def python_m(package: str, hook: str = "") -> list[str]:
                                   "alter_sys=True)"]
 
 
+def pause_at(seam: str, flag: Path, seconds: float = 120.0) -> str:
+    """Hook code for :func:`python_m`: the library's no-op seam ``seam`` (``"module:function"``, e.g.
+    ``"pipeline.cli_dataset:_commit_hook"``) replaced by one that, the first time it is reached, writes the
+    process id to ``flag`` and sleeps ``seconds`` (a test kills the process there)."""
+    module, name = seam.split(":")
+    return (f"import importlib, os, time\n"
+            f"def _pause(*args, **kwargs):\n"
+            f"    if not os.path.exists({str(flag)!r}):\n"
+            f"        with open({str(flag)!r}, 'w') as f:\n"
+            f"            f.write(str(os.getpid()))\n"
+            f"        time.sleep({seconds!r})\n"
+            f"setattr(importlib.import_module({module!r}), {name!r}, _pause)")
+
+
+def setting(target: str, value) -> str:
+    """Hook code for :func:`python_m`: ``target`` (``"module:Class.ATTR"`` or ``"module:ATTR"``) set to ``value``."""
+    module, attr = target.split(":")
+    *owner, name = attr.split(".")
+    obj = "m" + "".join(f".{o}" for o in owner)
+    return f"import importlib\nm = importlib.import_module({module!r})\nsetattr({obj}, {name!r}, {value!r})"
+
+
 class Command(subprocess.Popen):
     """A command started as a terminal starts it: in its own process group, so :meth:`ctrl_c` (SIGINT to the
     group) is a terminal's Ctrl-C and reaches the command's children too. Its stdout and stderr are read

@@ -311,3 +311,17 @@ def test_pyflakes_finds_nothing_in_the_packages():
     out, err = io.StringIO(), io.StringIO()
     found = api.checkRecursive([str(ROOT / p) for p in PACKAGES], reporter.Reporter(out, err))
     assert found == 0 and not err.getvalue(), out.getvalue() + err.getvalue()
+
+
+def test_library_code_reads_no_test_hook_from_the_environment():
+    """A test reaches into a run through a seam it replaces (``tests/procs.pause_at``, ``setting``), never
+    through an environment variable that library code reads: no name holding ``TEST`` is read from
+    ``os.environ`` / ``os.getenv`` in the packages."""
+    found = []
+    for pkg in PACKAGES:
+        for p in (ROOT / pkg).rglob("*.py"):
+            for node in ast.walk(ast.parse(p.read_text())):
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                        and re.fullmatch(r"[A-Z0-9_]*TEST[A-Z0-9_]*", node.value):
+                    found.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.value}")
+    assert not found, "environment variables for tests read in library code:\n" + "\n".join(found)

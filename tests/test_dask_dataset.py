@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zarr
 
-from procs import kill_group, start_scheduler
+from procs import kill_group, pause_at, python_m, start_scheduler
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -33,8 +33,8 @@ def _env() -> dict:
     return env
 
 
-def _cli(out: Path, summary: Path, *extra: str) -> list[str]:
-    return [PY, "-m", "pipeline", "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress",
+def _cli(out: Path, summary: Path, *extra: str, hook: str = "") -> list[str]:
+    return [*python_m("pipeline", hook), "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress",
             "--summary-json", str(summary), *extra]
 
 
@@ -76,11 +76,11 @@ def _arrays(store: Path) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def local_store(tmp_path_factory):
     """The smoke dataset on a LocalCluster: the CLI (and its worker processes) SIGKILLed right after its
-    first commit (the run pauses there: ``DENOISE_TEST_COMMIT_PAUSE``, so where the kill lands does not
+    first commit (the run pauses there: ``pause_at`` its commit seam, so where the kill lands does not
     depend on timing), then the same command again. Returns what the test needs to judge the resume."""
     d = tmp_path_factory.mktemp("local")
     out, flag = d / "smoke.zarr", d / "committed"
-    p = subprocess.Popen(_cli(out, d / "first.json"), env={**_env(), "DENOISE_TEST_COMMIT_PAUSE": str(flag)},
+    p = subprocess.Popen(_cli(out, d / "first.json", hook=pause_at("pipeline.cli_dataset:_commit_hook", flag)), env=_env(),
                          cwd=ROOT, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         t0 = time.monotonic()
@@ -188,14 +188,24 @@ def dask_cluster(tmp_path):
 def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(local_store, dask_cluster, tmp_path):
     address, workers = dask_cluster
     out = tmp_path / "dist.zarr"
-    p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address), env=_env(), cwd=ROOT,
+    # (once, in a clean-clone CI run, the run never ended after the kill: a stuck run dumps its threads'
+    # stacks into the log before it is killed, so the failure says where it waited)
+    dump = "import faulthandler, signal\nfaulthandler.register(signal.SIGUSR1, all_threads=True)"
+    p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address, hook=dump), env=_env(), cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         done = _wait_for_frames(out, p, 1, timeout=400)
         assert p.poll() is None and done.sum() < 4, "the run ended before a worker could be killed"
         os.kill(workers[0].pid, signal.SIGKILL)              # one worker dies mid-run
         workers[0].wait(timeout=30)
-        log, _ = p.communicate(timeout=500)
+        try:
+            log, _ = p.communicate(timeout=400)
+        except subprocess.TimeoutExpired:
+            os.kill(p.pid, signal.SIGUSR1)
+            time.sleep(3)
+            kill_group(p)
+            log, _ = p.communicate()
+            pytest.fail(f"the run did not end within 400 s of the worker's kill; its stacks:\n{log[-12000:]}")
     finally:
         if p.poll() is None:
             kill_group(p)

@@ -2,7 +2,7 @@
 
 Real folders, real stores, real processes: a folder that is not a store is refused and left byte for
 byte; a second run on a store is refused while the first lives (it is paused inside store creation by
-``$DENOISE_TEST_CREATE_PAUSE``), then the first is SIGKILLed there and the next run takes over its lock,
+``procs.pause_at`` its creation seam), then the first is SIGKILLed there and the next run takes over its lock,
 makes the half-created store again and finishes it; a shard file deleted from a complete frame makes
 the next run render that frame again. Plus the config checks that stop a run before anything starts,
 and the split assignment that gives small configs val and test scenes.
@@ -30,13 +30,14 @@ from stores.lock import StoreLock, read_lock
 from stores.schema import StoreLayout
 from stores.writer import open_or_create
 
-from procs import kill_group
+from procs import kill_group, pause_at, python_m
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
 # dataset configs; configs/scaling-*.yaml are scaling studies, whose dataset configs tests/test_scaling.py checks
 CONFIGS = sorted(p for p in (ROOT / "configs").glob("*.yaml") if not p.name.startswith("scaling-"))
 PY = sys.executable
+CREATION = "stores.schema:_creation_hook"    # the seam inside store creation where a test pauses a run
 TINY = StoreLayout(num_frames=2, height=8, width=8, spp=2, layer_spp=(1, 2), tile=8)
 
 
@@ -48,8 +49,8 @@ def _env(**extra) -> dict:
     return env
 
 
-def _cli(out: Path, *extra: str, summary: Path | None = None) -> list[str]:
-    cmd = [PY, "-m", "pipeline", "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress"]
+def _cli(out: Path, *extra: str, summary: Path | None = None, hook: str = "") -> list[str]:
+    cmd = [*python_m("pipeline", hook), "dataset", "--config", str(SMOKE), "--out", str(out), "--no-progress"]
     return cmd + (["--summary-json", str(summary)] if summary else []) + list(extra)
 
 
@@ -201,7 +202,7 @@ def killed_in_creation(tmp_path_factory):
     out, flag = d / "smoke.zarr", d / "paused"
     out.mkdir()
     (out / "stray.txt").write_text("not a store")
-    a = subprocess.Popen(_cli(out, "--overwrite"), env=_env(DENOISE_TEST_CREATE_PAUSE=str(flag)), cwd=ROOT,
+    a = subprocess.Popen(_cli(out, "--overwrite", hook=pause_at(CREATION, flag)), env=_env(), cwd=ROOT,
                          start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         t0 = time.monotonic()
@@ -290,11 +291,11 @@ def test_resume_renders_a_frame_again_when_its_completion_flag_is_damaged(killed
 # ---- 8: a half-created store from the library's side ---------------------------------------------
 def test_half_created_store_is_named_and_made_again(tmp_path):
     store = tmp_path / "h.zarr"
-    code = ("import sys; from stores import schema; from stores.schema import StoreLayout; "
+    flag = tmp_path / "flag"
+    code = (pause_at(CREATION, flag) + "\nimport sys; from stores import schema; from stores.schema import StoreLayout; "
             "schema.create_store(sys.argv[1], StoreLayout(num_frames=2, height=8, width=8, spp=2, "
             "layer_spp=(1, 2), tile=8))")
-    flag = tmp_path / "flag"
-    p = subprocess.Popen([PY, "-c", code, str(store)], env=_env(DENOISE_TEST_CREATE_PAUSE=str(flag)), cwd=ROOT,
+    p = subprocess.Popen([PY, "-c", code, str(store)], env=_env(), cwd=ROOT,
                          start_new_session=True)
     try:
         t0 = time.monotonic()

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 import yaml
 
-from procs import kill_group
+from procs import kill_group, pause_at, python_m, setting
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "scripts" / "local-slurm.sh"
@@ -304,8 +304,8 @@ def slurm_config(slurm, tmp_path):
     subprocess.run(["scancel", "-n", name], capture_output=True)
 
 
-def _cli(config: Path, out: Path, summary: Path | None = None) -> list[str]:
-    return [PY, "-m", "pipeline", "dataset", "--config", str(config), "--out", str(out), "--no-progress",
+def _cli(config: Path, out: Path, summary: Path | None = None, hook: str = "") -> list[str]:
+    return [*python_m("pipeline", hook), "dataset", "--config", str(config), "--out", str(out), "--no-progress",
             *(["--summary-json", str(summary)] if summary else [])]
 
 
@@ -315,16 +315,6 @@ def _complete(store: Path) -> np.ndarray:
         return zarr.open_group(str(store), mode="r")["status/complete"][:]
     except Exception:  # noqa: BLE001 - not created yet
         return np.zeros(0, bool)
-
-
-def _wait_for_frames(store: Path, proc: subprocess.Popen, n: int, timeout: float = 300) -> np.ndarray:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        done = _complete(store)
-        if done.sum() >= n or proc.poll() is not None:
-            return done
-        time.sleep(0.2)
-    raise TimeoutError(f"no {n} complete frame(s) in {store} after {timeout} s")
 
 
 def _printed(lines: list[str], proc: subprocess.Popen, pattern: str, timeout: float = 120) -> str:
@@ -504,7 +494,7 @@ def test_jobs_that_end_right_after_joining_are_replaced(slurm_config, local_stor
     no frame."""
     config, name = slurm_config
     out = tmp_path / "slurm.zarr"
-    p = subprocess.Popen(_cli(config, out), env={**_env(), "DENOISE_TEST_KEEPER_EVERY": "20"}, cwd=ROOT,
+    p = subprocess.Popen(_cli(config, out, hook=setting("pipeline.cluster:JobKeeper.EVERY", 20.0)), env=_env(), cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         jobs: list[str] = []
@@ -554,14 +544,18 @@ def test_a_job_that_reaches_its_walltime_loses_no_frame(slurm_config, local_stor
 
 def test_a_killed_client_leaves_a_store_that_a_rerun_completes(slurm_config, local_store, tmp_path):
     """SIGKILL of the command (its scheduler dies with it) mid-run: its jobs' workers stop by themselves
-    (``death_timeout``), and the same command again resumes to the store a LocalCluster makes."""
+    (``death_timeout``), and the same command again resumes to the store a LocalCluster makes. The kill
+    lands right after the run's first commit (it pauses there: ``pause_at`` its commit seam); waiting for
+    a frame instead raced, as 16-px frames can all finish between two looks at the store."""
     config, name = slurm_config
-    out = tmp_path / "slurm.zarr"
-    p = subprocess.Popen(_cli(config, out), env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         start_new_session=True)
+    out, flag = tmp_path / "slurm.zarr", tmp_path / "committed"
+    p = subprocess.Popen(_cli(config, out, hook=pause_at("pipeline.cli_dataset:_commit_hook", flag)), env=_env(),
+                         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        _wait_for_frames(out, p, 1)
-        running = p.poll() is None
+        t0 = time.monotonic()
+        while not flag.exists() and p.poll() is None and time.monotonic() - t0 < 300:
+            time.sleep(0.2)
+        running = p.poll() is None and flag.exists()
     finally:
         kill_group(p)
     before = _complete(out)
