@@ -507,8 +507,8 @@ COMMIT_SECONDS = 2.0     # the client commits finished frames (metadata, then st
 class Committer:
     """The client's side of the v3 write protocol (``stores.writer``): the records of finished frames
     and the errors of failed ones, committed together (``StoreWriter.commit``: metadata, then
-    ``status/complete`` last) once :data:`COMMIT_SECONDS` have passed since the last commit, and at the
-    end. So a frame costs a share of a few metadata writes, not a write of each value; a run stopped
+    ``status/complete`` last): the first at once, then once :data:`COMMIT_SECONDS` have passed since the
+    last commit, and at the end. So a frame costs a share of a few metadata writes, not a write of each value; a run stopped
     between commits leaves those frames incomplete (the resume renders them again). ``latencies``: for
     each committed frame, seconds from its task's end to its commit."""
 
@@ -517,7 +517,7 @@ class Committer:
         self.records: dict[int, dict] = {}
         self.failures: dict[int, str] = {}
         self.done_at: dict[int, float] = {}
-        self.last = time.monotonic()
+        self.last = -float("inf")      # the first finished frame is committed at once
         self.latencies: list[float] = []
         self.commits = 0
 

@@ -45,16 +45,6 @@ def _complete(store: Path) -> np.ndarray:
         return np.zeros(0, bool)
 
 
-def _wait_for_frames(store: Path, proc: subprocess.Popen, n: int, timeout: float) -> np.ndarray:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        done = _complete(store)
-        if done.sum() >= n or proc.poll() is not None:
-            return done
-        time.sleep(0.3)
-    raise TimeoutError(f"no {n} complete frame(s) in {store} after {timeout} s")
-
-
 def _frame_files(store: Path, index: int) -> dict[str, int]:
     """mtime (ns) of every chunk/shard file that holds frame ``index`` (its first chunk coordinate)."""
     out = {}
@@ -190,12 +180,19 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
     out = tmp_path / "dist.zarr"
     # (once, in a clean-clone CI run, the run never ended after the kill: a stuck run dumps its threads'
     # stacks into the log before it is killed, so the failure says where it waited)
-    dump = "import faulthandler, signal\nfaulthandler.register(signal.SIGUSR1, all_threads=True)"
-    p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address, hook=dump), env=_env(), cwd=ROOT,
+    # The kill lands while the client pauses 5 s after its first commit (one frame complete, whatever the
+    # timing: polling the store for a frame raced, 16-px frames can all finish between two looks).
+    flag = tmp_path / "committed"
+    hook = ("import faulthandler, signal\nfaulthandler.register(signal.SIGUSR1, all_threads=True)\n"
+            + pause_at("pipeline.cli_dataset:_commit_hook", flag, seconds=5))
+    p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address, hook=hook), env=_env(), cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
-        done = _wait_for_frames(out, p, 1, timeout=400)
-        assert p.poll() is None and done.sum() < 4, "the run ended before a worker could be killed"
+        t0 = time.monotonic()
+        while not flag.exists() and p.poll() is None and time.monotonic() - t0 < 400:
+            time.sleep(0.1)
+        done = _complete(out)
+        assert p.poll() is None and flag.exists() and done.sum() < 4, "the run ended before a worker could be killed"
         os.kill(workers[0].pid, signal.SIGKILL)              # one worker dies mid-run
         workers[0].wait(timeout=30)
         try:
