@@ -31,7 +31,8 @@ import numpy as np
 
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import ConfigError, PipelineError
-from stores.errors import is_disk_full, store_full, unreachable_cause
+from core.errors import is_disk_full
+from stores.errors import store_full, unreachable_cause
 
 DEFAULT_CONFIG = "configs/default.yaml"
 
@@ -109,13 +110,13 @@ def check_existing_store(cfg: DatasetConfig, store: str, *, overwrite: bool = Fa
     Raises ForeignStoreError for a non-empty folder (or a file) that is not a store,
     StoreMismatchError for a store made from another config (both unless ``overwrite``; a file is
     refused even then)."""
-    from stores import schema
+    from stores import create, schema
     from stores.errors import ForeignStoreError, IncompleteStoreError, StoreCorruptionError
     if "://" not in store and os.path.lexists(store) and not os.path.isdir(store):
         raise ForeignStoreError(f"--out {store} is a file, not a folder; choose another --out")
     if overwrite:
-        schema.refuse_link(store)                   # never delete through a symbolic link
-    found = schema.foreign_entries(store)
+        create.refuse_link(store)                   # never delete through a symbolic link
+    found = create.foreign_entries(store)
     if found:
         if overwrite:
             return cfg
@@ -275,7 +276,7 @@ def _run_locked(cfg: DatasetConfig, store: str, *, scheduler, workers, progress,
 
     t0 = time.perf_counter()
     cfg = check_existing_store(cfg, store, overwrite=overwrite)  # again, now that this run holds the lock
-    from stores.schema import remove_partial_files
+    from stores.create import remove_partial_files
     left = remove_partial_files(store)        # a killed run's temporary files (held lock: no write is under way)
     if left:
         _print(f"resume: removed {len(left)} temporary file(s) of a write cut short ({', '.join(left[:3])}"
@@ -359,7 +360,7 @@ def _timings(timings: dict, results: list, render_s: float) -> dict:
 def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
     """The frames of ``cfg`` a run on ``store`` would render (incomplete, or complete with files missing),
     None when it cannot tell without creating or changing the store (no store yet, or one to grow)."""
-    from stores import schema
+    from stores import chunk_files, schema
     from stores.errors import StoreError
     from stores.writer import complete_flags
     if not schema.store_exists(store):
@@ -371,7 +372,7 @@ def frames_to_render(cfg: DatasetConfig, store: str) -> list[int] | None:
     if layout.num_frames != cfg.num_frames or schema.absent_arrays(root):
         return None
     done = complete_flags(root)
-    lost = schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
+    lost = chunk_files.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
     return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
 

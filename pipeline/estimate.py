@@ -322,7 +322,7 @@ def _render_calibration(cfg, picks: list, rc, cal_rc, threads: int, concurrent: 
 def _stored_bytes(cfg, frames: list[dict]) -> tuple[float, int]:
     """``(bytes a frame, bytes of the empty store)``: ``frames`` written to a temporary store of the
     config's layout."""
-    from stores.schema import create_store
+    from stores.create import create_store
     from stores.writer import StoreWriter
 
     with tempfile.TemporaryDirectory(prefix="estimate-", dir=scratch_dir()) as tmp:

@@ -5,22 +5,9 @@ for their exact world-space positions and so lives here, above the store package
 entry point in pyproject.toml)."""
 from __future__ import annotations
 
-import sys
-
 from stores import export as _export
-from stores.validate import cli_main
 
 FORMATS = tuple(_export.writers())
 export = _export.export
 add_arguments = _export.add_arguments
 run = _export.run
-
-
-def main(argv=None) -> int:
-    """As :func:`stores.export.main`, with the ``noisebase`` format."""
-    return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, layerdenoise HDF5 or "
-                    "Noisebase sequences.", add_arguments, run, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -26,18 +26,15 @@ ceiling (:func:`run` on it).
 """
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import os
 import shutil
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-from stores import schema
-from stores.codecs import DEFAULT_ENCODING, ENCODINGS
+from stores import chunk_files, create, schema
 from stores.reader import open_store
 from stores.schema import ARRAYS, StoreLayout
 from stores.writer import StoreWriter, open_or_create
@@ -198,7 +195,7 @@ def _crc_seconds(path: str, images: list[str]) -> tuple[float, int]:
     """The checksum arithmetic alone: seconds of CRC-32C over every byte of frame 0's image shards in
     the store at ``path`` (mean of 5), and those bytes."""
     from stores.codecs import crc32c
-    blobs = [open(os.path.join(path, *a.split("/"), *schema.chunk_key(schema.ARRAY_BY_PATH[a], 0).split("/")),
+    blobs = [open(os.path.join(path, *a.split("/"), *chunk_files.chunk_key(schema.ARRAY_BY_PATH[a], 0).split("/")),
                   "rb").read() for a in images]
     t = time.perf_counter()
     for _ in range(5):
@@ -213,7 +210,7 @@ def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, cro
     then time the same random crops and whole frames from both (interleaved, medians)."""
     paths = {v: os.path.join(tmp, f"ck-v{v}.zarr") for v in (1, 2)}
     for v, p in paths.items():
-        schema.create_store(p, layout, {"bench": True}, schema_version=v)
+        create.create_store(p, layout, {"bench": True}, schema_version=v)
     write = _write_interleaved({v: StoreWriter(p) for v, p in paths.items()}, frame_list, repeats)
     images = [s.path for s in ARRAYS if s.image]
     crop = min(crop, layout.height, layout.width)
@@ -554,27 +551,3 @@ def format_reencode(r: dict) -> str:
                          f"{c['fraction_of_ceiling']:.2f} of the ceiling (as tensors "
                          f"{c['tensor_fraction_of_ceiling']:.2f})")
     return "\n".join(lines)
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="bench", description="Store crop-read benchmark (figures printed).")
-    ap.add_argument("--store", default=None, help="benchmark this store instead of synthetic frames")
-    ap.add_argument("--crops", type=int, default=40)
-    ap.add_argument("--size", type=int, default=256, help="synthetic frame size")
-    ap.add_argument("--reencode", nargs="+", default=None, metavar="STORE",
-                    help="re-encode a few frames of these real stores in compact3, compact and lz4 and compare")
-    ap.add_argument("--frames", type=int, default=4, help="frames per store for --reencode")
-    ap.add_argument("--encoding", default=None, choices=list(ENCODINGS),
-                    help=f"encoding of the synthetic store (default: that of new stores, {DEFAULT_ENCODING})")
-    ap.add_argument("--quick", action="store_true", help="crop reads and sizes only (no codec table, no v1/v2 checksums)")
-    args = ap.parse_args(argv)
-    if args.reencode:
-        reencode(args.reencode, frames=args.frames, crops=args.crops)
-        return 0
-    run(args.store, crops=args.crops, size=args.size, encoding=args.encoding,
-        compare=not args.quick, checksums=not args.quick)
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

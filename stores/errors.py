@@ -5,7 +5,7 @@ Every specific error also inherits the matching built-in exception (as zarr's
 """
 
 
-from core.errors import ProjectError
+from core.errors import DiskFullError, ProjectError, free_bytes, size_text
 
 
 class StoreError(ProjectError):
@@ -71,6 +71,7 @@ class StoreCorruptionError(StoreError):
     mismatch, or array metadata (``zarr.json``) that disagrees with the schema. ``array``, ``frame``
     and ``path`` (the file) name the damage where known. Every command exits 3 on these."""
     exit_code = 3
+    lead = "the store is damaged: "      # how a command's one line begins (core.cli.message)
 
     def __init__(self, message: str, *, array: str | None = None, frame: int | None = None,
                  path: str | None = None):
@@ -95,51 +96,11 @@ class StorePathError(StoreError, OSError):
     file system. The message names the path and the system's reason."""
 
 
-class StoreFullError(StoreError, OSError):
+class StoreFullError(StoreError, DiskFullError):
     """The file system (or quota) holding the store is full: ``ENOSPC`` or ``EDQUOT``. Its own exit code
     (``exit_code``, 4): nothing is wrong with the config or the store; free space and re-run (complete
     frames stay, the run resumes)."""
     exit_code = 4
-
-
-DISK_FULL_ERRNOS = (28, 122)      # ENOSPC, EDQUOT (Linux)
-
-
-def disk_full_cause(e: BaseException) -> OSError | None:
-    """The exception in ``e``'s chain (itself, its cause or context) that is a full file system or quota,
-    else None."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        seen.add(id(e))
-        if isinstance(e, OSError) and e.errno in DISK_FULL_ERRNOS:
-            return e
-        e = e.__cause__ or e.__context__
-    return None
-
-
-def is_disk_full(e: BaseException) -> bool:
-    """Whether ``e`` (or an exception it was raised from) is a full file system or quota."""
-    return disk_full_cause(e) is not None
-
-
-def _free_bytes(path: str) -> int | None:
-    import os
-    import shutil
-    p = os.path.abspath(path)
-    while p and not os.path.exists(p):
-        p = os.path.dirname(p)
-    try:
-        return shutil.disk_usage(p).free
-    except OSError:
-        return None
-
-
-def _size(n: float) -> str:
-    for unit in ("bytes", "KB", "MB", "GB", "TB"):
-        if abs(n) < 1024 or unit == "TB":
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TB"
 
 
 def store_full(path, doing: str, need_bytes: int | None = None) -> StoreFullError:
@@ -147,9 +108,9 @@ def store_full(path, doing: str, need_bytes: int | None = None) -> StoreFullErro
     space there, the space the rest of the run needs when known, and what to do)."""
     import os
     where = os.fspath(path)
-    free = _free_bytes(where) if "://" not in where else None
-    have = f"{_size(free)} free there" if free is not None else "no space left"
-    need = f"; the rest of the run needs about {_size(need_bytes)} more" if need_bytes else ""
+    free = free_bytes(where) if "://" not in where else None
+    have = f"{size_text(free)} free there" if free is not None else "no space left"
+    need = f"; the rest of the run needs about {size_text(need_bytes)} more" if need_bytes else ""
     return StoreFullError(f"no space left on the device of the store {where} ({doing}; {have}{need}): free space "
                           "or choose another --out; complete frames stay, and the same command resumes")
 
@@ -191,59 +152,6 @@ def raise_if_unreachable(e: BaseException, store=None, doing: str = "") -> None:
         raise store_unreachable(store if store is not None else "the store", e, doing) from e
 
 
-DISK_FULL_HINT = "free space and run it again"
-
-
-def unreachable_exit(e: BaseException, store=None, out=None, *, again: str | None = None) -> int:
-    """A command's last handler: for a failed connection to the object store of ``store`` (anywhere in
-    ``e``'s chain), one line on stderr naming the endpoint and the last error, and exit code 5; for a
-    full disk or quota (``ENOSPC``, ``EDQUOT`` anywhere in the chain: a checkpoint, an evaluation, an
-    export being written), one line naming the file and the free space there, and exit code 4, as
-    ``dataset`` gives (``out``: the command's output, named where the error names no file; ``again``:
-    what to do, :data:`DISK_FULL_HINT` unless the command resumes); any other error is raised again,
-    traceback and all."""
-    import sys
-    if unreachable_cause(e) is not None:
-        print(f"error: {store_unreachable(store or 'the store', e)}", file=sys.stderr)
-        return StoreUnreachableError.exit_code
-    if not is_disk_full(e):
-        raise e
-    print(f"error: {disk_full(e, out, again or DISK_FULL_HINT)}", file=sys.stderr)
-    return StoreFullError.exit_code
-
-
-def disk_full(e: BaseException, out=None, again: str = DISK_FULL_HINT) -> StoreFullError:
-    """The :class:`StoreFullError` for the full-disk error in ``e``'s chain that is not a store's (a run's
-    checkpoint, an evaluation's JSON, an export): one line naming the file (else ``out``, the command's
-    output), the free space on its device and what to do (``again``)."""
-    import os
-    cause = disk_full_cause(e)
-    if cause is None or isinstance(cause, StoreFullError):
-        return cause or StoreFullError(str(e))
-    where = os.fspath(cause.filename) if getattr(cause, "filename", None) else None
-    where = where or (os.fspath(out) if out is not None else None)
-    free = _free_bytes(os.path.dirname(os.path.abspath(where))) if where and "://" not in where else None
-    at = f" writing {where}" if where else ""
-    have = f"; {_size(free)} free there" if free is not None else ""
-    return StoreFullError(f"no space left on the device{at} ({os.strerror(cause.errno)}{have}): {again}")
-
-
-def exit_status(e: BaseException, default: int = 2) -> int:
-    """The exit code a command ends with for the error ``e``: 5 when an object store could not be reached
-    (anywhere in its chain), else the ``exit_code`` of ``e`` or of the error it was raised from (3 damage,
-    4 a full disk), else ``default``."""
-    if unreachable_cause(e) is not None:
-        return StoreUnreachableError.exit_code
-    seen, first = set(), e
-    while e is not None and id(e) not in seen:
-        seen.add(id(e))
-        code = getattr(e, "exit_code", None)
-        if isinstance(code, int):
-            return code
-        e = e.__cause__
-    return StoreFullError.exit_code if is_disk_full(first) else default
-
-
 def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreachableError:
     """The :class:`StoreUnreachableError` of ``store`` for the failed connection ``e``: one line naming the
     endpoint, the last error and what to do. The requests still pending on zarr's event loop are
@@ -260,6 +168,15 @@ def store_unreachable(store, e: BaseException, doing: str = "") -> StoreUnreacha
         f"({retry_window()}; last error: {type(cause).__name__}: {text}): what was committed stays; run the same "
         "command again once the endpoint is back and it resumes (an endpoint that comes back empty has lost the "
         "store: the run then builds it again from the start)")
+
+
+def explain(e: BaseException, store=None) -> StoreUnreachableError | None:
+    """``core.cli.Program.explain`` for commands that read or write stores: a failed connection to the
+    object store of ``store`` anywhere in ``e``'s chain is that store's :class:`StoreUnreachableError`
+    (exit 5, one line naming the endpoint); None otherwise."""
+    if unreachable_cause(e) is None:
+        return None
+    return store_unreachable(store or "the store", e)
 
 
 class StoreExistsError(StoreError, FileExistsError):

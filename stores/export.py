@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import numpy as np
 
@@ -49,7 +48,7 @@ from stores.contract import FEATURE_GROUPS, FRAME_ARRAYS
 from stores.errors import ExportError, StoreError
 from core.images import read_exr_channels, write_exr, write_png
 from stores.reader import Store, open_store
-from stores.validate import cli_main, parse_frames
+from stores.validate import parse_frames
 
 FORMATS = ("exr", "oidn", "layerdenoise")       # the formats of the store alone (more: :func:`writers`)
 
@@ -290,9 +289,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--skip-bad-frames", action="store_true",
                     help="leave out frames validate flags (NaN/Inf, negative or all-zero references, NaN the "
                          "renderer replaced), naming them; default: refuse them")
-    ap.epilog = ("exit status: 0 exported; 2 bad arguments, not a readable store, or frames validate flags "
-                 "(--skip-bad-frames leaves them out); 3 the store is damaged (missing or corrupt chunk files, "
-                 "array metadata that disagrees with the schema)")
+
 
 
 def run(args) -> int:
@@ -306,14 +303,3 @@ def run(args) -> int:
         raise ExportError(str(e)) from e
     print(f"wrote {len(files)} files to {args.out}")
     return 0
-
-
-def main(argv=None) -> int:
-    """``export STORE --format F --out DIR``: exit 0 on success, 3 on a damaged store, 2 on any other
-    error (message on stderr), as ``python -m pipeline export``."""
-    return cli_main("export", "Export store frames to OpenEXR, the OIDN training layout, layerdenoise HDF5 or "
-                    "Noisebase sequences (the installed formats: --format).", add_arguments, run, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

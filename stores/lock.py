@@ -34,7 +34,8 @@ import os
 import socket
 import time
 
-from stores.errors import StoreLockedError, StorePathError, StoreUnreachableError, is_disk_full, store_full
+from core.errors import is_disk_full
+from stores.errors import StoreLockedError, StorePathError, StoreUnreachableError, store_full
 from stores.objectstore import endpoint
 from stores.procinfo import holder_record, pid_alive
 from stores.schema import LOCK_NAME

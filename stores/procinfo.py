@@ -1,5 +1,5 @@
 """This process and others on this host, as a store records them: who creates a store
-(``stores.schema.create_store``'s ``creating`` attribute) and who holds its writer lock
+(``stores.create.create_store``'s ``creating`` attribute) and who holds its writer lock
 (``stores.lock``). A record is the host, the pid, the process's start time (``proc_start``, clock
 ticks since boot, :func:`process_start`: it tells a process from a later one that reused its pid) and the wall-clock start;
 :func:`pid_alive` says whether the process a record of this host names still runs.

@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from stores import fitness, schema
+from stores import chunk_files, fitness, schema
 from stores.contract import FRAME_ARRAYS, FRAME_META
 from stores.codecs import crc32c
 from stores.errors import (CorruptChunkError, CropSizeError, FrameIndexError, IncompleteFrameError,
@@ -313,7 +313,7 @@ class Store:
                         frame = i
                         break
             spec = self._specs.get(path)
-            f = schema.chunk_file(self.root, spec, frame)[1] if spec is not None and frame is not None else path
+            f = chunk_files.chunk_file(self.root, spec, frame)[1] if spec is not None and frame is not None else path
             raise CorruptChunkError(f"{path}: frame {frame}: chunk file {f} is damaged: {type(e).__name__}: {e}",
                                     array=path, frame=frame, path=f) from e
 
@@ -325,14 +325,14 @@ class Store:
             return
         if self._local is None and len(paths) == 1 and len(frames) == 1:      # a store at a URL: one listing
             spec, i = self._specs[paths[0]], int(frames[0])                  # an array, not a request a read
-            key = schema.chunk_key(spec, i)
+            key = chunk_files.chunk_key(spec, i)
             have = self._listed.get(spec.path)
             if have is not None and key in have:
                 return
-            have = self._listed[spec.path] = schema.chunk_keys(self.root, spec)   # new since? list again
+            have = self._listed[spec.path] = chunk_files.chunk_keys(self.root, spec)   # new since? list again
             if have is not None and key in have:
                 return
-        lost = schema.missing_chunks(self.root, frames, self.version, paths=paths)
+        lost = chunk_files.missing_chunks(self.root, frames, self.version, paths=paths)
         if lost:
             raise _missing_error(lost)
 
@@ -366,7 +366,7 @@ class Store:
             done = [int(i) for i in np.nonzero(table["complete"])[0]]
             if self.version >= 2 and done:
                 paths = [p for _, p in self._meta_columns() if p not in self._absent]
-                for i, lost in schema.missing_chunks(self.root, done, self.version, paths=paths).items():
+                for i, lost in chunk_files.missing_chunks(self.root, done, self.version, paths=paths).items():
                     damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
             if self.version >= 3 and done:
                 for i, (first, f) in self._lost_scene_json(table, done).items():
@@ -392,10 +392,10 @@ class Store:
         todo = [int(i) for i in np.nonzero(~np.asarray(complete, bool))[0]]
         if not todo:
             return {}
-        no_flag = schema.missing_chunks(self.root, todo, self.version, paths=["status/complete"])
+        no_flag = chunk_files.missing_chunks(self.root, todo, self.version, paths=["status/complete"])
         if not no_flag:
             return {}
-        no_error = schema.missing_chunks(self.root, list(no_flag), self.version, paths=["status/error"])
+        no_error = chunk_files.missing_chunks(self.root, list(no_flag), self.version, paths=["status/error"])
         return {i: lost[0][1] for i, lost in no_flag.items() if i not in no_error}
 
     def _read_column_leniently(self, path: str, damage: dict) -> np.ndarray:
@@ -433,13 +433,13 @@ class Store:
         """Complete frames whose clip's SceneSpec JSON chunk (at the clip's first frame) is missing,
         frame -> (first frame, file) (schema v3)."""
         spec = self._specs["frames/scene_json"]
-        names = schema.chunk_names_1d(self.root, spec)
+        names = chunk_files.chunk_names_1d(self.root, spec)
         out, seen = {}, {}
         for i in done:
             f0 = self._clip_start(table, i)
             if f0 not in seen:
                 seen[f0] = ((True, "") if names is not None and str(f0) in names
-                            else schema.chunk_file(self.root, spec, f0))
+                            else chunk_files.chunk_file(self.root, spec, f0))
             there, f = seen[f0]
             if not there:
                 out[i] = (f0, f)
@@ -598,7 +598,7 @@ class Store:
         else:
             if strict:
                 self._require_chunks([path], [i])
-                f = schema.chunk_file(self.root, spec, i)[1]
+                f = chunk_files.chunk_file(self.root, spec, i)[1]
                 if os.path.isfile(f) and os.path.getsize(f) == 0:      # zarr reads an empty shard as fill
                     raise CorruptChunkError(f"{path}: frame {i}: shard file {f} is damaged: it is empty",
                                             array=path, frame=i, path=f)
@@ -677,10 +677,10 @@ class Store:
 
     def missing_data(self, frames=None) -> dict[int, list[tuple[str, str]]]:
         """Complete frames (of ``frames``, default all) whose chunk files are not all there, frame ->
-        ``[(array, file)]``; always ``{}`` for schema v1 stores (see ``schema.missing_chunks``)."""
+        ``[(array, file)]``; always ``{}`` for schema v1 stores (see ``chunk_files.missing_chunks``)."""
         done = self._meta()[0]["complete"]         # a damaged flag reads False (metadata_damage lists it)
         frames = range(self.num_frames) if frames is None else frames
-        return schema.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]], self.version)
+        return chunk_files.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]], self.version)
 
     def frame_problems(self, i: int) -> list[str]:
         """See :func:`frame_problems`."""
@@ -710,7 +710,7 @@ def frame_problems(store, i: int) -> list[str]:
 
 def _missing_error(lost: dict[int, list[tuple[str, str]]]) -> MissingShardError:
     """The MissingShardError of the first of ``lost`` (frame -> ``[(array, file)]``, as
-    ``schema.missing_chunks`` gives it), with a count of the others."""
+    ``chunk_files.missing_chunks`` gives it), with a count of the others."""
     i = min(lost)
     array, f = lost[i][0]
     kind = "shard" if ARRAY_BY_PATH.get(array) is not None and ARRAY_BY_PATH[array].image else "chunk"

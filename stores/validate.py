@@ -1,7 +1,7 @@
 """Store validator: schema, completeness, NaN/Inf counts, value ranges, reference standard error.
 
-``validate_store(path) -> StoreReport``; ``main(argv)`` is ``python -m pipeline validate STORE``.
-Exit codes (``EXIT_*``): 0 no problem; 1 problems found in readable data (incomplete frames, NaN/Inf,
+``validate_store(path) -> StoreReport``; ``run(args)`` is ``python -m pipeline validate STORE``.
+Exit codes (:data:`core.cli.EXIT_CODES`): 0 no problem; 1 problems found in readable data (incomplete frames, NaN/Inf,
 values out of range, an all-zero reference); 2 not a readable store (no store, not ours, unknown schema
 version, creation cut short, bad arguments); 3 the store is damaged (a complete frame's chunk file
 missing, a truncated/garbage chunk or one failing its crc32c, array metadata that disagrees with the
@@ -32,17 +32,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from stores import schema
+from stores import chunk_files, create, schema
+from core.cli import DAMAGED, OK, PROBLEMS
 from stores.errors import MissingShardError, StoreCorruptionError, StoreError
 from stores.fitness import FRAME_KEYS, check_values, renderer_findings
 from stores.reader import open_store
-
-EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE, EXIT_DAMAGED = 0, 1, 2, 3
-EXIT_CODES_HELP = ("exit status: 0 no problem; 1 problems found (incomplete frames, NaN/Inf, values out of "
-                   "range, an all-zero reference); 2 not a readable store (missing, not ours, unknown schema "
-                   "version, creation cut short) or bad arguments; 3 the store is damaged (missing chunk files "
-                   "of complete frames, truncated/garbage chunks, crc32c mismatches, array metadata that "
-                   "disagrees with the schema)")
 
 @dataclass
 class FrameReport:
@@ -88,7 +82,7 @@ class StoreReport:
 
     @property
     def exit_code(self) -> int:
-        return EXIT_DAMAGED if self.damaged else EXIT_OK if self.ok else EXIT_PROBLEMS
+        return DAMAGED if self.damaged else OK if self.ok else PROBLEMS
 
     @property
     def incomplete(self) -> list[int]:
@@ -197,7 +191,7 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     stale = _consolidation_note(path, root, version)
     if stale:
         rep.notes.append(stale)
-    leftover = schema.partial_files(path)
+    leftover = create.partial_files(path)
     if leftover:
         rep.notes.append(f"{len(leftover)} temporary file(s) of a write cut short ({', '.join(leftover[:3])}"
                          f"{', ...' if len(leftover) > 3 else ''}): not store data; the next `python -m pipeline "
@@ -228,7 +222,7 @@ def _v1_skipped_shards(store, root, version: int, indices) -> list[str]:
     for i in indices:
         if done[i]:
             for spec in specs:
-                if not schema.chunk_file(root, spec, i)[0]:
+                if not chunk_files.chunk_file(root, spec, i)[0]:
                     skipped.setdefault(spec.path, []).append(int(i))
     return [f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}{' ...' if len(fs) > 10 else ''} "
             "(schema v1 skipped all-zero shards: read as zeros)" for a, fs in skipped.items()]
@@ -301,22 +295,17 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--mark-damaged", action="store_true",
                     help="mark every frame with damaged or missing files incomplete (status/error says why), "
                          "so the next `python -m pipeline dataset` run with the same config re-renders it")
-    ap.epilog = EXIT_CODES_HELP
 
 
 def run(args) -> int:
-    """Validate and print; returns the exit code (``EXIT_*``: 0 ok, 1 problems, 3 damaged). Raises
+    """Validate and print; returns the exit code (``core.cli``: 0 ok, 1 problems, 3 damaged). Raises
     StoreError (exit 2) if the path is not a readable store or the arguments are bad."""
     _, lay = schema.open_group(args.store, mode="r", check=False)
     try:
         frames = parse_frames(args.frames, lay.num_frames)     # the layout's count: no array is read here
     except ValueError as e:
         raise StoreError(f"--frames {args.frames}: {e}") from e
-    try:
-        rep = validate_store(args.store, frames)
-    except StoreCorruptionError as e:       # damage the report could not take in (should not happen)
-        print(f"error: the store is damaged: {e}", file=sys.stderr)
-        return EXIT_DAMAGED
+    rep = validate_store(args.store, frames)   # damage it could not take in: StoreCorruptionError, exit 3
     print(json.dumps(rep.to_dict(), indent=1) if args.json else rep.format(args.verbose))
     if getattr(args, "mark_damaged", False) and rep.damaged_frames:
         marked = mark_damaged(args.store, rep)
@@ -345,41 +334,3 @@ def mark_damaged(path, rep: StoreReport) -> list[int]:
     finally:
         lock.release()
     return out
-
-
-def cli_main(prog: str, description: str, add_args, run_fn, argv=None) -> int:
-    """A stand-alone command (``python -m stores PROG``): parse, run, StoreCorruptionError -> message and
-    exit 3, other StoreError -> message and exit 2 (or its own: 4 a full disk, 5 an unreachable S3
-    endpoint), Ctrl-C -> 130."""
-    from stores.errors import exit_status, unreachable_exit
-    from stores.objectstore import quiet_abandoned_requests, retry_defaults
-    ap = argparse.ArgumentParser(prog=prog, description=description)
-    add_args(ap)
-    args = ap.parse_args(argv)
-    retry_defaults()
-    quiet_abandoned_requests()
-    from core.notices import plain_warnings
-    try:
-        with plain_warnings():              # a notice (frames left out, ...) is one plain line
-            return run_fn(args)
-    except StoreCorruptionError as e:
-        print(f"error: the store is damaged: {e}", file=sys.stderr)
-        return exit_status(e)
-    except StoreError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return exit_status(e, EXIT_UNREADABLE)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except Exception as e:
-        return unreachable_exit(e, getattr(args, "store", None), getattr(args, "out", None))
-
-
-def main(argv=None) -> int:
-    """``validate STORE``: exit 0 (ok), 1 (problems found), 2 (not a readable store), 3 (store damaged)."""
-    return cli_main("validate", "Check a store: schema, completeness, NaN/Inf counts, value ranges and "
-                    "reference standard error, per frame.", add_arguments, run, argv)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -31,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from stores import schema
+from stores import chunk_files, create, schema
 from stores.contract import FEATURE_NAMES, FRAME_ARRAYS, FRAME_META
 from stores.errors import FrameIndexError, StoreLayoutError, StoreValueError, raise_if_unreachable
 from stores.procinfo import pid_alive
@@ -207,7 +207,7 @@ class StoreWriter:
         # The first commit into a chunk of META_CHUNK frames makes its flag chunk (all False) before
         # status/error: a status/error chunk without its flag chunk then only ever means a lost flag
         # (damage), and an interruption inside this commit leaves its frames incomplete, never damaged.
-        fresh = schema.missing_chunks(self.root, idx + [int(i) for i in failures], self.version,
+        fresh = chunk_files.missing_chunks(self.root, idx + [int(i) for i in failures], self.version,
                                       paths=["status/complete"])
         _set_many(self._array("status/complete"), [(i, False) for i in sorted(fresh)])
         lost = _set_many(self._array("status/error"), [(i, "") for i in idx] +
@@ -230,13 +230,13 @@ class StoreWriter:
     def frame_complete(self, index: int) -> bool:
         """Marked complete and (schema v2) every chunk file of the frame is there."""
         index = self._check_index(index)
-        return bool(complete_flags(self.root, [index])[0]) and not schema.missing_chunks(self.root, [index])
+        return bool(complete_flags(self.root, [index])[0]) and not chunk_files.missing_chunks(self.root, [index])
 
     def incomplete_frames(self) -> list[int]:
         """Frames to (re-)render: not marked complete (or with an unreadable completion flag), or
         marked complete but missing chunk files (schema v2; :func:`frames_with_missing_data`)."""
         done = complete_flags(self.root)
-        lost = schema.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
+        lost = chunk_files.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
         return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
 
     def errors(self) -> dict[int, str]:
@@ -332,7 +332,7 @@ def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
     ``StoreWriter.incomplete_frames`` includes them, so a resume re-renders them."""
     root, _ = schema.open_group(path, mode="r", check=False)
     done = complete_flags(root)
-    return schema.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
+    return chunk_files.missing_chunks(root, [int(i) for i in np.nonzero(done)[0]])
 
 
 def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False) -> StoreWriter:
@@ -349,7 +349,7 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
     count)."""
     from stores.errors import IncompleteStoreError, StoreLockedError
     if overwrite or not schema.store_exists(path):
-        schema.create_store(path, layout, config, overwrite=overwrite)
+        create.create_store(path, layout, config, overwrite=overwrite)
         return StoreWriter(path)
     # The store keeps its own encoding: ``layout.encoding`` None (a config that does not name it)
     # matches the store's, whatever it is (lz4 for stores made before the field, compact since).
@@ -361,7 +361,7 @@ def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, ove
                 and pid_alive(c.get("pid", -1), c.get("proc_start"))):
             raise StoreLockedError(f"{os.fspath(path)!s} is being created by pid {c.get('pid')} on {c.get('host')} "
                                    f"(started {c.get('started')})", holder=c) from e
-        schema.create_store(path, layout, config, overwrite=True)     # ours, and nothing was written yet
+        create.create_store(path, layout, config, overwrite=True)     # ours, and nothing was written yet
         return StoreWriter(path)
     if not have.frame_shape_compatible(layout):
         a, b = have.to_dict(), layout.to_dict()

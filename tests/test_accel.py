@@ -58,7 +58,7 @@ def test_cuda_without_a_gpu_is_a_one_line_error(store, tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stderr
     err = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert err == ["error: ConfigError: \"device\" is 'cuda' but no CUDA device is available (--device auto or cpu)"]
+    assert err == ["error: \"device\" is 'cuda' but no CUDA device is available (--device auto or cpu)"]
 
 
 def _conv_dtypes(model) -> list:

@@ -109,10 +109,10 @@ def test_overwrite_on_a_symbolic_link_deletes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "is a symbolic link to" in err and "never deletes through a link" in err, err
     assert (target / "thesis.tex").read_text() == "years of work" and (target / "sub" / "data.bin").exists()
-    from stores import schema
+    from stores import create
     from stores.errors import ForeignStoreError
     with pytest.raises(ForeignStoreError, match="never deletes through a link"):
-        schema._clear(link)
+        create._clear(link)
     assert (target / "thesis.tex").exists()
 
 

@@ -24,7 +24,7 @@ import yaml
 
 from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import ConfigError
-from stores import schema
+from stores import create, schema
 from stores.errors import ForeignStoreError, IncompleteStoreError, StoreExistsError, StoreLockedError
 from stores.lock import StoreLock, read_lock
 from stores.schema import StoreLayout
@@ -37,7 +37,7 @@ SMOKE = ROOT / "configs" / "smoke.yaml"
 # dataset configs; configs/scaling-*.yaml are scaling studies, whose dataset configs tests/test_scaling.py checks
 CONFIGS = sorted(p for p in (ROOT / "configs").glob("*.yaml") if not p.name.startswith("scaling-"))
 PY = sys.executable
-CREATION = "stores.schema:_creation_hook"    # the seam inside store creation where a test pauses a run
+CREATION = "stores.create:_creation_hook"    # the seam inside store creation where a test pauses a run
 TINY = StoreLayout(num_frames=2, height=8, width=8, spp=2, layer_spp=(1, 2), tile=8)
 
 
@@ -72,7 +72,7 @@ def _foreign_folders(tmp_path: Path) -> dict[str, Path]:
     (v2 / "a" / ".zarray").write_text('{"zarr_format": 2, "shape": [2], "chunks": [2], "dtype": "<f4"}')
     (v2 / "a" / "0").write_bytes(b"\0" * 8)
     headless = tmp_path / "headless.zarr"         # one of our stores that lost its root zarr.json
-    schema.create_store(headless, TINY, {"x": 1})
+    create.create_store(headless, TINY, {"x": 1})
     (headless / "zarr.json").unlink()
     return {"plain": plain, "v2": v2, "headless": headless}
 
@@ -127,18 +127,18 @@ def test_library_refuses_foreign_folders_and_existing_stores_unless_overwrite(tm
     for folder in folders.values():
         before = _tree(folder)
         with pytest.raises(ForeignStoreError, match="non-empty folder that is not a store"):
-            schema.create_store(folder, TINY)
+            create.create_store(folder, TINY)
         with pytest.raises(ForeignStoreError):
             open_or_create(folder, TINY)
         assert _tree(folder) == before
     w = open_or_create(folders["plain"], TINY, {"new": True}, overwrite=True)      # opted in: replaced
     assert w.num_frames == 2 and not (folders["plain"] / "thesis.tex").exists()
     with pytest.raises(StoreExistsError, match="already exists"):
-        schema.create_store(folders["plain"], TINY)
-    assert schema.store_exists(folders["plain"]) and schema.foreign_entries(folders["plain"]) is None
+        create.create_store(folders["plain"], TINY)
+    assert schema.store_exists(folders["plain"]) and create.foreign_entries(folders["plain"]) is None
     empty = tmp_path / "empty.zarr"
     empty.mkdir()
-    schema.create_store(empty, TINY)                              # an empty folder is a fine place
+    create.create_store(empty, TINY)                              # an empty folder is a fine place
     # URLs: only "not found" means no store
     assert schema.store_exists(f"file://{folders['plain']}") and not schema.store_exists(f"file://{tmp_path}/none.zarr")
 
@@ -292,8 +292,8 @@ def test_resume_renders_a_frame_again_when_its_completion_flag_is_damaged(killed
 def test_half_created_store_is_named_and_made_again(tmp_path):
     store = tmp_path / "h.zarr"
     flag = tmp_path / "flag"
-    code = (pause_at(CREATION, flag) + "\nimport sys; from stores import schema; from stores.schema import StoreLayout; "
-            "schema.create_store(sys.argv[1], StoreLayout(num_frames=2, height=8, width=8, spp=2, "
+    code = (pause_at(CREATION, flag) + "\nimport sys; from stores import create; from stores.schema import StoreLayout; "
+            "create.create_store(sys.argv[1], StoreLayout(num_frames=2, height=8, width=8, spp=2, "
             "layer_spp=(1, 2), tile=8))")
     p = subprocess.Popen([PY, "-c", code, str(store)], env=_env(), cwd=ROOT,
                          start_new_session=True)
@@ -319,7 +319,7 @@ def test_half_created_store_whose_pid_was_reused_is_made_again(tmp_path):
     import zarr
     from stores.procinfo import process_start
     store = tmp_path / "r.zarr"
-    schema.create_store(store, TINY)
+    create.create_store(store, TINY)
     sleeper = subprocess.Popen(["sleep", "60"])
     try:
         real = process_start(sleeper.pid)

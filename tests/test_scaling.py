@@ -286,7 +286,8 @@ def test_training_has_no_scaling_command_and_names_the_studies_one(capsys, monke
     child) and says in one line where the command is."""
     import subprocess
 
-    from training.__main__ import main, parser
+    from training.__main__ import main
+    from training.commands import parser
     started = []
     monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
     assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--out", "x"]) == 2
@@ -371,7 +372,7 @@ def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path, 
     assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--target-psnr", "-5",
                  "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err                       # the flag as typed, never "--target.psnr"
-    assert err == "error: ConfigError: --target-psnr must be a PSNR > 0 dB, got -5.0\n", err
+    assert err == "error: --target-psnr must be a PSNR > 0 dB, got -5.0\n", err
     with StoreLock(str(tmp_path / "study")):           # another study runs in this folder
         with pytest.raises(StoreLockedError, match="dataset.lock"):
             run_study(_config(), tmp_path / "study", progress=False)

@@ -134,7 +134,7 @@ def test_a_family_is_one_file(tmp_path):
         import scene_gen.families as F
         F.__path__.append({str(tmp_path)!r})
         from scene_gen import spec
-        from scene_gen.__main__ import build_parser
+        from scene_gen.commands import build_parser
         from scene_gen.config import SceneGenConfig
         from scene_gen.sampling import sample_scene
         s = sample_scene(4, "lab", config=SceneGenConfig(lab_spheres=2))

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scene_gen.__main__ import main, render_spec
+from scene_gen.__main__ import main
+from scene_gen.commands import render_spec
 from scene_gen.config import SceneGenConfig
 from scene_gen.materials import diffuse, random_material
 from scene_gen.layout import probe_params

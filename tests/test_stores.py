@@ -9,7 +9,7 @@ import zarr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stores import codecs, schema
+from stores import codecs, create, schema
 from stores.contract import FEATURE_NAMES, FRAME_ARRAYS, FRAME_META
 from stores.errors import (CropSizeError, ForeignStoreError, FrameIndexError, IncompleteFrameError,
                            SampleCountError, SchemaVersionError, StoreError, StoreLayoutError,
@@ -248,7 +248,7 @@ def test_writer_refuses_bad_frames(store3, tmp_path):
     with pytest.raises(StoreLayoutError, match="height"):
         open_or_create(path, StoreLayout(num_frames=3, height=H + 2, width=W, spp=S, tile=16))
     with pytest.raises(StoreError, match="already exists"):
-        schema.create_store(path, LAYOUT)
+        create.create_store(path, LAYOUT)
     with pytest.raises(StoreLayoutError, match='"spp"'):
         StoreLayout(num_frames=1, height=4, width=4, spp=0)
 

@@ -13,7 +13,8 @@ import zarr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stores import codecs, schema, validate
+from stores import chunk_files, codecs, create, schema, validate
+from stores.__main__ import main as stores_main
 from stores.contract import FRAME_META
 from stores.errors import CorruptChunkError, StoreLayoutError
 from stores.reader import open_store
@@ -138,7 +139,7 @@ def test_store_written_before_the_encoding_field_reads_validates_and_resumes(tmp
 
 def test_schema_v1_lz4_store_still_reads(tmp_path):
     path = tmp_path / "v1.zarr"
-    schema.create_store(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": "lz4"}), schema_version=1)
+    create.create_store(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": "lz4"}), schema_version=1)
     fr = synthetic_frame(3, H, W, S)
     StoreWriter(path).write_frame(0, fr)
     _strip_encoding(path)
@@ -167,7 +168,7 @@ def test_flipped_byte_in_a_compact_chunk_is_caught(tmp_path, array, fast, capsys
     w = open_or_create(path, LAYOUT)
     w.write_frame(0, synthetic_frame(7, H, W, S, motion=True))
     spec = schema.ARRAY_BY_PATH[array]
-    f = schema.chunk_file(zarr.open_group(str(path), mode="r"), spec, 0)[1]
+    f = chunk_files.chunk_file(zarr.open_group(str(path), mode="r"), spec, 0)[1]
     with open(f, "r+b") as fh:
         fh.seek(40)                                   # inside the first inner chunk's bytes
         b = fh.read(1)
@@ -175,7 +176,7 @@ def test_flipped_byte_in_a_compact_chunk_is_caught(tmp_path, array, fast, capsys
         fh.write(bytes([b[0] ^ 0x10]))
     with pytest.raises(CorruptChunkError, match=array):
         open_store(path, fast=fast).read_array(array, 0)
-    assert validate.main([str(path)]) == 3
+    assert stores_main(["validate", str(path)]) == 3
     assert "STORE DAMAGED" in capsys.readouterr().out
 
 
@@ -194,7 +195,7 @@ def test_frames_array_newer_than_the_store_reads_as_fill_and_is_added_on_resume(
     s = open_store(path)
     assert s.complete_frames() == [0] and s.missing_data() == {} and s.metadata_damage() == {}
     assert s.frames_meta(0)[key] == spec.fill == ({str: "", int: 0, bool: False, float: 0}[FRAME_META[key]])
-    assert validate.main([str(path), "--frames", "0"]) == 0, capsys.readouterr().out    # 1 is not written yet
+    assert stores_main(["validate", str(path), "--frames", "0"]) == 0, capsys.readouterr().out    # 1 is not written yet
     capsys.readouterr()
     # a writer opened without open_or_create skips it; open_or_create (the resume) adds it
     StoreWriter(path).write_frame(1, frames[0])
@@ -205,7 +206,7 @@ def test_frames_array_newer_than_the_store_reads_as_fill_and_is_added_on_resume(
     s = open_store(path)
     assert s.frames_meta(0)[key] == spec.fill and s.frames_meta(1)[key] == frames[1]["meta"][key]
     assert s.missing_data() == {}
-    assert validate.main([str(path)]) == 0, capsys.readouterr().out
+    assert stores_main(["validate", str(path)]) == 0, capsys.readouterr().out
     # any other deleted array is still damage
     shutil.rmtree(os.path.join(path, "frames", "scene_seed"))
     with pytest.raises(schema.ArrayMetadataError, match="frames/scene_seed: missing"):

@@ -13,7 +13,7 @@ import zarr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stores import codecs, schema, validate
+from stores import codecs, create, schema, validate
 from stores.contract import FEATURE_GROUPS, FEATURE_NAMES, NUM_FEATURES
 from stores.errors import StoreLayoutError, StoreValueError
 from stores.reader import open_store
@@ -197,7 +197,7 @@ def test_old_stores_read_and_resume_in_their_own_chains(tmp_path, encoding, vers
     chains (features of a compact store keep 9 bits); asking for ``compact3`` is a layout mismatch."""
     path = tmp_path / "old.zarr"
     lay = StoreLayout(**{**LAYOUT.to_dict(), "encoding": encoding})
-    schema.create_store(path, lay, schema_version=version)
+    create.create_store(path, lay, schema_version=version)
     frames = [synthetic_frame(30 + i, H, W, S, motion=True, defocus=True) for i in range(3)]
     StoreWriter(path).write_frame(0, frames[0])
     if encoding == "lz4":

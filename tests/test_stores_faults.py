@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 from pipeline.__main__ import main as pipeline_main
-from stores import schema
+from stores import chunk_files, create, schema
 from stores.errors import (ArrayMetadataError, CorruptChunkError, MissingShardError, StoreCorruptionError,
                            StoreLayoutError)
 from stores.reader import frame_problems, open_store
 from stores.schema import StoreLayout
-from stores.validate import EXIT_DAMAGED, EXIT_OK, EXIT_PROBLEMS, validate_store
+from core.cli import DAMAGED as EXIT_DAMAGED, OK as EXIT_OK, PROBLEMS as EXIT_PROBLEMS
+from stores.validate import validate_store
 from stores.writer import StoreWriter, frames_with_missing_data, open_or_create
 from test_stores_synthetic import synthetic_frame
 
@@ -29,7 +30,7 @@ LAYOUT = StoreLayout(num_frames=3, height=H, width=W, spp=S, tile=8)     # 2x2 i
 
 def _write(path, layout=LAYOUT, version=schema.SCHEMA_VERSION, frames=None):
     if version != schema.SCHEMA_VERSION:
-        schema.create_store(path, layout, {}, schema_version=version)
+        create.create_store(path, layout, {}, schema_version=version)
         w = StoreWriter(path)
     else:
         w = open_or_create(path, layout, {})
@@ -60,7 +61,7 @@ def _shard(path, array, frame):
     import zarr
     version = int(zarr.open_group(str(path), mode="r").attrs["schema_version"])
     spec = next(s for s in schema.arrays(version) if s.path == array)
-    return os.path.join(path, *array.split("/"), *schema.chunk_key(spec, frame).split("/"))
+    return os.path.join(path, *array.split("/"), *chunk_files.chunk_key(spec, frame).split("/"))
 
 
 def _validate(path, capsys):
@@ -80,7 +81,7 @@ def test_v2_writes_every_chunk_even_all_zero(store):
     for spec in schema.ARRAYS:
         if spec.per_frame:
             for i in range(3):
-                assert schema.chunk_file(open_store(store).root, spec, i)[0], (spec.path, i)
+                assert chunk_files.chunk_file(open_store(store).root, spec, i)[0], (spec.path, i)
 
 
 # ----------------------------------------------------------------------------- 2. missing shards
@@ -384,7 +385,8 @@ def test_train_and_evaluate_refuse_a_damaged_store(tmp_path, capsys, damage):
     """The training CLI stops with exit 3 and a one-line message naming array, frame and file (no
     traceback, also when the read happens in a DataLoader worker)."""
     from test_training import make_store
-    from training.__main__ import EXIT_DAMAGED as TRAIN_DAMAGED, main as train_main
+    from core.cli import DAMAGED as TRAIN_DAMAGED
+    from training.__main__ import main as train_main
     path = make_store(tmp_path / "t.zarr")
     st = open_store(path)
     frame = st.frames_in_split("train")[0]
@@ -467,7 +469,7 @@ def test_missing_clip_id_chunk_is_not_clip_0(store_v2, capsys):
 
 def test_missing_metadata_chunk_of_an_incomplete_frame_is_not_damage(tmp_path, capsys):
     path = tmp_path / "s.zarr"
-    schema.create_store(path, LAYOUT, {}, schema_version=2)        # v2: a chunk file a frame
+    create.create_store(path, LAYOUT, {}, schema_version=2)        # v2: a chunk file a frame
     w = StoreWriter(path)
     for i in range(2):
         w.write_frame(i, synthetic_frame(i, H, W, S))
@@ -542,7 +544,7 @@ def test_v3_a_frame_is_its_image_shards_plus_shared_metadata(tmp_path):
     _write(path, StoreLayout(num_frames=5, height=H, width=W, spp=S, tile=8), frames=frames)
     images = [s for s in schema.ARRAYS if s.image]
     for i in range(5):
-        assert all(schema.chunk_file(open_store(path).root, s, i)[0] for s in images)
+        assert all(chunk_files.chunk_file(open_store(path).root, s, i)[0] for s in images)
     json_files = list((path / "frames" / "scene_json" / "c").iterdir())
     assert [f.name for f in json_files] == ["0"]           # the clip's first frame only
     for spec in schema.ARRAYS:

@@ -337,6 +337,13 @@ def test_a_missing_or_corrupted_object_is_named_never_zeros(s3, capsys):
     assert "layers/radiance: frame 2" in capsys.readouterr().out
 
 
+def _exit_code(e: BaseException) -> int:
+    """What a command exits with for ``e`` (``core.cli``, through the stores' ``explain``)."""
+    from core.cli import exit_code
+    from stores.errors import explain
+    return exit_code(explain(e) or e)
+
+
 def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, synthetic_s3, monkeypatch, tmp_path):
     """The endpoint goes away after the store was opened (mid-training, mid-validate): a read ends in
     StoreUnreachableError naming the endpoint (exit 5), never CorruptChunkError (damage, exit 3, which
@@ -344,7 +351,7 @@ def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, syntheti
     endpoint is gone exit 5 with one line and no traceback."""
     import s3fs
 
-    from stores.errors import StoreUnreachableError, exit_status
+    from stores.errors import StoreUnreachableError
     from stores.reader import open_store
     from stores.writer import complete_flags
     monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
@@ -355,10 +362,10 @@ def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, syntheti
     try:
         with pytest.raises(StoreUnreachableError, match="could not be reached") as e:
             st.read_frame(1)
-        assert exit_status(e.value) == 5 and s3.endpoint in str(e.value)
+        assert _exit_code(e.value) == 5 and s3.endpoint in str(e.value)
         with pytest.raises(Exception) as e:                          # not "every frame incomplete"
             complete_flags(st.root)
-        assert exit_status(e.value) == 5
+        assert _exit_code(e.value) == 5
         runs = {"validate": ["pipeline", "validate", synthetic_s3],
                 "train": ["training", "train", "--model", "nbg", "--store", synthetic_s3, "--steps", "1", "--crop",
                           "8", "--batch", "1", "--out", str(tmp_path / "run"), "--no-progress"],
@@ -377,19 +384,26 @@ def test_an_endpoint_gone_while_reading_is_unreachable_never_damage(s3, syntheti
 
 
 ABANDONED_BATCH = """
-import sys, zarr
-from stores.errors import unreachable_exit
-from stores.objectstore import quiet_abandoned_requests, retry_defaults
-retry_defaults()
-quiet_abandoned_requests()
-a = zarr.open_array(sys.argv[1], mode="r")
-a[:2]
-print("open", flush=True)
-sys.stdin.readline()                    # the test stops the endpoint
-try:
+import argparse, sys, zarr
+from core.cli import Program, run_main
+from stores.commands import explain, setup
+
+
+def read(args):
+    a = zarr.open_array(sys.argv[1], mode="r")
+    a[:2]
+    print("open", flush=True)
+    sys.stdin.readline()                # the test stops the endpoint
     a[:]                                # 64 chunks at once: the first to fail abandons the others
-except Exception as e:
-    sys.exit(unreachable_exit(e, sys.argv[1]))
+
+
+def parser(argv):
+    p = argparse.ArgumentParser()
+    p.set_defaults(run=read)
+    return p
+
+
+sys.exit(run_main(Program(parser=parser, setup=setup, explain=lambda e, args: explain(e, sys.argv[1])), []))
 """
 
 
@@ -455,7 +469,6 @@ def test_an_endpoint_gone_inside_a_first_commit_leaves_the_frame_incomplete_not_
     import stores.writer as writer_mod
     from pipeline.__main__ import main
     from stores import schema
-    from stores.errors import exit_status
     from stores.reader import open_store
     from stores.schema import StoreLayout
     from stores.writer import StoreWriter, open_or_create
@@ -475,7 +488,7 @@ def test_an_endpoint_gone_inside_a_first_commit_leaves_the_frame_incomplete_not_
             monkeypatch.setattr(writer_mod, "_set_many", endpoint_dies_at_the_flags)
             with pytest.raises(Exception) as e:
                 w.write_frame(frame, synthetic_frame(frame, 8, 8, 2, motion=False))
-            assert exit_status(e.value) == 5, repr(e.value)
+            assert _exit_code(e.value) == 5, repr(e.value)
             monkeypatch.setattr(writer_mod, "_set_many", real)
             s3.start()
             s3fs.S3FileSystem.clear_instance_cache()

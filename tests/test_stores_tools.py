@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from stores import bench, codecs, export, validate
+from stores.__main__ import main as stores_main
 from stores.errors import ExportError
 from stores.reader import open_store
 from stores.schema import StoreLayout
@@ -55,7 +56,7 @@ CHILD = textwrap.dedent("""
 
 def test_writer_killed_mid_frame_is_flagged_and_rerun_completes(store2, tmp_path, capsys):
     path, frames = store2
-    assert validate.main([str(path)]) == 0
+    assert stores_main(["validate", str(path)]) == 0
     capsys.readouterr()
     script = tmp_path / "child.py"
     script.write_text(CHILD.format(root=str(ROOT), tests=str(ROOT / "tests"), path=str(path), h=H, w=W, s=S))
@@ -69,7 +70,7 @@ def test_writer_killed_mid_frame_is_flagged_and_rerun_completes(store2, tmp_path
     # the frame was complete before; the killed re-run left it incomplete, not half-valid
     rep = validate.validate_store(path)
     assert rep.incomplete == [1] and not rep.ok
-    assert validate.main([str(path)]) == 1
+    assert stores_main(["validate", str(path)]) == 1
     assert "incomplete: [1]" in capsys.readouterr().out
     assert StoreWriter(path).incomplete_frames() == [1]
     # half-written new radiance is on disk, but readers refuse the frame
@@ -78,7 +79,7 @@ def test_writer_killed_mid_frame_is_flagged_and_rerun_completes(store2, tmp_path
     # the re-run (what the Dask stage does for incomplete_frames()) completes it
     for i in StoreWriter(path).incomplete_frames():
         StoreWriter(path).write_frame(i, synthetic_frame(77, H, W, S))
-    assert validate.main([str(path)]) == 0
+    assert stores_main(["validate", str(path)]) == 0
     np.testing.assert_array_equal(open_store(path).read_frame(1)["radiance"],
                                   stored("radiance", synthetic_frame(77, H, W, S)["radiance"], open_store(path).layout))
 
@@ -99,8 +100,8 @@ def test_validator_finds_bad_values(store2):
         and "reference has 1 negative values" in text
     assert not f1.problems and f1.ref_rel_stderr == pytest.approx(0.01, rel=0.2)
     assert f0.ranges["reference"][0] == -0.5
-    assert validate.main([str(path), "--frames", "1"]) == 0
-    assert validate.main([str(path), "--json"]) == 1
+    assert stores_main(["validate", str(path), "--frames", "1"]) == 0
+    assert stores_main(["validate", str(path), "--json"]) == 1
 
 
 def test_validate_cli_exit_codes(tmp_path, store2):
@@ -116,7 +117,7 @@ def test_validate_cli_exit_codes(tmp_path, store2):
 
 def test_export_exr(store2, tmp_path):
     path, frames = store2
-    assert export.main([str(path), "--frames", "1", "--format", "exr", "--out", str(tmp_path / "e")]) == 0
+    assert stores_main(["export", str(path), "--frames", "1", "--format", "exr", "--out", str(tmp_path / "e")]) == 0
     d = tmp_path / "e" / "frame_000001"
     lay = open_store(path).layout
     fr = {k: stored(k, v, lay) for k, v in frames[1].items() if k != "meta"}   # what the store holds
@@ -241,7 +242,7 @@ def test_export_errors(store2, tmp_path):
         export.export(path, "all", "oidn", str(tmp_path / "x"))
     with pytest.raises(ExportError, match="unknown export format"):
         export.export(path, "1", "png", str(tmp_path / "x"))
-    assert export.main([str(path), "--frames", "5", "--format", "exr", "--out", str(tmp_path / "x")]) == 2
+    assert stores_main(["export", str(path), "--frames", "5", "--format", "exr", "--out", str(tmp_path / "x")]) == 2
 
 
 def test_bench_smoke():
@@ -337,14 +338,14 @@ def test_export_refuses_frames_validate_flags(tmp_path, capsys, fmt, spoil):
         ref[1] = 0.0
     out = tmp_path / "out"
     args = [str(path), "--format", fmt, "--out", str(out)]
-    assert export.main(args) == 2
+    assert stores_main(["export", *args]) == 2
     err = capsys.readouterr().err
     want = {"nan": "reference: 1 NaN/Inf values", "negative": "reference has 1 negative values",
             "zero": "reference is all zero while the input radiance is not"}[spoil]
     assert "frame 1:" in err and want in err and "--skip-bad-frames" in err, err
     assert not out.exists() or not os.listdir(out)
     with pytest.warns(UserWarning, match=r"skipping 1 flagged frames .*frame 1:"):
-        assert export.main(args + ["--skip-bad-frames"]) == 0
+        assert stores_main(["export", *args, "--skip-bad-frames"]) == 0
     names = " ".join(sorted(os.listdir(out)))
     assert "000001" not in names and "000000" in names or fmt == "layerdenoise"
     if fmt == "layerdenoise":
@@ -363,5 +364,5 @@ def test_an_export_that_stops_leaves_nothing_behind(tmp_path, capsys):
     (out / "mine.txt").write_text("keep me")
     f = path / "layers" / "radiance" / "c" / "2" / "0" / "0" / "0" / "0"
     f.write_bytes(f.read_bytes()[:-40])
-    assert export.main([str(path), "--format", "exr", "--out", str(out)]) == 3
+    assert stores_main(["export", str(path), "--format", "exr", "--out", str(out)]) == 3
     assert sorted(os.listdir(out)) == ["mine.txt"] and (out / "mine.txt").read_text() == "keep me"

@@ -55,7 +55,7 @@ def test_a_size_without_a_test_frame_is_one_line_naming_frames_before_anything_r
     for bad in ("0", "-5", "15"):
         assert main(["bench-scale", "--frames", "100", bad]) == 2
         err = capsys.readouterr().err
-        assert err == ("error: ConfigError: --frames must be one or more integers >= 16 (the fewest frames at which "
+        assert err == ("error: --frames must be one or more integers >= 16 (the fewest frames at which "
                        f"every layout has a clip in the train and the test split), got {bad}\n"), err
 
 

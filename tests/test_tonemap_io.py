@@ -39,7 +39,7 @@ def test_tonemap_keeps_layout_dtype_and_gradients():
 
 def test_training_previews_and_exports_share_one_tone_map():
     """One module holds the tone map: the losses and metrics, the scene previews and the exports use it."""
-    import scene_gen.__main__ as previews
+    import scene_gen.commands as previews
     import stores.export as export
     import training.losses as losses
     import training.metrics as metrics

@@ -413,7 +413,7 @@ def test_a_nan_loss_is_a_failed_run_not_a_bad_setting(store, tmp_path, capsys, m
                  "--out", str(tmp_path / "r"), "--steps", "2", "--crop", "16", "--batch", "2", "--spp", "2",
                  "--no-progress"]) == 1
     err = capsys.readouterr().err
-    assert "NonFiniteError: loss is nan (non-finite) at step 1; the loss is read from the device every 10 steps " \
+    assert "error: loss is nan (non-finite) at step 1; the loss is read from the device every 10 steps " \
            "(--log-every), here steps 1..2" in err
 
 
@@ -664,7 +664,7 @@ def test_train_options_are_the_config_fields_and_the_shared_ones_come_from_them(
     fields, with the same defaults and choices."""
     from dataclasses import fields
 
-    from training.__main__ import parser
+    from training.commands import parser
     from training.cli import HIDDEN
     base = ["--model", "nbg", "--store", "s"]
     a = parser().parse_args(["train", *base, "--val-crop", "64", "--grad-clip-norm", "0.5", "--compile"])

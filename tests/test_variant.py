@@ -56,7 +56,7 @@ def test_scene_gen_renders_without_importing_pipeline():
             "spec = sample_scene(2, 'outdoor', res=8)\n"
             "mi = mitsuba()\n"
             "img = mi.render(to_mitsuba.load(spec, 0, 8, merge=True), spp=1)\n"
-            "import scene_gen.__main__\n"
+            "import scene_gen.commands\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'pipeline'))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -280,25 +280,25 @@ def find_runs(runs) -> list[Path]:
     return found
 
 
-def main(argv=None) -> int:
-    """``python -m training.checkpoint upgrade FILE [--out NEW]``: convert a trusted old checkpoint."""
-    import argparse
-    import sys
-    ap = argparse.ArgumentParser(prog="python -m training.checkpoint",
-                                 description="Convert an old checkpoint of this project to the plain-data format.")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    u = sub.add_parser("upgrade", help="rewrite an old /1 checkpoint as /2 (read by a restricted unpickler: only "
-                                       "the numpy arrays and version string old checkpoints hold are allowed)")
+def _parser(argv: list[str]):
+    from core.cli import commands, program_parser
+    ap = program_parser("python -m training.checkpoint",
+                        "Convert an old checkpoint of this project to the plain-data format.")
+    u = commands(ap, dest="cmd").add_parser(
+        "upgrade", help="rewrite an old /1 checkpoint as /2 (read by a restricted unpickler: only the numpy "
+                        "arrays and version string old checkpoints hold are allowed)")
     u.add_argument("file")
     u.add_argument("--out", help="where to write it (default: replace FILE)")
-    a = ap.parse_args(argv)
-    try:
-        print(f"wrote {upgrade(a.file, a.out)} ({FORMAT})")
-    except CheckpointError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+    u.set_defaults(run=lambda a: print(f"wrote {upgrade(a.file, a.out)} ({FORMAT})"))
+    return ap
+
+
+def main(argv=None) -> int:
+    """``python -m training.checkpoint upgrade FILE [--out NEW]``: convert a trusted old checkpoint."""
+    from core.cli import Program, run_main
+    return run_main(Program(parser=_parser), argv)
 
 
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    from core.cli import start
+    start(main)
