@@ -133,10 +133,10 @@ class ClusterConfig:
     holding the worker resource ``GPU: 1``, and no CPU render workers (a dataset is rendered by one
     backend, so its bytes do not depend on which worker took a frame); none: the CPU workers above.
     ``null`` or 0: CPU workers even where GPUs are; an integer N: the first N GPUs; a list: those
-    device ids. Batch jobs ask for GPUs with ``jobqueue.gpus_per_job`` (``pipeline.cluster.job_settings``).
+    device ids. Batch jobs ask for GPUs with ``jobqueue.gpus_per_job`` (``pipeline.jobs.job_settings``).
 
     ``dashboard_address`` without a host (``:8787``) binds to 127.0.0.1; ``security`` holds
-    ``distributed.security.Security`` settings (``pipeline.cluster.make_security``) for TLS.
+    ``distributed.security.Security`` settings (``pipeline.cluster_settings.make_security``) for TLS.
     """
     kind: str = "local"
     address: str | None = None
@@ -197,7 +197,7 @@ TLS_VERSIONS = ("TLSv1_2", "TLSv1_3")
 
 
 def check_security(sec, where: str = "dataset.cluster.security") -> None:
-    """Check the shape of ``cluster.security`` (no file is opened; ``pipeline.cluster.make_security``
+    """Check the shape of ``cluster.security`` (no file is opened; ``pipeline.cluster_settings.make_security``
     reads them): a mapping of ``SECURITY_KEYS`` with ``tls_ca_file`` and ``tls_client_cert`` set.
     Raises :class:`ConfigError` naming the key."""
     need(isinstance(sec, dict), where, f"a mapping of distributed TLS settings ({', '.join(SECURITY_KEYS)})", sec,
@@ -221,7 +221,7 @@ def check_security(sec, where: str = "dataset.cluster.security") -> None:
 
 def parse_dashboard(address: str, where: str = "dataset.cluster.dashboard_address") -> tuple[str, int]:
     """``(host, port)`` of a dashboard address (``host:port``, ``:port`` or ``port``; host '' means
-    127.0.0.1, ``pipeline.cluster.dashboard_bind``); :class:`ConfigError` naming ``where`` otherwise."""
+    127.0.0.1, ``pipeline.cluster_settings.dashboard_bind``); :class:`ConfigError` naming ``where`` otherwise."""
     a = str(address).strip()
     host, sep, port = a.rpartition(":")
     if not sep:
@@ -572,7 +572,7 @@ def worker_memory(cluster: ClusterConfig, *, workers: int | None = None) -> tupl
     if cluster.kind in ("slurm", "pbs"):
         try:
             mem = int(parse_bytes(str(cluster.jobqueue.get("memory"))))
-            # as pipeline.cluster.job_settings sets it: one worker a threads_per_worker cores by default
+            # as pipeline.jobs.job_settings sets it: one worker a threads_per_worker cores by default
             procs = int(cluster.jobqueue.get("processes")
                         or max(1, int(cluster.jobqueue.get("cores") or 1) // cluster.threads_per_worker))
             where = f"cluster.jobqueue memory {cluster.jobqueue.get('memory')} over {procs} processes"

@@ -12,3 +12,7 @@ class ConfigError(PipelineError, SettingError):
 
 class RenderError(PipelineError, RuntimeError):
     """Rendering a frame failed."""
+
+
+class ClusterError(PipelineError, ConnectionError):
+    """The Dask cluster cannot be started or reached."""

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline import cluster as cl
+from pipeline import cluster as cl, cluster_settings as cs
 from pipeline.config import ClusterConfig, DatasetConfig, load_config
 from pipeline.errors import ConfigError
 
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
     (":8787", "127.0.0.1:8787"), ("8787", "127.0.0.1:8787"), (":0", "127.0.0.1:0"),
     ("127.0.0.1:8787", "127.0.0.1:8787"), ("0.0.0.0:8787", "0.0.0.0:8787"), (None, None)])
 def test_dashboard_without_a_host_binds_to_localhost(given, bound):
-    assert cl.dashboard_bind(given) == bound
+    assert cs.dashboard_bind(given) == bound
 
 
 def test_shipped_defaults_keep_the_dashboard_on_this_machine():
@@ -78,13 +78,13 @@ def test_bad_security_config_is_refused_when_loaded(tmp_path, bad, message):
 def test_missing_certificate_file_is_named(tls_dir, tmp_path):
     sec = {**_sec(tls_dir), "tls_client_key": str(tmp_path / "nope.pem")}
     with pytest.raises(ConfigError, match=r"dataset\.cluster\.security\.tls_client_key: cannot read '.*nope\.pem'"):
-        cl.make_security(sec)
+        cs.make_security(sec)
 
 
 def test_good_security_config_builds_a_security_object(tls_dir, monkeypatch):
     from distributed.security import Security
-    assert cl.make_security(None) is None
-    sec = cl.make_security({**_sec(tls_dir), "tls_min_version": "TLSv1_3"})
+    assert cs.make_security(None) is None
+    sec = cs.make_security({**_sec(tls_dir), "tls_min_version": "TLSv1_3"})
     assert isinstance(sec, Security) and sec.require_encryption is True
     assert (sec.tls_ca_file, sec.tls_client_cert) == (str(tls_dir / "ca.pem"), str(tls_dir / "node.pem"))
     assert sec.tls_min_version == ssl.TLSVersion.TLSv1_3
@@ -93,7 +93,7 @@ def test_good_security_config_builds_a_security_object(tls_dir, monkeypatch):
     monkeypatch.setenv("DASK_TLS_DIR", str(tls_dir))
     cfg = load_config(ROOT / "configs/cluster-scheduler.yaml").cluster
     assert cfg.address.startswith("tls://")
-    assert cl.make_security(cfg.security).tls_client_key == str(tls_dir / "node-key.pem")
+    assert cs.make_security(cfg.security).tls_client_key == str(tls_dir / "node-key.pem")
 
 
 def test_tls_scheduler_is_reached_with_security_and_refuses_plain_tcp(tls_dir):

@@ -244,7 +244,7 @@ def test_split_streams_default_follows_reference_resources(tmp_path):
 
 
 def test_a_batch_jobs_memory_is_shared_by_the_workers_it_will_run():
-    """Without ``processes``, a job runs ``cores / threads_per_worker`` workers (pipeline.cluster.job_settings),
+    """Without ``processes``, a job runs ``cores / threads_per_worker`` workers (pipeline.jobs.job_settings),
     so the memory check before submitting divides the job's memory by that many."""
     from pipeline.config import ClusterConfig, worker_memory
     c = ClusterConfig(kind="slurm", jobqueue={"cores": 8, "memory": "32GiB"})

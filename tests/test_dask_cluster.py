@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import cluster as cl
+from pipeline import cluster as cl, jobs
 from pipeline.config import ClusterConfig, load_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -85,7 +85,7 @@ def test_jobqueue_examples_make_job_scripts(name, needles):
     cfg = load_config(ROOT / "configs" / name)
     jq = dict(cfg.cluster.jobqueue)
     jq["scheduler_options"] = {"host": "127.0.0.1", "dashboard_address": ":0"}    # no sbatch/qsub is called
-    c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue=jq).cluster)
+    c = jobs.jobqueue_cluster(cfg.with_cluster(jobqueue=jq).cluster)
     try:
         script = c.job_script()
     finally:
@@ -98,13 +98,13 @@ def test_a_batch_cluster_without_a_dashboard_leaves_its_port_alone():
     pytest.importorskip("dask_jobqueue")
     cfg = load_config(ROOT / "configs" / "cluster-slurm.yaml")
     jq = {**cfg.cluster.jobqueue, "scheduler_options": {"host": "127.0.0.1"}}    # no sbatch is called
-    c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue=jq, dashboard_address=None).cluster)
+    c = jobs.jobqueue_cluster(cfg.with_cluster(jobqueue=jq, dashboard_address=None).cluster)
     try:
         assert c.scheduler.http_server.port not in (0, 8787)
         assert cl._shows_dashboard(c.scheduler_spec["options"]) is False
     finally:
         c.close()
-    c = cl.jobqueue_cluster(cfg.with_cluster(jobqueue={**jq, "scheduler_options": {
+    c = jobs.jobqueue_cluster(cfg.with_cluster(jobqueue={**jq, "scheduler_options": {
         "host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"}}).cluster)
     try:
         assert cl._shows_dashboard(c.scheduler_spec["options"]) is True

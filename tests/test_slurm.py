@@ -41,7 +41,7 @@ PY = sys.executable
 # a test that needs both its jobs running would wait on another test's jobs holding them.
 pytestmark = pytest.mark.xdist_group("slurm")
 TIMING = {"frames/render_seconds"}           # a clock reading, not data
-KEEPER_EVERY = 2.0                           # pipeline.cluster.JobKeeper's check interval (s)
+KEEPER_EVERY = 2.0                           # pipeline.jobs.JobKeeper's check interval (s)
 
 
 def _env() -> dict:
@@ -53,7 +53,7 @@ def _env() -> dict:
 
 def _script_of(cluster) -> str:
     """The job script of ``jobqueue_cluster(cluster)`` (its scheduler on 127.0.0.1; nothing is submitted)."""
-    from pipeline.cluster import jobqueue_cluster
+    from pipeline.jobs import jobqueue_cluster
     c = jobqueue_cluster(cluster)
     try:
         return c.job_script()
@@ -190,7 +190,7 @@ def test_gpu_jobs_ask_for_their_gpus_and_each_worker_keeps_one(monkeypatch):
 ])
 def test_bad_job_settings_are_config_errors(tpw, jobqueue, message):
     pytest.importorskip("dask_jobqueue")
-    from pipeline.cluster import jobqueue_cluster
+    from pipeline.jobs import jobqueue_cluster
     from pipeline.errors import ConfigError
     jq = {"memory": "1GiB", **jobqueue}
     with pytest.raises(ConfigError) as e:
@@ -212,7 +212,7 @@ def test_a_bad_job_setting_stops_the_command_with_exit_2(tmp_path, capsys):
 
 
 def test_job_python_is_taken_from_the_checkout():
-    from pipeline.cluster import job_python
+    from pipeline.jobs import job_python
     assert job_python(".venv/bin/python") == f"{ROOT}/.venv/bin/python"
     assert job_python("/opt/py/bin/python") == "/opt/py/bin/python"
     assert job_python("python3") == "python3"                    # the node's PATH
@@ -448,7 +448,7 @@ def test_a_job_slurm_can_never_run_is_refused_before_anything_is_submitted(slurm
 
 def test_cancelled_jobs_are_replaced_and_no_frame_is_lost(slurm_config, local_store, tmp_path):
     """Every job of the run is ``scancel``ed mid-run: the run can only finish if new jobs are submitted
-    (``pipeline.cluster.JobKeeper``); the frames the cancelled workers held are rendered by the new ones.
+    (``pipeline.jobs.JobKeeper``); the frames the cancelled workers held are rendered by the new ones.
 
     Each job is stopped (SIGSTOP) the moment its worker has joined, so it holds the tasks the scheduler
     gave it and the run cannot end before the cancel (waiting for a frame instead raced: a 16-px frame
@@ -494,7 +494,7 @@ def test_jobs_that_end_right_after_joining_are_replaced(slurm_config, local_stor
     no frame."""
     config, name = slurm_config
     out = tmp_path / "slurm.zarr"
-    p = subprocess.Popen(_cli(config, out, hook=setting("pipeline.cluster:JobKeeper.EVERY", 20.0)), env=_env(), cwd=ROOT,
+    p = subprocess.Popen(_cli(config, out, hook=setting("pipeline.jobs:JobKeeper.EVERY", 20.0)), env=_env(), cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         jobs: list[str] = []
