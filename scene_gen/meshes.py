@@ -46,12 +46,12 @@ import logging
 import math
 import os
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from scene_gen import rooms
+from scene_gen import mesh_ops as ops, rooms
+from scene_gen.mesh_ops import CREASE_DEG, MeshData
 from scene_gen.errors import MeshError, SpecError
 from scene_gen.profiles import random_outline, random_revolve_profile
 from scene_gen.spec import MESH_KINDS, MeshSpec
@@ -88,64 +88,10 @@ log = logging.getLogger(__name__)
 
 MODEL_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
 CACHE_SIZE = 512
-CREASE_DEG = 40.0
 
 
 class BrokenModelWarning(UserWarning):
     """A user model file could not be loaded and was skipped (the message names the file)."""
-
-
-@dataclass(frozen=True, eq=False)
-class MeshData:
-    """A triangle mesh ready for Mitsuba.
-
-    vertices (float32, N×3), faces (int32, M×3, counter-clockwise seen from outside),
-    normals (float32, N×3 unit vectors, or None), uv (float32, N×2, or None).
-    Arrays are read-only: results are shared through the cache.
-    """
-    vertices: np.ndarray
-    faces: np.ndarray
-    normals: np.ndarray | None = None
-    uv: np.ndarray | None = None
-
-    def __post_init__(self):
-        v = np.ascontiguousarray(self.vertices, dtype=np.float32)
-        f = np.ascontiguousarray(self.faces, dtype=np.int32)
-        if v.ndim != 2 or v.shape[1] != 3:
-            raise MeshError(f"MeshData.vertices must be N×3, got shape {v.shape}")
-        if f.ndim != 2 or f.shape[1] != 3:
-            raise MeshError(f"MeshData.faces must be M×3, got shape {f.shape}")
-        arrays = {"vertices": v, "faces": f}
-        for name, cols in (("normals", 3), ("uv", 2)):
-            a = getattr(self, name)
-            if a is not None:
-                a = np.ascontiguousarray(a, dtype=np.float32)
-                if a.shape != (len(v), cols):
-                    raise MeshError(f"MeshData.{name} must be {len(v)}×{cols}, got shape {a.shape}")
-            arrays[name] = a
-        for name, a in arrays.items():
-            if a is not None:
-                a.setflags(write=False)
-            object.__setattr__(self, name, a)
-
-    @property
-    def num_triangles(self) -> int:
-        return int(self.faces.shape[0])
-
-    @property
-    def bounds(self) -> np.ndarray:
-        """(float32, 2×3): per-axis minimum and maximum of the vertices."""
-        if len(self.vertices) == 0:
-            return np.zeros((2, 3), np.float32)
-        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
-
-    def digest(self) -> str:
-        """SHA-256 of all array bytes (vertices, faces, normals, uv): equal digest, equal mesh."""
-        import hashlib
-        h = hashlib.sha256()
-        for a in (self.vertices, self.faces, self.normals, self.uv):
-            h.update(b"-" if a is None else a.tobytes())
-        return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,9 +118,9 @@ def decimate(mesh: MeshData, max_triangles: int, *, crease_deg: float = CREASE_D
         raise SpecError(f"max_triangles must be an integer >= 1, got {max_triangles!r}")
     if mesh.num_triangles <= max_triangles:
         return mesh
-    v, f = _merge(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64))
+    v, f = ops.merge(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64))
     v, f = _decimate_vf(v, f, int(max_triangles))
-    return _finish(v, f, crease_deg=crease_deg)
+    return ops.finish(v, f, crease_deg=crease_deg)
 
 
 def triangle_budget(projected_radius_px: float, *, tris_per_px: float = 0.5, min: int = 32,
@@ -247,7 +193,7 @@ def _build_cached(key: str) -> MeshData:
     if spec.triangle_budget and len(f) > spec.triangle_budget:
         v, f = _decimate_vf(v, f, spec.triangle_budget)
     crease = _param(spec, "crease_deg", CREASE_DEG, 0.0, 180.0)
-    return _finish(v, f, crease_deg=crease)
+    return ops.finish(v, f, crease_deg=crease)
 
 
 def _coarsest_for_budget(spec: MeshSpec) -> MeshSpec:
@@ -290,11 +236,11 @@ def _geometry_cached(key: str) -> tuple[np.ndarray, np.ndarray]:
         raise
     except Exception as e:  # a library failure inside a builder
         raise MeshError(f"building mesh kind {spec.kind!r} failed: {type(e).__name__}: {e}") from e
-    v, f = _clean(*_merge(np.asarray(v, np.float64), np.asarray(f, np.int64)))
+    v, f = ops.clean(*ops.merge(np.asarray(v, np.float64), np.asarray(f, np.int64)))
     if len(f) == 0:
         raise MeshError(f"mesh kind {spec.kind!r} produced no triangles (params {dict(spec.params)})")
     if spec.kind != "plane":
-        v = _normalise(v)
+        v = ops.normalise(v)
         if _signed_volume(v, f) < 0:     # closed meshes wind counter-clockwise seen from outside
             f = f[:, ::-1].copy()
     v.setflags(write=False)
@@ -441,16 +387,16 @@ def _extrude(spec):
         outline = random_outline(rng)
     height = _param(spec, "height", float(rng.uniform(0.15, 1.5)), 1e-3, 1e3)
     bevel = _param(spec, "bevel", 0.0, 0.0, 0.49) * height
-    outline = _dedupe_ring(outline)
-    if len(outline) < 3 or abs(_polygon_area(outline)) < 1e-9 * max(np.ptp(outline, axis=0).max(), 1e-30) ** 2:
+    outline = ops.dedupe_ring(outline)
+    if len(outline) < 3 or abs(ops.polygon_area(outline)) < 1e-9 * max(np.ptp(outline, axis=0).max(), 1e-30) ** 2:
         raise SpecError("mesh.params.outline (extrude) must enclose a non-zero area")
-    if _polygon_area(outline) < 0:        # counter-clockwise in (x, z)
+    if ops.polygon_area(outline) < 0:        # counter-clockwise in (x, z)
         outline = outline[::-1].copy()
-    if not _is_simple(outline):
+    if not ops.is_simple(outline):
         raise SpecError("mesh.params.outline (extrude) must be a simple polygon (its edges cross)")
-    cap = _fan_or_earclip(outline)        # (T, 3) counter-clockwise triangles of the outline
+    cap = ops.fan_or_earclip(outline)        # (T, 3) counter-clockwise triangles of the outline
     k = len(outline)
-    centre = _polygon_centroid(outline)
+    centre = ops.polygon_centroid(outline)
     if bevel > 0:
         reach = float(np.linalg.norm(outline - centre, axis=1).max())
         s_in = max(1.0 - bevel / reach, 0.5)
@@ -471,82 +417,6 @@ def _extrude(spec):
     top = (len(layers) - 1) * k
     faces += [cap, top + cap[:, ::-1]]    # bottom faces -y, top faces +y
     return v, np.concatenate(faces)
-
-
-def _dedupe_ring(p: np.ndarray) -> np.ndarray:
-    """Drop consecutive repeated points (and a closing point equal to the first)."""
-    keep = np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1) > 1e-12
-    return p[keep] if keep.any() else p[:1]
-
-
-def _polygon_area(p: np.ndarray) -> float:
-    q = np.roll(p, -1, axis=0)
-    return 0.5 * float((p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]).sum())
-
-
-def _polygon_centroid(p: np.ndarray) -> np.ndarray:
-    q = np.roll(p, -1, axis=0)
-    cr = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
-    a = cr.sum() / 2.0
-    return np.array([((p[:, 0] + q[:, 0]) * cr).sum(), ((p[:, 1] + q[:, 1]) * cr).sum()]) / (6.0 * a)
-
-
-def _is_simple(p: np.ndarray) -> bool:
-    """No two non-adjacent edges of the closed polygon intersect (vectorised O(n^2))."""
-    n = len(p)
-    a, b = p, np.roll(p, -1, axis=0)
-    ii, jj = np.triu_indices(n, k=2)
-    keep = ~((ii == 0) & (jj == n - 1))
-    ii, jj = ii[keep], jj[keep]
-
-    def orient(o, x, y):
-        return np.sign((x[:, 0] - o[:, 0]) * (y[:, 1] - o[:, 1]) - (x[:, 1] - o[:, 1]) * (y[:, 0] - o[:, 0]))
-    d1 = orient(a[ii], b[ii], a[jj])
-    d2 = orient(a[ii], b[ii], b[jj])
-    d3 = orient(a[jj], b[jj], a[ii])
-    d4 = orient(a[jj], b[jj], b[ii])
-    hit = (d1 * d2 <= 0) & (d3 * d4 <= 0)
-    col = (d1 == 0) & (d2 == 0)           # collinear edges meet only if their extents overlap
-    lo_i, hi_i = np.minimum(a[ii], b[ii]), np.maximum(a[ii], b[ii])
-    lo_j, hi_j = np.minimum(a[jj], b[jj]), np.maximum(a[jj], b[jj])
-    overlap = ((lo_i <= hi_j) & (lo_j <= hi_i)).all(axis=1)
-    return not (hit & (~col | overlap)).any()
-
-
-def _fan_or_earclip(p: np.ndarray) -> np.ndarray:
-    """Triangles (int64, T×3, counter-clockwise) of a simple counter-clockwise polygon: a fan from
-    vertex 0 when the polygon is convex, else ear clipping."""
-    n = len(p)
-    q, r = np.roll(p, -1, axis=0), np.roll(p, 1, axis=0)
-    turn = (p[:, 0] - r[:, 0]) * (q[:, 1] - p[:, 1]) - (p[:, 1] - r[:, 1]) * (q[:, 0] - p[:, 0])
-    if (turn >= 0).all():
-        return np.stack([np.zeros(n - 2, np.int64), np.arange(1, n - 1), np.arange(2, n)], axis=1)
-    idx = list(range(n))
-    tris = []
-    while len(idx) > 3:
-        m = len(idx)
-        pts = p[idx]
-        for t in range(m):
-            a, b, c = pts[t - 1], pts[t], pts[(t + 1) % m]
-            cross = (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
-            if cross <= 1e-15:
-                continue
-            others = np.delete(pts, [(t - 1) % m, t, (t + 1) % m], axis=0)
-            e = [(b - a, a), (c - b, b), (a - c, c)]
-            inside = np.ones(len(others), bool)
-            for d, o in e:
-                inside &= d[0] * (others[:, 1] - o[1]) - d[1] * (others[:, 0] - o[0]) >= 0
-            if not inside.any():
-                tris.append((idx[t - 1], idx[t], idx[(t + 1) % m]))
-                idx.pop(t)
-                break
-        else:   # no ear: only collinear vertices can block; drop one without a triangle
-            flat = [t for t in range(m) if abs(np.cross(pts[t] - pts[t - 1], pts[(t + 1) % m] - pts[t])) <= 1e-12]
-            if not flat:
-                raise MeshError("extrude outline could not be triangulated")
-            idx.pop(flat[0])
-    tris.append(tuple(idx))
-    return np.asarray(tris, np.int64)
 
 
 def _blob(spec):
@@ -628,131 +498,6 @@ def _room(spec: MeshSpec) -> MeshData:
     return MeshData(vertices=v, faces=f, normals=n, uv=uv)
 
 
-# --------------------------------------------------------------------------------------------
-# geometry helpers
-
-def _clean(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Drop degenerate (zero-area or repeated-index) faces and unreferenced vertices."""
-    if len(f) == 0:
-        return v[:0], f
-    if not np.isfinite(v).all():
-        raise MeshError("mesh has non-finite vertex coordinates")
-    if f.min() < 0 or f.max() >= len(v):
-        raise MeshError("mesh faces index vertices out of range")
-    tri = v[f]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    scale = max(float(np.ptp(v, axis=0).max()), 1e-30)
-    keep = (area2 > 1e-12 * scale * scale) & (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    f = f[keep]
-    used = np.unique(f)
-    remap = np.full(len(v), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return v[used], remap[f]
-
-
-def _merge(v: np.ndarray, f: np.ndarray, decimals: int = 7) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices with equal (rounded) positions; keeps the first of each group's order."""
-    q = np.round(v, decimals)
-    _, first, inv = np.unique(q, axis=0, return_index=True, return_inverse=True)
-    inv = inv.reshape(-1)
-    order = np.argsort(first, kind="stable")       # new ids in order of first appearance
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return v[first[order]], rank[inv][f]
-
-
-def _normalise(v: np.ndarray) -> np.ndarray:
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    half = float((hi - lo).max()) / 2.0
-    if not half > 0:
-        raise MeshError("mesh has zero extent")
-    return (v - (lo + hi) / 2.0) / half
-
-
-def _face_normals(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    tri = v[f]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(n, axis=1)
-    return n / np.maximum(length, 1e-300)[:, None], length / 2.0
-
-
-def _corner_angles(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    tri = v[f]
-    out = np.empty(f.shape)
-    for k in range(3):
-        a = tri[:, (k + 1) % 3] - tri[:, k]
-        b = tri[:, (k + 2) % 3] - tri[:, k]
-        na = np.linalg.norm(a, axis=1)
-        nb = np.linalg.norm(b, axis=1)
-        c = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-300)
-        out[:, k] = np.arccos(np.clip(c, -1.0, 1.0))
-    return out
-
-
-def _smooth_patches(v: np.ndarray, f: np.ndarray, fn: np.ndarray, crease_deg: float) -> np.ndarray:
-    """Label per face: faces joined by edges whose dihedral angle is below ``crease_deg``."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    m = len(f)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    face_of = np.tile(np.arange(m), 3)
-    key = np.sort(e, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    ks, fs = key[order], face_of[order]
-    same = (ks[1:] == ks[:-1]).all(axis=1)         # consecutive equal edges: adjacent faces
-    fa, fb = fs[:-1][same], fs[1:][same]
-    cos = np.einsum("ij,ij->i", fn[fa], fn[fb])
-    smooth = cos >= math.cos(math.radians(crease_deg))
-    g = coo_matrix((np.ones(int(smooth.sum())), (fa[smooth], fb[smooth])), shape=(m, m))
-    _, labels = connected_components(g, directed=False)
-    return labels
-
-
-def _finish(v: np.ndarray, f: np.ndarray, *, crease_deg: float = CREASE_DEG) -> MeshData:
-    """Split vertices along creases and box-projection seams; derive unit normals and UVs."""
-    v, f = _clean(np.asarray(v, np.float64), np.asarray(f, np.int64))
-    if len(f) == 0:
-        raise MeshError("mesh has no triangles left after removing degenerate faces")
-    fn, _ = _face_normals(v, f)
-    patch = _smooth_patches(v, f, fn, crease_deg)
-    # one normal per (vertex, smooth patch): corner-angle-weighted face normals
-    vc = f * (int(patch.max()) + 1) + patch[:, None]
-    vc_keys, vc_inv = np.unique(vc.ravel(), return_inverse=True)
-    w = _corner_angles(v, f).ravel()
-    acc = np.zeros((len(vc_keys), 3))
-    np.add.at(acc, vc_inv, fn.repeat(3, axis=0) * w[:, None])
-    length = np.linalg.norm(acc, axis=1)
-    corner_fn = fn.repeat(3, axis=0)
-    first = np.zeros(len(vc_keys), np.int64)
-    first[vc_inv[::-1]] = np.arange(len(vc_inv))[::-1]   # a corner of each key (for fallbacks)
-    bad = length < 1e-12
-    acc[bad] = corner_fn[first[bad]]
-    vc_normal = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-    # box projection: dominant axis and sign of the face normal (6 groups)
-    axis = np.argmax(np.abs(fn), axis=1)
-    sign = np.take_along_axis(fn, axis[:, None], axis=1)[:, 0] >= 0
-    group = axis * 2 + sign
-    key = vc_inv.reshape(-1, 3) * 6 + group[:, None]
-    keys, inv = np.unique(key.ravel(), return_inverse=True)
-    new_f = inv.reshape(-1, 3)
-    rep = np.zeros(len(keys), np.int64)
-    rep[inv[::-1]] = np.arange(len(inv))[::-1]
-    corner_vertex = f.ravel()[rep]
-    pos = v[corner_vertex]
-    nrm = vc_normal[vc_inv[rep]]
-    g = (keys % 6)
-    ax, sg = g // 2, (g % 2) * 2 - 1
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    centre, half = (lo + hi) / 2.0, max(float((hi - lo).max()) / 2.0, 1e-30)
-    p = (pos - centre) / half                       # [-1, 1] box coordinates
-    b, c = (ax + 1) % 3, (ax + 2) % 3
-    rows = np.arange(len(p))
-    u = 0.5 + 0.5 * sg * p[rows, b]
-    t = 0.5 + 0.5 * p[rows, c]
-    uv = np.stack([u, t], axis=1)
-    return MeshData(vertices=pos, faces=new_f, normals=nrm, uv=uv)
-
-
 def _decimate_vf(v: np.ndarray, f: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray]:
     """Quadric edge collapse to <= budget faces (pymeshlab); falls back to unconstrained topology."""
     pymeshlab = _pymeshlab()
@@ -768,7 +513,7 @@ def _decimate_vf(v: np.ndarray, f: np.ndarray, budget: int) -> tuple[np.ndarray,
             planarquadric=True, autoclean=True)
         m = ms.current_mesh()
         nv, nf = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-        nv, nf = _clean(nv, nf)
+        nv, nf = ops.clean(nv, nf)
         if len(nf) <= budget and len(nf) > 0:
             return nv, nf
         target = max(1, int(target * budget / max(len(nf), 1) * 0.9))
@@ -818,8 +563,8 @@ def _load_user_file(path: str, stamp: tuple[int, int]) -> tuple[np.ndarray, np.n
         raise MeshError(f"model file {path!r} has non-finite vertex coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"model file {path!r} has faces that index missing vertices")
-    v, f = _merge(v, f)
-    v, f = _clean(v, f)
+    v, f = ops.merge(v, f)
+    v, f = ops.clean(v, f)
     if len(f) == 0 or float(np.ptp(v, axis=0).max()) <= 0:
         raise MeshError(f"model file {path!r} has only degenerate triangles")
     v.setflags(write=False)

@@ -298,7 +298,7 @@ def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, 
     """The direct shard reader returns exactly zarr's values for any frame size, tile, crop and codec
     chain (``plain``: LZ4 without a checksum; ``lz4``, ``compact``, ``compact2``, ``compact3``: the schema v2 chains,
     the compact ones with their transposed, bit-rounded inner chunks)."""
-    from stores.reader import _ShardReader
+    from stores.shard_reader import ShardReader
     lay = StoreLayout(num_frames=2, height=h, width=w, spp=s, tile=tile,
                       encoding=None if chain == "plain" else chain).resolved()
     spec = schema.ARRAY_BY_PATH[array]
@@ -310,12 +310,12 @@ def test_fast_shard_reader_matches_numpy_property(tmp_path_factory, h, w, tile, 
                                 dimension_names=spec.dims)
     else:
         arr = root.create_array("a", **schema.create_kwargs(spec, lay))
-    assert _ShardReader.applicable(arr.metadata.to_dict())
+    assert ShardReader.applicable(arr.metadata.to_dict())
     full = np.random.default_rng(h * 100 + w).random(spec.shape(lay), dtype=np.float32)
     full[1, ..., : h // 2, :] = 0                      # some all-fill inner chunks
     arr[...] = full
     full = arr[...]                                    # what zarr decodes (bit-rounded in compact)
-    r = _ShardReader(str(path / "a"), arr.metadata.to_dict(), spec.dims)
+    r = ShardReader(str(path / "a"), arr.metadata.to_dict(), spec.dims)
     y0 = data.draw(st.integers(0, h - 1))
     x0 = data.draw(st.integers(0, w - 1))
     y1 = data.draw(st.integers(y0 + 1, h))
