@@ -111,14 +111,6 @@ def _wait_workers(address: str, n: int) -> None:
         c.wait_for_workers(n, timeout=120)
 
 
-def _quiet(fn, *a, **kw):
-    """``fn`` with its stdout discarded (the dataset command prints its summary)."""
-    import contextlib
-    import io
-    with contextlib.redirect_stdout(io.StringIO()):
-        return fn(*a, **kw)
-
-
 # what a training dataset of each input kind reads of a store (``training.inputs``: the kinds' arrays)
 KIND_ARRAYS = {"samples": ("inputs/radiance", "inputs/features"), "pixels": ("inputs/radiance", "inputs/features"),
                "clips": ("inputs/radiance", "inputs/features"), "sampled-layers": ("layers/radiance",)}
@@ -145,14 +137,14 @@ def _run_with_peaks(cfg, store: str, tmp: Path) -> tuple[dict, dict]:
     """``run_dataset`` of ``cfg`` into ``store`` on a fresh :func:`_cluster` (stopped after), the peak
     memory growth of its scheduler and of this process sampled throughout: (the run's summary,
     ``{"scheduler_kib", "client_kib"}``)."""
-    from pipeline.cli_dataset import run_dataset
+    from pipeline.dataset import run_dataset
     address, procs = _cluster(tmp)
     try:
         _wait_workers(address, 2)
         importlib.import_module("psutil")      # the sampler's, imported before it starts
         peak = _Peak([procs[0].pid, os.getpid()])
         peak.start()
-        s = _quiet(run_dataset, cfg, out=store, scheduler=address, progress=False)
+        s = run_dataset(cfg, out=store, scheduler=address)
         peak.stop.set()
         peak.join()
     finally:
@@ -164,7 +156,7 @@ def _run_with_peaks(cfg, store: str, tmp: Path) -> tuple[dict, dict]:
 def _validate_and_rerun(cfg, store: str) -> dict:
     """Seconds of ``validate_store`` of the complete store (it must pass) and of the same run again on it
     (it must render nothing)."""
-    from pipeline.cli_dataset import run_dataset
+    from pipeline.dataset import run_dataset
     from stores.validate import validate_store
     out = {}
     t0 = time.perf_counter()
@@ -172,7 +164,7 @@ def _validate_and_rerun(cfg, store: str) -> dict:
     out["validate"] = time.perf_counter() - t0
     assert rep.ok, rep.format()[-2000:]
     t0 = time.perf_counter()
-    again = _quiet(run_dataset, cfg, out=store, progress=False)
+    again = run_dataset(cfg, out=store)
     out["rerun"] = time.perf_counter() - t0
     assert again["rendered"] == 0 and again["ok"], again
     return out
@@ -214,7 +206,7 @@ def measure(frames: int, tmp: Path) -> dict:
     """Every stage's cost at ``frames`` frames (the module docstring): ``{stage: value per frame}`` plus
     ``_abs`` (whole-run figures: seconds, sizes)."""
     # imported before the run, so the client's memory growth is the run's own
-    for name in ("xarray", "pipeline.cli_dataset", "stores.export", "stores.reader", "stores.schema", "stores.validate"):
+    for name in ("xarray", "pipeline.dataset", "stores.export", "stores.reader", "stores.schema", "stores.validate"):
         importlib.import_module(name)
     cfg = scale_config(frames)
     store = str(tmp / f"scale-{frames}.zarr")

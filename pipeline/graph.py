@@ -21,9 +21,9 @@ Keys (stage first, because the dashboard's progress pane groups tasks by the key
 share a key. Store writes (schema v3, ``stores.writer``): one task per frame gathers its parts and writes
 the frame's image shards only (``pipeline.tasks.write_frame``) and returns its record; the client commits
 finished frames' records together (``frames/*``, then ``status/error``, then ``status/complete`` last;
-``pipeline.cli_dataset.Committer``), so no task writes a shared metadata chunk. At most one frame's parts
+``pipeline.dataset.Committer``), so no task writes a shared metadata chunk. At most one frame's parts
 wait in memory per write, and write tasks have a higher priority than renders so finished frames leave
-memory first. Validation and the summary run after the writes (``pipeline.cli_dataset``) because frames
+memory first. Validation and the summary run after the writes (``pipeline.dataset``) because frames
 that keep failing are recorded in the store first.
 """
 from __future__ import annotations

@@ -14,7 +14,7 @@ defaults to ``n``. ``camera`` holds ``scene_gen.scene_files.CameraSettings`` (ho
 file's sensor; ``origin``/``target``/``fov`` where the file has no sensor). A path may use ``~`` and
 environment variables and is relative to the current folder. Each file's content hash
 (``scene_gen.scene_files.content_hash``) is part of the dataset's content, so resuming a store whose
-files changed is refused (``pipeline.cli_dataset.check_existing_store``).
+files changed is refused (``pipeline.dataset.check_existing_store``).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Studies that both render and train: the scaling study (what the data buys: quality against the number
 of training frames, their scene variety, and the share of hard-case frames in them).
 
-This package sits above ``pipeline`` (it renders its stores with ``pipeline.cli_dataset.run_dataset`` and
+This package sits above ``pipeline`` (it renders its stores with ``pipeline.dataset.run_dataset`` and
 prices frames with ``pipeline.estimate``) and ``training`` (it trains and evaluates with
 ``training.loop.train`` and ``training.evaluate.evaluate``), calling each through its public functions;
 neither stage imports it (docs/architecture.md, tests/test_architecture.py).

@@ -6,7 +6,7 @@ folder under ``OUT/runs``: ``checkpoint.pt`` and ``metrics.csv`` (``training.loo
 (what training printed) and ``scaling-run.json``: the job (its settings and clips), the held-out store's
 identity and the evaluation (``training.evaluate``: per-frame metrics, means, ``ci95``). A job whose
 ``scaling-run.json`` matches it is finished and skipped; one interrupted mid-way resumes from its
-checkpoint. The stores are ``pipeline dataset`` runs (``pipeline.cli_dataset.run_dataset``), which
+checkpoint. The stores are ``pipeline dataset`` runs (``pipeline.dataset.run_dataset``), which
 resume too.
 """
 from __future__ import annotations
@@ -32,12 +32,12 @@ def ensure_store(dcfg, out: Path, workers: int | None, progress: bool, shared: b
     names one, else ``OUT/stores/<name>.zarr`` (``shared``: where ``python -m pipeline dataset`` puts it,
     ``$DENOISE_DATA/<name>.zarr``, as the hard-case suite whose store ``make hard-cases`` reads).
     DataError when frames failed (a rerun retries them)."""
-    from pipeline.cli_dataset import run_dataset
+    from pipeline.dataset import run_dataset
     from pipeline.errors import PipelineError
     from stores.errors import StoreError
     path = dcfg.store_path(dcfg.out or (None if shared else f"{out / 'stores'}/"))
     try:
-        summary = run_dataset(dcfg, out=path, workers=workers, progress=progress)
+        summary = run_dataset(dcfg, out=path, workers=workers, progress=progress, say=print)
     except (PipelineError, StoreError) as e:
         raise DataError(f"dataset {dcfg.name!r} at {path}: {e}") from e
     if not summary["ok"]:

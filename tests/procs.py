@@ -47,7 +47,7 @@ def python_m(package: str, hook: str = "") -> list[str]:
 
 def pause_at(seam: str, flag: Path, seconds: float = 120.0) -> str:
     """Hook code for :func:`python_m`: the library's no-op seam ``seam`` (``"module:function"``, e.g.
-    ``"pipeline.cli_dataset:_commit_hook"``) replaced by one that, the first time it is reached, writes the
+    ``"pipeline.dataset:_commit_hook"``) replaced by one that, the first time it is reached, writes the
     process id to ``flag`` and sleeps ``seconds`` (a test kills the process there)."""
     module, name = seam.split(":")
     return (f"import importlib, os, time\n"

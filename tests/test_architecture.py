@@ -325,3 +325,10 @@ def test_library_code_reads_no_test_hook_from_the_environment():
                         and re.fullmatch(r"[A-Z0-9_]*TEST[A-Z0-9_]*", node.value):
                     found.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.value}")
     assert not found, "environment variables for tests read in library code:\n" + "\n".join(found)
+
+
+def test_no_module_is_over_700_lines():
+    """Every module of the packages reads as one subject: none is over 700 lines."""
+    long = [f"{p.relative_to(ROOT)} ({n} lines)" for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 700]
+    assert not long, "modules over 700 lines:\n" + "\n".join(long)

@@ -70,7 +70,7 @@ def local_store(tmp_path_factory):
     depend on timing), then the same command again. Returns what the test needs to judge the resume."""
     d = tmp_path_factory.mktemp("local")
     out, flag = d / "smoke.zarr", d / "committed"
-    p = subprocess.Popen(_cli(out, d / "first.json", hook=pause_at("pipeline.cli_dataset:_commit_hook", flag)), env=_env(),
+    p = subprocess.Popen(_cli(out, d / "first.json", hook=pause_at("pipeline.dataset:_commit_hook", flag)), env=_env(),
                          cwd=ROOT, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         t0 = time.monotonic()
@@ -184,7 +184,7 @@ def test_distributed_run_survives_a_killed_worker_and_matches_the_local_store(lo
     # timing: polling the store for a frame raced, 16-px frames can all finish between two looks).
     flag = tmp_path / "committed"
     hook = ("import faulthandler, signal\nfaulthandler.register(signal.SIGUSR1, all_threads=True)\n"
-            + pause_at("pipeline.cli_dataset:_commit_hook", flag, seconds=5))
+            + pause_at("pipeline.dataset:_commit_hook", flag, seconds=5))
     p = subprocess.Popen(_cli(out, tmp_path / "s.json", "--scheduler", address, hook=hook), env=_env(), cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:

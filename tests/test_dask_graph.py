@@ -1,4 +1,4 @@
-"""pipeline.graph + pipeline.cli_dataset on cheap task functions (no rendering): keys, resources,
+"""pipeline.graph + pipeline.dataset on cheap task functions (no rendering): keys, resources,
 retries, failure records, resume. The real chain runs in tests/test_dask_dataset.py.
 
 The stand-in render functions here live in the tests only: they return arrays of the contract's
@@ -189,8 +189,10 @@ def _complete(store) -> np.ndarray:
     return zarr.open_group(store, mode="r")["status/complete"][:]
 
 
-def test_failing_frame_is_recorded_and_the_rest_completes(tmp_path, threaded_cluster):
-    from pipeline.cli_dataset import run_dataset
+def test_failing_frame_is_recorded_and_the_rest_completes(tmp_path, threaded_cluster, capfd):
+    """The library's run (``pipeline.dataset.run_dataset``): a frame that keeps failing is recorded and
+    the rest completes; a re-run redoes only it. The library prints nothing (the command prints)."""
+    from pipeline.dataset import run_dataset
     cfg = tiny_cfg()
     fr = cfg.frames()
     flaky = Flaky(tmp_path / "calls1", always=fr[0].seed, once=fr[1].seed)            # scene 0 always fails; scene 1 once
@@ -222,10 +224,16 @@ def test_failing_frame_is_recorded_and_the_rest_completes(tmp_path, threaded_clu
     s3 = run_dataset(cfg, out=store, scheduler=threaded_cluster.scheduler_address, progress=False,
                      functions=fake_functions(healthy))
     assert s3["rendered"] == 0 and s3["skipped"] == 3 and s3["ok"] and healthy.calls == {fr[0].seed: 1}
+    out = capfd.readouterr()
+    assert out.out == "", out.out
+    lines = []                                      # what it says, it says through say
+    run_dataset(cfg, out=store, scheduler=threaded_cluster.scheduler_address, say=lines.append)
+    assert len(lines) == 2 and lines[0].startswith("dataset ") and lines[0].endswith(f"-> {store}"), lines
+    assert lines[1] == "resume: every frame is complete; nothing to render", lines
 
 
 def test_store_from_another_config_is_refused_before_the_cluster(tmp_path, threaded_cluster):
-    from pipeline.cli_dataset import StoreMismatchError, run_dataset
+    from pipeline.dataset import StoreMismatchError, run_dataset
     cfg = tiny_cfg()
     store = str(tmp_path / "t.zarr")
     run_dataset(cfg, out=store, scheduler=threaded_cluster.scheduler_address, progress=False,

@@ -383,7 +383,7 @@ def test_a_frame_that_cannot_fit_in_memory_is_refused(tmp_path, capsys):
     """Refused before a cluster starts where the run's workers are known (a LocalCluster, batch jobs),
     whatever this machine's memory; a config loads (it may be for a remote cluster)."""
     from pipeline.__main__ import main
-    from pipeline.cli_dataset import check_memory_before_start
+    from pipeline.dataset import check_memory_before_start
     d = _smoke()
     d["resolution"] = 16384
     cfg16k = DatasetConfig.from_dict(d)                         # valid: it may run on a bigger cluster
@@ -426,7 +426,7 @@ def test_splits_are_balanced_and_read_back_by_the_store_rule(path, real_scene_da
 
 
 def test_store_made_before_clip_ids_resumes_with_its_old_split(tmp_path):
-    from pipeline.cli_dataset import check_existing_store
+    from pipeline.dataset import check_existing_store
     cfg = load_config(SMOKE)
     legacy = cfg.with_overrides(clip_ids="scene_seed")
     assert "clip_ids" not in legacy.content_dict() and cfg.content_dict()["clip_ids"] == "balanced"
@@ -440,7 +440,7 @@ def test_store_made_before_clip_ids_resumes_with_its_old_split(tmp_path):
 def test_a_store_with_damaged_array_metadata_is_refused_and_overwrite_replaces_it(tmp_path):
     """Array metadata that disagrees with the schema (e.g. a store written with another codec chain) is
     damage: the run stops naming it, and ``--overwrite`` (which deletes whatever is there) rebuilds."""
-    from pipeline.cli_dataset import check_existing_store
+    from pipeline.dataset import check_existing_store
     from stores.errors import StoreCorruptionError
     cfg = load_config(SMOKE)
     store = tmp_path / "s.zarr"

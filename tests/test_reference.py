@@ -107,7 +107,7 @@ def test_batch_means_renders_as_before(mi):
 
 
 def test_a_store_made_before_reference_existed_resumes_with_batch_means(tmp_path):
-    from pipeline.cli_dataset import check_existing_store
+    from pipeline.dataset import check_existing_store
     from pipeline.config import load_config
     from stores.writer import open_or_create
     from tests.test_pipeline_safety import SMOKE

@@ -549,7 +549,7 @@ def test_a_killed_client_leaves_a_store_that_a_rerun_completes(slurm_config, loc
     a frame instead raced, as 16-px frames can all finish between two looks at the store."""
     config, name = slurm_config
     out, flag = tmp_path / "slurm.zarr", tmp_path / "committed"
-    p = subprocess.Popen(_cli(config, out, hook=pause_at("pipeline.cli_dataset:_commit_hook", flag)), env=_env(),
+    p = subprocess.Popen(_cli(config, out, hook=pause_at("pipeline.dataset:_commit_hook", flag)), env=_env(),
                          cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         t0 = time.monotonic()

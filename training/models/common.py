@@ -22,7 +22,7 @@ from stores.contract import FEATURE_GROUPS, NUM_FEATURES
 from core.checks import need
 from ..errors import ConfigError
 from ..inputs import InputSpec, check_feature_groups, mask_features
-from .robust import bound_outliers, check_outliers
+from .robust import OUTLIER_K, bound_outliers, check_outliers
 
 NEG_SLOPE = 0.01
 EPS = 1e-6            # occupancy / weight-sum epsilon (NVlabs/layerdenoise EPSILON)
@@ -461,3 +461,31 @@ class Denoiser(nn.Module):
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+class KernelBaseline(Denoiser):
+    """What PIXELGATHER and SAMPLESPLAT share (Munkberg & Hasselgren 2020, appendix B): a reducer of
+    :attr:`reducer_inputs` channels (the per-pixel mean and variance of the 20 inputs, or one sample's 20),
+    the fig. 3 U-net on its embedding, and a kernel generator ([embed + context, 128, 128, k*k]) whose last
+    layer starts as a Gaussian of ``kernel_sigma``. The two differ in what they reduce and how the kernels
+    are applied (gathered per pixel, splatted per sample)."""
+    outlier_bound = OUTLIER_K
+    reducer_inputs = IN_FEATURES
+    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,),
+                unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
+
+    def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
+                 kernel_hidden=(128, 128),
+                 unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
+                 unet_decoder=PAPER_UNET["unet_decoder"]):
+        kernel_size = check_kernel_size(kernel_size)
+        kernel_sigma = check_sigma(kernel_sigma)
+        super().__init__(kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
+                         kernel_hidden=tuple(kernel_hidden),
+                         unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
+        self.kernel_size, self.embed = kernel_size, embed
+        self.reducer = mlp(self.reducer_inputs, (embed, embed), embed, last_act=True)
+        self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
+        self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
+        xavier_init(self)
+        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)

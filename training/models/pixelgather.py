@@ -10,33 +10,13 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
-                     clean_radiance, conv_fmas, exp_kernels, gather, gaussian_kernel_bias, mlp,
-                     xavier_init)
+from .common import EPS, IN_FEATURES, KernelBaseline, clean_radiance, conv_fmas, exp_kernels, gather
 from .registry import register
-from .robust import OUTLIER_K
 
 
 @register("pixelgather")
-class PixelGatherDenoiser(Denoiser):
-    outlier_bound = OUTLIER_K
-    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
-
-    def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
-                 kernel_hidden=(128, 128),
-                 unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
-                 unet_decoder=PAPER_UNET["unet_decoder"]):
-        kernel_size = check_kernel_size(kernel_size)
-        kernel_sigma = check_sigma(kernel_sigma)
-        super().__init__(kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
-                         kernel_hidden=tuple(kernel_hidden),
-                         unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
-        self.kernel_size, self.embed = kernel_size, embed
-        self.reducer = mlp(2 * IN_FEATURES, (embed, embed), embed, last_act=True)
-        self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
-        self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
-        xavier_init(self)
-        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)
+class PixelGatherDenoiser(KernelBaseline):
+    reducer_inputs = 2 * IN_FEATURES                    # the per-pixel mean and variance of each input
 
     def pixel_kernels(self, radiance, features):
         """Per-pixel kernels (float32, B k*k H W), exponentiated with the per-pixel max subtracted."""

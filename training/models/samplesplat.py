@@ -12,33 +12,12 @@ from __future__ import annotations
 
 import torch
 
-from .common import (EPS, IN_FEATURES, PAPER_UNET, Denoiser, UNet, check_kernel_size, check_sigma,
-                     clean_radiance, conv_fmas, exp_kernels, gaussian_kernel_bias, mlp,
-                     splat_columns, xavier_init)
+from .common import EPS, KernelBaseline, clean_radiance, conv_fmas, exp_kernels, splat_columns
 from .registry import register
-from .robust import OUTLIER_K
 
 
 @register("samplesplat")
-class SampleSplatDenoiser(Denoiser):
-    outlier_bound = OUTLIER_K
-    tiny = dict(embed=8, context=8, unet_encoder=((8,), (8,), (8,)), unet_bottleneck=(8,), unet_decoder=((8,), (8,), (8,)), kernel_size=5, kernel_hidden=(8,))
-
-    def __init__(self, kernel_size: int = 17, kernel_sigma: float = 2.0, embed: int = 32, context: int = 128,
-                 kernel_hidden=(128, 128),
-                 unet_encoder=PAPER_UNET["unet_encoder"], unet_bottleneck=PAPER_UNET["unet_bottleneck"],
-                 unet_decoder=PAPER_UNET["unet_decoder"]):
-        kernel_size = check_kernel_size(kernel_size)
-        kernel_sigma = check_sigma(kernel_sigma)
-        super().__init__(kernel_size=kernel_size, kernel_sigma=kernel_sigma, embed=embed, context=context,
-                         kernel_hidden=tuple(kernel_hidden),
-                         unet_encoder=unet_encoder, unet_bottleneck=unet_bottleneck, unet_decoder=unet_decoder)
-        self.kernel_size, self.embed = kernel_size, embed
-        self.reducer = mlp(IN_FEATURES, (embed, embed), embed, last_act=True)
-        self.unet = UNet(embed, context, unet_encoder, unet_bottleneck, unet_decoder)
-        self.kernel_gen = mlp(context + embed, kernel_hidden, kernel_size * kernel_size)
-        xavier_init(self)
-        gaussian_kernel_bias(self.kernel_gen[-1], kernel_size, kernel_sigma)
+class SampleSplatDenoiser(KernelBaseline):
 
     def sample_kernels(self, radiance, features):
         """Per-sample kernels (float32, B S k*k H W), max over (S, taps) subtracted before exp."""
