@@ -6,6 +6,7 @@ Tiny scenes and temporary stores are not fixtures here: each module builds its o
 from __future__ import annotations
 
 import os
+import subprocess
 
 import pytest
 
@@ -58,3 +59,17 @@ def _flush_denormals_stays_in_its_test():
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_flush_denormal(False)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MiB tmpfs (root only; skipped otherwise), unmounted afterwards."""
+    d = tmp_path / "disk"
+    d.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(d)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs to fill up (needs root): {r.stderr.strip()}")
+    try:
+        yield d
+    finally:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)

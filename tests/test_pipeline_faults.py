@@ -216,20 +216,6 @@ def test_ctrl_c_pressed_five_times_is_one_line_on_stderr(tmp_path):
 
 
 # ---- 9: a full disk --------------------------------------------------------------------------------
-@pytest.fixture()
-def small_disk(tmp_path):
-    """A 1 MiB tmpfs (root only; skipped otherwise), unmounted afterwards."""
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(d)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs to fill up (needs root): {r.stderr.strip()}")
-    try:
-        yield d
-    finally:
-        subprocess.run(["umount", "-l", str(d)], capture_output=True)
-
-
 def test_a_full_disk_is_one_line_with_its_own_exit_code_and_the_store_resumes(small_disk):
     filler = small_disk / "filler"
     free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
