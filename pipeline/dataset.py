@@ -303,11 +303,34 @@ def _open_writer(cfg: DatasetConfig, store: str, overwrite: bool, say=_silent) -
         if is_disk_full(e):
             raise store_full(store, "creating the store", space_needed(cfg, store, cfg.num_frames)) from None
         raise
+    marked = record_intended_nonfinite(store)
+    if marked:
+        say(f"resume: {len(marked)} frame(s) of hard cases that make NaN on purpose recorded as such "
+            "(frames/nonfinite_expected, newer than this store)")
     todo = set(writer.incomplete_frames())
     frames = [f for f in cfg.frames() if f.index in todo]
     if cfg.num_frames - len(frames):
         say(f"resume: {cfg.num_frames - len(frames)} frame(s) already complete, {len(frames)} to render")
     return writer, frames
+
+
+def record_intended_nonfinite(store: str) -> list[int]:
+    """Record, in a store made before ``frames/nonfinite_expected`` existed (it reads False there), the
+    frames whose hard case makes NaN/Inf samples on purpose (``scene_gen.cases.Case.nonfinite``, by their
+    ``frames/case``): otherwise the fitness check (``stores.fitness``) flags the NaN the renderer replaced
+    in them. The frames marked (none for a store that records it already). Under the run's lock."""
+    from scene_gen.cases import nonfinite_expected
+    from stores import schema
+    root, _ = schema.open_group(store, mode="r+")
+    version = schema.version_of(root)
+    cases = root[schema.meta_path("case", version)][:]
+    flags = root[schema.meta_path("nonfinite_expected", version)]
+    have = np.asarray(flags[:], bool)
+    want = np.array([nonfinite_expected(str(c)) for c in cases], bool)
+    marked = [int(i) for i in np.nonzero(want & ~have)[0]]
+    if marked:
+        flags[:] = have | want
+    return marked
 
 
 def _timings(timings: dict, results: list, render_s: float) -> dict:

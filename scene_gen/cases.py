@@ -1,7 +1,9 @@
-"""Hard cases: named, deterministic changes to a generated scene that break naive code (numpy only).
+"""Hard cases: named, deterministic changes to a generated scene that break naive code.
 
 A case is a documented function ``apply(spec, res) -> SceneSpec`` registered under its name, plus
-the ``SceneGenConfig`` settings it needs (``scene_gen``: applied before the scene is sampled). The
+the ``SceneGenConfig`` settings it needs (``scene_gen``: applied before the scene is sampled), what it
+does to the loaded Mitsuba scene where it does more than edit the spec (``loaded``), and whether
+non-finite samples are its purpose (``nonfinite``) (:class:`Case`). The
 random scene of a seed is made first (``scene_gen.sampling.sample_scene`` with those settings), then
 the case edits it in a fixed way that uses the camera only (no random draw), so a case never depends on
 luck of the seed. ``SceneSpec.case`` records the names (``frames/case`` in the store)::
@@ -36,7 +38,8 @@ The cases (``configs/hard-cases.yaml`` renders one frame or clip of each; docs/h
 - ``zero-albedo``: every second non-emitting object (in spec order, the backdrop or room first) is a
   black diffuse surface (albedo exactly 0).
 - ``nan``: a small emitter (``NAN_EMITTER``) in view whose radiance the renderer sets to NaN once the
-  scene is loaded (:func:`scene_hook`): NaN comes out of Mitsuba in every stream.
+  scene is loaded (its ``loaded`` edit, through :func:`scene_hook`): NaN comes out of Mitsuba in every
+  stream, and its frames record that this is their purpose (``nonfinite``).
 - ``flat``: one uniform grey wall facing the camera fills the view (content objects removed but one
   sphere): large flat regions, empty bilateral-grid cells.
 - ``thin``: an emissive bar one pixel wide across the whole image (radiance 20), on the centre of a
@@ -65,23 +68,31 @@ SEP = ","                # SceneSpec.case joins case names with it
 
 @dataclass(frozen=True)
 class Case:
+    """A registered hard case: ``apply(spec, res)`` edits the SceneSpec; ``loaded(scene)``, when given, edits
+    the ``mi.Scene`` once it is loaded (before anything renders); ``nonfinite``: non-finite samples are the
+    case's purpose, so the frames it makes record it (``frames/nonfinite_expected``) and the fitness check
+    takes their NaN/Inf the renderer replaced as intended (``stores.fitness``)."""
     name: str
     apply: Callable
     scene_gen: dict = field(default_factory=dict)
     kind: str | None = None      # the scene kind the case needs (None: any)
     doc: str = ""
+    loaded: Callable | None = None
+    nonfinite: bool = False
 
 
 CASES: dict[str, Case] = {}
 QUIET = {"p_defocus": 0.0, "p_motion": 0.0}     # what every case turns off unless it asks for it
 
 
-def register_case(name: str, *, scene_gen: dict | None = None, kind: str | None = None):
-    """Decorator: register ``apply(spec, res) -> SceneSpec`` as hard case ``name``."""
+def register_case(name: str, *, scene_gen: dict | None = None, kind: str | None = None,
+                  loaded: Callable | None = None, nonfinite: bool = False):
+    """Decorator: register ``apply(spec, res) -> SceneSpec`` as hard case ``name`` (:class:`Case`)."""
     def deco(fn):
         if name in CASES and CASES[name].apply is not fn:
             raise ConfigError(f"hard case {name!r} is already registered")
-        CASES[name] = Case(name, fn, {**QUIET, **(scene_gen or {})}, kind, (fn.__doc__ or "").strip())
+        CASES[name] = Case(name, fn, {**QUIET, **(scene_gen or {})}, kind, (fn.__doc__ or "").strip(), loaded,
+                           bool(nonfinite))
         return fn
     return deco
 
@@ -147,21 +158,22 @@ def spec_cases(spec: SceneSpec | str) -> tuple[str, ...]:
 
 
 def scene_hook(spec: SceneSpec) -> Callable | None:
-    """What the renderer must do to the loaded ``mi.Scene`` of ``spec`` (``pipeline.render.FrameScene``
-    calls it before anything renders), or None: the ``nan`` case sets its emitter's radiance to NaN."""
-    if "nan" not in spec_cases(spec):
+    """What the renderer must do to the loaded ``mi.Scene`` of ``spec`` (``scene_gen.to_mitsuba.load_frame``
+    calls it before anything renders): the ``loaded`` edits of its cases, in order, or None."""
+    edits = [CASES[n].loaded for n in spec_cases(spec) if n in CASES and CASES[n].loaded is not None]
+    if not edits:
         return None
 
-    def poison(scene):
-        mi = mitsuba()
-        p = mi.traverse(scene)
-        keys = [k for k in p.keys() if k.startswith(NAN_EMITTER) and k.endswith("radiance.value")]
-        if not keys:
-            raise ConfigError(f"hard case 'nan': the scene has no emitter {NAN_EMITTER!r} to poison")
-        for k in keys:
-            p[k] = mi.Color3f(float("nan"), 1.0, 1.0) if "Color" in type(p[k]).__name__ else float("nan")
-        p.update()
-    return poison
+    def edit(scene):
+        for fn in edits:
+            fn(scene)
+    return edit
+
+
+def nonfinite_expected(case: str) -> bool:
+    """Whether non-finite samples are the purpose of one of the hard cases ``case`` names (a
+    ``SceneSpec.case`` or ``frames/case`` string; ``Case.nonfinite``)."""
+    return any(CASES[n].nonfinite for n in str(case or "").split(SEP) if n in CASES)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -357,7 +369,19 @@ def zero_albedo(spec: SceneSpec, res: int) -> SceneSpec:
     return dataclasses.replace(spec, objects=tuple(out))
 
 
-@register_case("nan")
+def _poison(scene) -> None:
+    """The ``nan`` case's edit of the loaded scene: its emitter's radiance becomes NaN."""
+    mi = mitsuba()
+    p = mi.traverse(scene)
+    keys = [k for k in p.keys() if k.startswith(NAN_EMITTER) and k.endswith("radiance.value")]
+    if not keys:
+        raise ConfigError(f"hard case 'nan': the scene has no emitter {NAN_EMITTER!r} to poison")
+    for k in keys:
+        p[k] = mi.Color3f(float("nan"), 1.0, 1.0) if "Color" in type(p[k]).__name__ else float("nan")
+    p.update()
+
+
+@register_case("nan", loaded=_poison, nonfinite=True)
 def nan(spec: SceneSpec, res: int) -> SceneSpec:
     """A small emitter in view (2 px radius) whose radiance becomes NaN when the renderer loads the scene."""
     v = view_of(spec, res)

@@ -20,6 +20,10 @@ from scene_gen.errors import ConfigError
 from scene_gen.families import Setting, family_settings
 
 
+PROBABILITY = {"probability": True}     # a field checked as a probability (a number in [0, 1])
+NEWER = {"newer": True}                 # a field added after stores were made without it (SharedSettings.to_dict)
+
+
 def _int_in(name: str, v, lo: int, hi: int) -> None:
     need_int(f"scene_gen.{name}", v, lo, hi, ConfigError)
 
@@ -67,29 +71,30 @@ class SharedSettings:
     These are the settings every scene family shares; :class:`SceneGenConfig` adds the families' own.
     """
     _families: ClassVar[dict] = {}        # the families' settings (name -> Setting) of SceneGenConfig
-    p_defocus: float = 0.5
-    p_motion: float = 0.5
-    p_object_motion: float = 0.5          # in a scene with motion, the share of objects that move
+    p_defocus: float = field(default=0.5, metadata=PROBABILITY)
+    p_motion: float = field(default=0.5, metadata=PROBABILITY)
+    p_object_motion: float = field(default=0.5, metadata=PROBABILITY)   # share of objects that move
     fov_range: tuple = (15.0, 65.0)       # degrees, within (0, 180)
     aperture_range: tuple = (0.001, 0.02)  # lens radius / focus distance, log-uniform
     speed_range: tuple = (0.1, 1.5)       # object speed in object radii per frame
-    p_floating: float = 0.1               # share of objects that float above the ground
+    p_floating: float = field(default=0.1, metadata=PROBABILITY)        # share floating above the ground
     model_folder: str | None = None       # user OBJ/PLY/GLB models (optional)
-    p_user_model: float = 0.5             # share of meshes taken from model_folder when it is set
+    p_user_model: float = field(default=0.5, metadata=PROBABILITY)      # share of meshes from model_folder
     max_triangles: int = 20000            # per-object triangle budget ceiling
     min_triangles: int = 64               # per-object triangle budget floor
     tris_per_px: float = 1.0              # triangles per pixel of the projected bounding disc (meshes.triangle_budget)
     max_depth: int = 5                    # path bounces
-    shutter: float = 0.5                  # exposure as a fraction of the frame interval
-    material_palette: int = 0             # > 0: content objects draw from this many materials per scene
-    pymeshlab: bool = True                # false: no blob or boolean meshes, no decimation (see above)
-    p_caustics: float = 0.0               # a glass sphere under a small bright emitter (scene_gen.phenomena)
+    shutter: float = field(default=0.5, metadata=PROBABILITY)   # exposure, a fraction of the frame interval
+    material_palette: int = field(default=0, metadata=NEWER)   # > 0: content objects draw from K materials
+    pymeshlab: bool = field(default=True, metadata=NEWER)      # false: no blob or boolean meshes (above)
+    p_caustics: float = field(default=0.0, metadata={**PROBABILITY, **NEWER})   # scene_gen.phenomena
 
     def __post_init__(self):
         for n, s in self._families.items():
             _check_setting(n, s, getattr(self, n))
-        for n in ("p_defocus", "p_motion", "p_object_motion", "p_floating", "p_user_model", "shutter", "p_caustics"):
-            _prob(n, getattr(self, n))
+        for f in fields(SharedSettings):
+            if f.metadata.get("probability"):
+                _prob(f.name, getattr(self, f.name))
         object.__setattr__(self, "fov_range", _range("fov_range", self.fov_range, 0.0, 180.0,
                                                      open_lo=True, open_hi=True))
         object.__setattr__(self, "aperture_range", _range("aperture_range", self.aperture_range, 0.0, 1.0,
@@ -114,19 +119,17 @@ class SharedSettings:
             object.__setattr__(self, "model_folder", str(p))
 
     def to_dict(self) -> dict:
-        """Plain data; ``material_palette``, ``pymeshlab`` and the phenomena's rates (``p_caustics``,
-        ``p_sun_in_view``, ``p_lamps``) only when not their defaults, so stores made before they existed still
-        resume."""
+        """Plain data; a setting added after stores were made without it (``NEWER``, a family's
+        ``Setting.newer``: the palette, pymeshlab, the phenomena's rates) only when not its default, so those
+        stores still resume."""
         d = asdict(self)
         for k, v in d.items():
             if isinstance(v, tuple):
                 d[k] = list(v)
-        if d["material_palette"] == 0:
-            del d["material_palette"]
-        if d["pymeshlab"]:
-            del d["pymeshlab"]
-        for k in ("p_caustics", "p_sun_in_view", "p_lamps"):
-            if d.get(k, None) == 0:
+        newer = {f.name: f.default for f in fields(SharedSettings) if f.metadata.get("newer")}
+        newer.update({n: s.default for n, s in self._families.items() if s.newer})
+        for k, default in newer.items():
+            if d.get(k) == default:
                 del d[k]
         return d
 

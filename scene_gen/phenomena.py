@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -37,14 +39,35 @@ from scene_gen.families import get_family
 from scene_gen.spec import MeshSpec, SceneSpec, Transform
 
 PHENOMENA = 0xF4E7          # the phenomena's stream: SeedSequence([seed, family.seed_index, PHENOMENA])
-SETTINGS = ("p_sun_in_view", "p_lamps", "p_caustics")
-SHARED = ("p_caustics",)    # every family's; the others are settings of one family (scene_gen.families)
 MIN_SUN_ELEVATION = math.radians(2.0)
+
+
+@dataclass(frozen=True)
+class Phenomenon:
+    """A registered phenomenon: ``add(spec, rng, res) -> SceneSpec`` applied to the share ``setting`` of the
+    scenes (a ``SceneGenConfig`` field: every family's when ``shared``, else the setting of the families
+    that declare it, ``scene_gen.families``)."""
+    setting: str
+    add: Callable
+    shared: bool = False
+    doc: str = ""
+
+
+PHENOMENA_BY_SETTING: dict[str, Phenomenon] = {}      # in registration order: the order of the draws
+
+
+def register_phenomenon(setting: str, *, shared: bool = False):
+    """Decorator: register ``add(spec, rng, res)`` as the phenomenon of ``setting`` (:class:`Phenomenon`).
+    A new one draws after those before it, so the scenes of the others stay as they were."""
+    def deco(fn):
+        PHENOMENA_BY_SETTING[setting] = Phenomenon(setting, fn, shared, (fn.__doc__ or "").strip())
+        return fn
+    return deco
 
 
 def wanted(cfg) -> bool:
     """Whether ``cfg`` asks for any phenomenon (otherwise nothing is drawn)."""
-    return any(getattr(cfg, n, 0.0) > 0 for n in SETTINGS)
+    return any(getattr(cfg, n, 0.0) > 0 for n in PHENOMENA_BY_SETTING)
 
 
 def add_phenomena(spec: SceneSpec, cfg, seed_index: int, res: int) -> SceneSpec:
@@ -53,17 +76,16 @@ def add_phenomena(spec: SceneSpec, cfg, seed_index: int, res: int) -> SceneSpec:
         return spec
     own = get_family(spec.kind).settings
     rng = np.random.default_rng(np.random.SeedSequence([int(spec.seed), int(seed_index), PHENOMENA]))
-    # one draw each, every scene; a family's own setting (p_sun_in_view: outdoor, p_lamps: indoor) only there
-    draws = {n: rng.uniform() < getattr(cfg, n, 0.0) and (n in own or n in SHARED) for n in SETTINGS}
-    if draws["p_sun_in_view"]:
-        spec = sun_in_view(spec, rng, res)
-    if draws["p_lamps"]:
-        spec = lamps(spec, rng, res)
-    if draws["p_caustics"]:
-        spec = caustic(spec, rng, res)
+    # one draw each, every scene, in registration order; a family's own setting only in that family
+    draws = {n: rng.uniform() < getattr(cfg, n, 0.0) and (n in own or p.shared)
+             for n, p in PHENOMENA_BY_SETTING.items()}
+    for n, p in PHENOMENA_BY_SETTING.items():
+        if draws[n]:
+            spec = p.add(spec, rng, res)
     return spec
 
 
+@register_phenomenon("p_sun_in_view")
 def sun_in_view(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneSpec:
     """A sunsky's sun moved to a random point of the upper image (nothing without a sunsky). A cyclorama is
     laid flat, and a camera whose frame shows no sky (an outdoor camera mostly looks down at its objects) is
@@ -120,6 +142,7 @@ def pitched(spec: SceneSpec, angle: float) -> SceneSpec:
     return dataclasses.replace(spec, cameras=tuple(out))
 
 
+@register_phenomenon("p_lamps")
 def lamps(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneSpec:
     """One to three small, very bright spheres in view."""
     v = view_of(spec, res)
@@ -131,6 +154,7 @@ def lamps(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneSpec:
     return dataclasses.replace(spec, objects=spec.objects + tuple(objs))
 
 
+@register_phenomenon("p_caustics", shared=True)
 def caustic(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneSpec:
     """A glass sphere in view under a small bright emitter."""
     v = view_of(spec, res)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from scene_gen import meshes, projection
-from scene_gen.cases import scene_hook
+from scene_gen.cases import nonfinite_expected, scene_hook
 from scene_gen.errors import SpecError
 from scene_gen.probes import make_probe
 from scene_gen.spec import CameraSpec, LightSpec, MaterialSpec, ObjectSpec, SceneSpec, Transform
@@ -343,6 +343,7 @@ class LoadedScene:
     prev_camera: CameraSpec
     integrator: dict
     moving: tuple[ObjectSpec, ...] = ()
+    nonfinite_expected: bool = False       # NaN/Inf samples are its hard case's purpose (Case.nonfinite)
     _params: Any = None
     _base: dict = field(default_factory=dict)
     _normals: dict = field(default_factory=dict)
@@ -441,7 +442,7 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge
     """Frame ``frame`` of a generated ``spec`` loaded into Mitsuba at film ``res`` (W, H) with the pixel
     filter ``rfilter``: what a renderer needs (:class:`LoadedScene`; ``scene_gen.sources.load_frame`` is the
     one call for every kind of scene). ``merge``: see :func:`scene_dict`. A hard case that edits the loaded
-    scene (``scene_gen.cases.scene_hook``: the ``nan`` case) is applied, then ``on_loaded(scene)`` (tests
+    scene (its ``loaded`` edit, ``scene_gen.cases.scene_hook``) is applied, then ``on_loaded(scene)`` (tests
     inject values with it), before anything renders."""
     res = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
     scene = load(spec, frame, res, merge=merge, rfilter=rfilter)
@@ -455,4 +456,5 @@ def load_frame(spec: SceneSpec, frame: int, res: tuple[int, int] | int, *, merge
                        case=spec.case, kind=spec.kind, shutter=float(spec.shutter), res=res, camera=cam,
                        prev_camera=spec.camera(frame - 1) if frame > 0 else cam,
                        integrator=integrator_dict(spec),
-                       moving=tuple(o for o in spec.objects if o.moving))._moving_objects()
+                       moving=tuple(o for o in spec.objects if o.moving),
+                       nonfinite_expected=nonfinite_expected(spec.case))._moving_objects()

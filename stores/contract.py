@@ -60,4 +60,5 @@ FRAME_META = {
     "case": str,                # hard cases of the scene (scene_gen.cases), comma-separated; '' for ordinary frames
     "ref_time_slices": int,     # distinct shutter times of the reference (1: static; 0: not recorded, older stores)
     "kind": str,                # the scene family (scene_gen.families: 'indoor', 'outdoor', ...); '' in older stores
+    "nonfinite_expected": bool,  # NaN/Inf samples are the purpose of the frame's hard case (scene_gen.cases.Case)
 }

@@ -36,7 +36,6 @@ from stores.errors import UnfitFrameError
 
 TOL = 2e-3                 # float16 features: rel. precision ~5e-4
 RELMSE_EPS = 0.01          # as training.metrics.relmse
-EXPECTED_NAN_CASE = "nan"  # the hard case whose renderer NaNs are deliberate (scene_gen.cases)
 FRAME_KEYS = ("radiance", "features", "layers", "reference", "reference_stderr", "guides_albedo",
               "guides_normal", "guides_depth", "guides_motion", "camera_to_world", "world_to_clip")
 _RENDERER = (("nonfinite_inputs", "input samples"), ("nonfinite_layers", "sample layers"),
@@ -156,12 +155,12 @@ def reference_limits(ref: np.ndarray, stderr: np.ndarray) -> tuple[float, float]
 
 def renderer_findings(meta: dict) -> tuple[list[str], list[str]]:
     """``(problems, notes)`` from a frame's ``frames/nonfinite_*`` counts (``meta``: ``frames_meta``): NaN/Inf
-    the renderer replaced are a problem, or a note for a frame of the ``nan`` hard case."""
+    the renderer replaced are a problem, or a note for a frame whose hard case makes them on purpose
+    (``frames/nonfinite_expected``, which the renderer records from the case's declaration)."""
     found = [f"{int(meta[k])} NaN/Inf values in its {what} (replaced by the renderer, frames/{k})"
              for k, what in _RENDERER if int(meta.get(k, 0) or 0)]
-    expected = EXPECTED_NAN_CASE in str(meta.get("case", "") or "").split(",")
-    if expected:
-        return [], [f + f", as its hard case {EXPECTED_NAN_CASE!r} intends" for f in found]
+    if bool(meta.get("nonfinite_expected", False)):
+        return [], [f + f", as its hard case {str(meta.get('case', ''))!r} intends" for f in found]
     return found, []
 
 

@@ -253,6 +253,7 @@ SMOKE_PINS = {
     'frames/has_defocus': '4afc7d9851818033',
     'frames/kind': '0afbfb19eaed686e',
     'frames/has_motion': '27ecd0a598e76f8a',
+    'frames/nonfinite_expected': 'df3f619804a92fdb',     # added (issue 56): four False, no hard case here
     'frames/nonfinite_inputs': '66687aadf862bd77',
     'frames/nonfinite_layers': '66687aadf862bd77',
     'frames/nonfinite_reference': '66687aadf862bd77',

@@ -57,14 +57,15 @@ def fake_inputs(spec_json, frame, render):
             "guides_depth": feats[..., 3:4].mean(axis=2), "guides_motion": np.zeros((H, W, 2), np.float32),
             "camera_to_world": np.eye(4), "world_to_clip": np.eye(4), "nonfinite_inputs": 0,
             "has_motion": False, "has_defocus": False, "seconds": 0.01,
-            **{k: v for k, v in zip(("scene_seed", "num_frames", "case", "kind"), _scene_facts(spec_json))}}
+            **dict(zip(("scene_seed", "num_frames", "case", "kind", "nonfinite_expected"), _scene_facts(spec_json)))}
 
 
 def _scene_facts(spec_json):
     """What the renderer's inputs part records of its loaded scene (``pipeline.render.inputs_part``)."""
+    from scene_gen.cases import nonfinite_expected
     from scene_gen.spec import SceneSpec
     spec = SceneSpec.from_json(spec_json)
-    return int(spec.seed), spec.num_frames, spec.case, spec.kind
+    return int(spec.seed), spec.num_frames, spec.case, spec.kind, nonfinite_expected(spec.case)
 
 
 def fake_layers(spec_json, frame, render):

@@ -151,6 +151,7 @@ def test_nan_from_the_renderer_is_counted_and_replaced():
     m = out["meta"]
     assert m["case"] == "nan" == spec.case
     assert m["nonfinite_inputs"] > 0 and m["nonfinite_layers"] > 0 and m["nonfinite_reference"] > 0
+    assert m["nonfinite_expected"] is True              # the case declares it (Case.nonfinite)
     for k in ("radiance", "features", "layers", "reference", "reference_stderr", "guides_albedo", "guides_normal",
               "guides_depth", "guides_motion"):
         assert np.isfinite(out[k]).all(), k
@@ -191,6 +192,47 @@ def case_store(tmp_path_factory):
     for i, fr in enumerate(frames):
         w.write_frame(i, fr)
     return str(path)
+
+
+def test_a_case_declares_its_loaded_scene_edit_and_whether_nan_is_its_purpose():
+    """Cases are a registry: what a case does to the loaded scene and whether non-finite samples are its
+    purpose are declared with it, and nothing outside its own file names a case (the ``nan`` one)."""
+    import ast
+    from pathlib import Path
+
+    from scene_gen.cases import CASES, nonfinite_expected
+    assert [n for n, c in CASES.items() if c.loaded is not None] == ["nan"]
+    assert [n for n, c in CASES.items() if c.nonfinite] == ["nan"]
+    assert nonfinite_expected("black,nan") and not nonfinite_expected("black") and not nonfinite_expected("")
+    root = Path(__file__).resolve().parent.parent
+    named = []
+    for pkg in ("core", "scene_gen", "stores", "pipeline", "training", "studies"):
+        for p in (root / pkg).rglob("*.py"):
+            if p == root / "scene_gen" / "cases.py":
+                continue
+            tree = ast.parse(p.read_text())
+            number = {id(c.args[0]) for c in ast.walk(tree) if isinstance(c, ast.Call) and c.args
+                      and getattr(c.func, "id", "") == "float"}             # float("nan"): a number, not the case
+            named += [f"{p.relative_to(root)}:{n.lineno}" for n in ast.walk(tree)
+                      if isinstance(n, ast.Constant) and n.value == "nan" and id(n) not in number]
+    assert not named, f"the nan case named outside scene_gen/cases.py: {named}"
+
+
+def test_a_store_made_before_frames_nonfinite_expected_gets_it_on_resume(case_store, tmp_path):
+    """An older store (no frames/nonfinite_expected) reads it as False, so its nan-case frame is flagged;
+    the dataset run's resume adds the column and records the frames whose case makes NaN on purpose."""
+    import shutil
+
+    from pipeline.dataset import record_intended_nonfinite
+    from stores.reader import frame_problems, open_store
+    from stores.writer import open_or_create
+    old = tmp_path / "old.zarr"
+    shutil.copytree(case_store, old)
+    shutil.rmtree(old / "frames" / "nonfinite_expected")
+    assert any("NaN/Inf values" in p for p in frame_problems(str(old), 2))          # frame 2: the nan case
+    open_or_create(str(old), open_store(str(old)).layout, {"test": True})          # a resume adds the column
+    assert record_intended_nonfinite(str(old)) == [2] and record_intended_nonfinite(str(old)) == []
+    assert frame_problems(str(old), 2) == [] and frame_problems(case_store, 2) == []
 
 
 def test_frames_case_written_and_read_back(case_store, tmp_path):

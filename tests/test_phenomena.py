@@ -95,3 +95,23 @@ def test_a_render_shows_the_sun():
     y, x = np.unravel_index(np.argmax(lum), lum.shape)
     assert abs(x + 0.5 - col) <= 1.5 and abs(y + 0.5 - row) <= 1.5, ((x, y), (col, row))
     assert lum.max() > 100 * np.median(lum)
+
+
+def test_phenomena_are_a_registry_whose_settings_are_declared_once():
+    """Like families and cases: each phenomenon registers its setting (drawn in registration order), a
+    shared one is a field every family has, a family's own is declared by that family alone, and the
+    config names none of them but where it declares the field."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    from scene_gen.config import SceneGenConfig, SharedSettings
+    from scene_gen.families import FAMILIES
+    from scene_gen.phenomena import PHENOMENA_BY_SETTING
+    assert list(PHENOMENA_BY_SETTING) == ["p_sun_in_view", "p_lamps", "p_caustics"]
+    shared = {f.name for f in fields(SharedSettings)}
+    for name, p in PHENOMENA_BY_SETTING.items():
+        owners = [f for f, fam in FAMILIES.items() if name in fam.settings]
+        assert (name in shared) == p.shared and (owners == [] if p.shared else len(owners) == 1), name
+        assert getattr(SceneGenConfig(), name) == 0.0 and name not in SceneGenConfig().to_dict()
+    config = (Path(__file__).resolve().parent.parent / "scene_gen" / "config.py").read_text()
+    assert {n: config.count(n) for n in PHENOMENA_BY_SETTING} == {"p_sun_in_view": 0, "p_lamps": 0, "p_caustics": 1}

@@ -40,8 +40,8 @@ def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     """Per-sample inputs of a frame: ``radiance`` (float32, HWS3), ``features`` (float32, HWS17),
     guides (float32, HWC: per-pixel sample means of albedo, normal, depth, motion), ``camera_to_world``
     and ``world_to_clip`` (float64, 4x4), plus ``nonfinite_inputs``, ``has_motion``, ``has_defocus``,
-    the scene's ``scene_seed``, ``num_frames``, ``case`` and ``kind`` (what :func:`assemble` records of it) and
-    ``seconds``."""
+    the scene's ``scene_seed``, ``num_frames``, ``case``, ``kind`` and ``nonfinite_expected`` (what
+    :func:`assemble` records of it) and ``seconds``."""
     t0 = _time.perf_counter()
     out = input_samples(fs, sample_hook)
     bad = out.pop("nonfinite")
@@ -50,6 +50,7 @@ def inputs_part(fs: FrameScene, sample_hook: Callable | None = None) -> dict:
     fs.set_time(0.0)
     out.update(nonfinite_inputs=int(bad), has_motion=bool(fs.has_motion), has_defocus=bool(fs.has_defocus),
                scene_seed=int(fs.seed), num_frames=int(fs.num_frames), case=str(fs.case), kind=str(fs.kind),
+               nonfinite_expected=bool(fs.nonfinite_expected),
                seconds=_time.perf_counter() - t0)
     return out
 
@@ -95,6 +96,7 @@ def assemble(spec_json: str, frame: int, inputs: dict, layers: dict, reference: 
         "case": str(inputs["case"]),    # frames/case: the hard cases of the scene (scene_gen.cases), '' for none
         "ref_time_slices": int(reference["ref_time_slices"]),   # distinct shutter times of the reference
         "kind": str(inputs["kind"]),    # frames/kind: the scene family, so that no reader parses the JSON
+        "nonfinite_expected": bool(inputs["nonfinite_expected"]),   # its hard case makes NaN on purpose
     }
     if set(out) - {"meta"} != set(FRAME_ARRAYS) or set(out["meta"]) != set(FRAME_META):
         raise RenderError("stores.contract.FRAME_ARRAYS/FRAME_META changed: update pipeline.render.assemble")

@@ -111,7 +111,7 @@ def moment_integrator(mi, nested):
                 return c, valid, [c.x * c.x, c.y * c.y, c.z * c.z, dr.select(nan, 1.0, 0.0)]
 
             def aov_names(self):
-                return ["m2.R", "m2.G", "m2.B", "nan"]
+                return ["m2.R", "m2.G", "m2.B", "nonfinite"]
 
             def to_string(self):
                 return f"RGBMoments[{self.inner}]"

@@ -49,6 +49,7 @@ class FrameScene:
         self.loaded = ld = load_frame(spec, frame, cfg.res, rfilter=cfg.filter, merge=merge, on_loaded=on_scene_loaded)
         self.scene, self.cam, self.prev_cam = ld.scene, ld.camera, ld.prev_camera
         self.seed, self.num_frames, self.case, self.kind = ld.seed, ld.num_frames, ld.case, ld.kind
+        self.nonfinite_expected = bool(ld.nonfinite_expected)
         self.merged = bool(merge)
         self.sensor = self.scene.sensors()[0]
         self.integrator = self.scene.integrator()

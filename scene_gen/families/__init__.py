@@ -39,12 +39,15 @@ SETTING_KINDS = ("int", "probability")
 @dataclass(frozen=True)
 class Setting:
     """A family's own setting, a field of ``SceneGenConfig``: its default and allowed values, ``kind``
-    ``int`` (an integer in ``[lo, hi]``) or ``probability`` (a number in [0, 1])."""
+    ``int`` (an integer in ``[lo, hi]``) or ``probability`` (a number in [0, 1]). ``newer``: a setting added
+    after stores were made without it, recorded in a store's config only when not its default (so those
+    stores still resume)."""
     default: int | float
     kind: str = "int"
     lo: int | None = None
     hi: int | None = None
     doc: str = ""
+    newer: bool = False
 
     def __post_init__(self):
         if self.kind not in SETTING_KINDS:

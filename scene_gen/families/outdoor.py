@@ -30,7 +30,8 @@ OUTDOOR_SUN = 3.0  # probe sun irradiance: a 0.5-albedo ground in full sun ~0.5 
 
 SETTINGS = {"outdoor_objects": Setting(75, "int", 0, 10000, "meshes placed on the backdrop"),
             "p_sunsky": Setting(0.5, "probability", doc="Mitsuba sunsky, else a procedural HDR probe"),
-            "p_sun_in_view": Setting(0.0, "probability", doc="a sunsky's sun moved into view (scene_gen.phenomena)")}
+            "p_sun_in_view": Setting(0.0, "probability", doc="a sunsky's sun moved into view (scene_gen.phenomena)",
+                                     newer=True)}
 
 
 def _f(x) -> float:
