@@ -92,14 +92,6 @@ def project_pixels(world_to_clip_m: np.ndarray, pts: np.ndarray, res: tuple[int,
     return np.stack([(nx + 1.0) * 0.5 * W, (1.0 - ny) * 0.5 * H], axis=-1)
 
 
-def camera_depth(cam: CameraSpec, pts: np.ndarray) -> np.ndarray:
-    """Camera-space z (float64, N) of world points: distance along the view axis."""
-    c2w = camera_to_world(cam)
-    p = np.asarray(pts, np.float64)
-    o, f = c2w[:3, 3], c2w[:3, 2]
-    return (p[..., 0] - o[0]) * f[0] + (p[..., 1] - o[1]) * f[1] + (p[..., 2] - o[2]) * f[2]
-
-
 def coc_pixels(cam: CameraSpec, z: np.ndarray, width: int) -> np.ndarray:
     """Signed circle-of-confusion radius in pixels (float64) for camera depths ``z`` (> 0, may be inf).
 

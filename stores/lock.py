@@ -390,13 +390,3 @@ class StoreLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
-
-
-def read_lock(store) -> dict | None:
-    """The lock record in ``store`` (None if there is none or it is unreadable)."""
-    try:
-        with open(os.path.join(os.fspath(store), LOCK_NAME)) as f:
-            d = json.load(f)
-        return d if isinstance(d, dict) else None
-    except (OSError, ValueError):
-        return None

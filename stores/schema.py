@@ -646,10 +646,6 @@ def add_absent_arrays(root, layout: StoreLayout) -> list[str]:
     return made
 
 
-def layout_of(root) -> StoreLayout:
-    return StoreLayout.of_store(dict(root.attrs)["layout"])
-
-
 __all__ = ["SCHEMA_VERSION", "READABLE_VERSIONS", "STORE_KIND", "arrays", "meta_path", "version_of",
            "array_problems", "create_kwargs", "consolidate", "TABLES", "StoreLayout", "ArraySpec", "ARRAYS",
            "ARRAY_BY_PATH", "ARRAY_BY_SOURCE", "GROUPS", "open_group", "grow", "FLOAT16_MAX"]

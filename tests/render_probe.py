@@ -48,3 +48,12 @@ def expected_shapes(cfg) -> dict[str, tuple[tuple[int, ...], str]]:
     """``FRAME_ARRAYS`` with H, W, S, L filled in for a ``RenderConfig``."""
     dims = {"H": cfg.height, "W": cfg.width, "S": cfg.spp, "L": cfg.layer_levels}
     return {k: (tuple(dims.get(d, d) for d in shape), dtype) for k, (shape, dtype) in FRAME_ARRAYS.items()}
+
+
+def camera_depth(cam, pts: np.ndarray) -> np.ndarray:
+    """Camera-space z (float64, N) of world points: distance along the view axis."""
+    from scene_gen.projection import camera_to_world
+    c2w = camera_to_world(cam)
+    p = np.asarray(pts, np.float64)
+    o, f = c2w[:3, 3], c2w[:3, 2]
+    return (p[..., 0] - o[0]) * f[0] + (p[..., 1] - o[1]) * f[1] + (p[..., 2] - o[2]) * f[2]

@@ -131,7 +131,7 @@ def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
     from pipeline.config import load_config
     from pipeline.render import render_frame
     from scene_gen.spec import SceneSpec
-    from stores.schema import ARRAY_BY_SOURCE, layout_of
+    from stores.schema import ARRAY_BY_SOURCE, StoreLayout
     from test_stores_synthetic import stored
     from stores.reader import open_store
     g = zarr.open_group(str(local_store["out"]), mode="r")
@@ -141,7 +141,7 @@ def test_split_tasks_store_exactly_what_the_unsplit_renderer_makes(local_store):
     assert spec.to_json() == __import__("pipeline.tasks", fromlist=["x"]).make_spec(
         cfg.frames()[3].seed, "outdoor", 2, cfg.resolution, cfg.scene_gen)      # the spec is reproducible
     want = render_frame(spec, 1, cfg.render_config())
-    layout = layout_of(g)
+    layout = StoreLayout.of_store(dict(g.attrs)["layout"])
     for source, aspec in ARRAY_BY_SOURCE.items():
         got = g[aspec.path][3]
         # the renderer's arrays as this store's encoding keeps them (compact: 9-bit mantissas; references exact)

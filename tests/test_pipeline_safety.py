@@ -26,7 +26,8 @@ from pipeline.config import DatasetConfig, load_config
 from pipeline.errors import ConfigError
 from stores import create, schema
 from stores.errors import ForeignStoreError, IncompleteStoreError, StoreExistsError, StoreLockedError
-from stores.lock import StoreLock, read_lock
+from stores.lock import StoreLock
+from stores.schema import LOCK_NAME
 from stores.schema import StoreLayout
 from stores.writer import open_or_create
 
@@ -39,6 +40,17 @@ CONFIGS = sorted(p for p in (ROOT / "configs").glob("*.yaml") if not p.name.star
 PY = sys.executable
 CREATION = "stores.create:_creation_hook"    # the seam inside store creation where a test pauses a run
 TINY = StoreLayout(num_frames=2, height=8, width=8, spp=2, layer_spp=(1, 2), tile=8)
+
+
+
+def read_lock(store) -> dict | None:
+    """The lock record in ``store`` (None if there is none or it is unreadable)."""
+    try:
+        with open(os.path.join(os.fspath(store), LOCK_NAME)) as f:
+            d = json.load(f)
+        return d if isinstance(d, dict) else None
+    except (OSError, ValueError):
+        return None
 
 
 def _env(**extra) -> dict:

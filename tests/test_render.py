@@ -15,7 +15,7 @@ import pytest
 from scene_gen.spec import (CameraSpec, LightSpec, MaterialSpec, MeshSpec, ObjectSpec, SceneSpec, TextureSpec,
                             Transform)
 from stores.contract import FEATURE_GROUPS, FRAME_META
-from tests.render_probe import expected_shapes, shape_index, trace
+from tests.render_probe import camera_depth, expected_shapes, shape_index, trace
 
 G = FEATURE_GROUPS
 RES = (24, 16)
@@ -404,7 +404,7 @@ def _features_oracle(fs, tr: dict, t: float) -> np.ndarray:
     lim = MOTION_LIMIT * max(W, H)
     f[:, G["motion"]] = np.clip(np.where(np.isfinite(mv), mv, 0.0), -lim, lim)
     if fs.has_defocus:
-        z = np.where(hit, C.camera_depth(fs.cam, tr["p"]), np.inf)
+        z = np.where(hit, camera_depth(fs.cam, tr["p"]), np.inf)
         f[:, G["coc"]] = C.coc_pixels(fs.cam, z, W)[:, None]
         f[:, G["lens"]] = tr["lens"]
     f[:, G["time"]] = t if fs.has_motion else 0.0
