@@ -44,13 +44,28 @@ def stopping() -> None:
 @contextlib.contextmanager
 def held_back():
     """SIGINT blocked in this thread meanwhile: processes (and threads) started here begin with it blocked.
-    A press meanwhile still stops this process: at once when another thread takes it, else when the block
-    ends. Multiprocessing's resource tracker is started first: starting it unblocks SIGINT in the calling
-    thread (``resource_tracker.ensure_running``), and a pool's first lock starts it before the workers."""
+    A press meanwhile takes effect when the block ends, not in the middle: a KeyboardInterrupt raised
+    while a pool's worker was being spawned left that worker waiting on its parent's pipe, and it printed
+    an ``EOFError`` traceback after the command's one line. (Blocking alone does not defer it: another
+    thread takes the signal, and Python runs the handler in this one at once.) Multiprocessing's resource
+    tracker is started first: starting it unblocks SIGINT in the calling thread
+    (``resource_tracker.ensure_running``), and a pool's first lock starts it before the workers."""
     from multiprocessing import resource_tracker
     resource_tracker.ensure_running()
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.getsignal(signal.SIGINT) if main else None
+    defer = main and before not in (signal.SIG_IGN, signal.SIG_DFL, None)
+    pressed = []
+    if defer:
+        signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)     # a press still pending arrives here
+        if defer:
+            signal.signal(signal.SIGINT, before)
+    if pressed:
+        if before is _first_press:
+            stopping()
+        raise KeyboardInterrupt

@@ -185,7 +185,8 @@ def test_mark_damaged_lets_a_resume_rerender_corrupt_frames(store, capsys):
 
 
 def test_mark_damaged_refuses_while_a_dataset_run_holds_the_store(store, capsys):
-    from stores.lock import StoreLock, read_lock
+    from stores.lock import StoreLock
+    from test_pipeline_safety import read_lock
     f = _shard(store, "layers/radiance", 1)
     data = bytearray(open(f, "rb").read())
     data[30] ^= 0x80
