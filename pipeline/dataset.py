@@ -322,9 +322,8 @@ def record_intended_nonfinite(store: str) -> list[int]:
     from scene_gen.cases import nonfinite_expected
     from stores import schema
     root, _ = schema.open_group(store, mode="r+")
-    version = schema.version_of(root)
-    cases = root[schema.meta_path("case", version)][:]
-    flags = root[schema.meta_path("nonfinite_expected", version)]
+    cases = root[schema.meta_path("case")][:]
+    flags = root[schema.meta_path("nonfinite_expected")]
     have = np.asarray(flags[:], bool)
     want = np.array([nonfinite_expected(str(c)) for c in cases], bool)
     marked = [int(i) for i in np.nonzero(want & ~have)[0]]
@@ -497,9 +496,8 @@ class Committer:
         self.commits = 0
 
     def add(self, result: dict) -> None:
-        if result.get("record") is not None:
-            self.records[int(result["index"])] = result["record"]
-            self.done_at[int(result["index"])] = float(result.get("done_at") or time.time())
+        self.records[int(result["index"])] = result["record"]
+        self.done_at[int(result["index"])] = float(result.get("done_at") or time.time())
 
     def fail(self, index: int, text: str) -> None:
         self.failures[int(index)] = text

@@ -263,13 +263,11 @@ def store_writer(store: str, generation: str = ""):
 def scene_spec(store: str, first: int, seed: int, kind: str, num_frames: int, res: tuple[int, int],
                scene_gen: dict, case: str = "", *, generation: str = "", make=None) -> str:
     """:func:`make_spec` (or ``make``, the same signature), and the SceneSpec JSON stored once for the
-    scene's clip, at its first frame ``first`` (schema v3; ``frames/scene_json``), before any of its
+    scene's clip, at its first frame ``first`` (``frames/scene_json``), before any of its
     frames is written: every frame task depends on this one. The same bytes on every run, so a resume
     rewriting it changes nothing."""
     spec_json = (make or make_spec)(seed, kind, num_frames, res, scene_gen, *((case,) if case else ()))
-    w = store_writer(store, generation)
-    if w.version >= 3:
-        w.write_scene_json(int(first), spec_json)
+    store_writer(store, generation).write_scene_json(int(first), spec_json)
     return spec_json
 
 
@@ -281,7 +279,7 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
     summary (index, frame, scene seed, render and write seconds, reference spp and relative standard
     error, non-finite counts, ``checked``: the frame's value problems, ``stores.fitness.check_values``
     of what was written) with the frame's ``record``, which the client commits (``StoreWriter.commit``:
-    metadata, then ``status/complete``). In a schema v2 store the task commits the frame itself."""
+    metadata, then ``status/complete``)."""
     from stores.fitness import check_values
     load_s = sum(float(p.get("load_seconds", 0.0)) for p in parts)
     parts = tuple({k: v for k, v in p.items() if k != "load_seconds"} for p in parts)
@@ -303,4 +301,4 @@ def write_frame(store: str, index: int, spec_json: str, frame: int, *parts: dict
             "render_seconds": float(meta["render_seconds"]), "write_seconds": write_s, "load_seconds": load_s,
             "reference_spp": int(meta["reference_spp"]), "reference_rel_stderr": float(meta["reference_rel_stderr"]),
             "nonfinite": int(meta["nonfinite_inputs"] + meta["nonfinite_layers"] + meta["nonfinite_reference"]),
-            "checked": problems, "record": record if w.version >= 3 else None, "done_at": time.time()}
+            "checked": problems, "record": record, "done_at": time.time()}

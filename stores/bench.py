@@ -9,9 +9,8 @@
   ``fraction_of_ceiling`` = mb_per_s / ceiling_mb_per_s (target >= 0.5).
 * ``stored_over_raw``: bytes of the image arrays' files / their float32 bytes.
 * ``codecs``: the candidate encodings on the same frames (ratio, decode ms a frame).
-* ``checksums``: the cost of schema v2's crc32c on every chunk: the same frames written to a v1
-  (no checksums) and a v2 store, interleaved: write ms a frame, crop and whole-frame read ms (fast
-  path, which verifies every inner chunk's crc32c in v2), zarr-python crop reads, stored bytes.
+* ``crc_ms_per_frame``: the crc32c arithmetic alone over one frame's image shards (every chunk carries
+  one; stores/SCHEMA.md has what the checksums cost when schema v2 brought them).
 
 Data: ``store=PATH`` benchmarks an existing store; by default a temporary store of synthetic frames
 (``tests/test_stores_synthetic.py``: HDR with fireflies, constant regions) is written first, in the
@@ -34,10 +33,10 @@ import time
 
 import numpy as np
 
-from stores import chunk_files, create, schema
+from stores import chunk_files, schema
 from stores.reader import open_store
 from stores.schema import ARRAYS, StoreLayout
-from stores.writer import StoreWriter, open_or_create
+from stores.writer import open_or_create
 
 
 def _synthetic():
@@ -144,53 +143,6 @@ def compare_codecs(frames: list[dict]) -> list[dict]:
     return [_codec_row(case, rad_l[case[4]], feat_l[case[4]], raw) for case in _codec_cases()]
 
 
-def _write_interleaved(writers: dict, frame_list: list[dict], repeats: int) -> dict:
-    """Seconds of every ``write_frame`` of ``frame_list``, ``repeats`` times, by schema version, the
-    versions' writes of a frame back to back."""
-    write = {1: [], 2: []}
-    for _ in range(repeats):
-        for i, fr in enumerate(frame_list):
-            for v, w in writers.items():
-                t = time.perf_counter()
-                w.write_frame(i, fr)
-                write[v].append(time.perf_counter() - t)
-    return write
-
-
-def _checksum_read_ways(paths: dict, images: list[str], crop: int) -> dict:
-    """The reads :func:`compare_checksums` times, by name, each ``fn(i, y, x)``: crops through the fast
-    path and through zarr-python, and whole frames (every image array), of the v1 and the v2 store."""
-    stores = {v: open_store(p) for v, p in paths.items()}
-    zstores = {v: open_store(p, fast=False) for v, p in paths.items()}
-
-    def crop_read(st, i, y, x):
-        st.read_array("inputs/radiance", i, (y, x, crop, crop))
-        st.read_array("inputs/features", i, (y, x, crop, crop))
-
-    def frame_read(st, i):
-        for a in images:
-            st.read_array(a, i)
-
-    ways = {f"crop_v{v}": (lambda v: lambda i, y, x: crop_read(stores[v], i, y, x))(v) for v in (1, 2)}
-    ways.update({f"zarr_crop_v{v}": (lambda v: lambda i, y, x: crop_read(zstores[v], i, y, x))(v) for v in (1, 2)})
-    ways.update({f"frame_v{v}": (lambda v: lambda i, y, x: frame_read(stores[v], i))(v) for v in (1, 2)})
-    return ways
-
-
-def _alternating_median_ms(ways: dict, picks: list, repeats: int) -> dict:
-    """Median ms of each of ``ways`` over ``picks`` ``repeats`` times, after one warm-up call each; all
-    ways back to back a pick, alternating which goes first."""
-    times = {k: [] for k in ways}
-    for fn in ways.values():
-        fn(*picks[0])
-    for n, pick in enumerate(picks * repeats):         # v1 and v2 back to back, alternating which goes first
-        for k in (list(ways) if n % 2 == 0 else list(ways)[::-1]):
-            t = time.perf_counter()
-            ways[k](*pick)
-            times[k].append(time.perf_counter() - t)
-    return {k: 1e3 * float(np.median(v)) for k, v in times.items()}
-
-
 def _crc_seconds(path: str, images: list[str]) -> tuple[float, int]:
     """The checksum arithmetic alone: seconds of CRC-32C over every byte of frame 0's image shards in
     the store at ``path`` (mean of 5), and those bytes."""
@@ -202,35 +154,6 @@ def _crc_seconds(path: str, images: list[str]) -> tuple[float, int]:
         for b in blobs:
             crc32c(b)
     return (time.perf_counter() - t) / 5, sum(len(b) for b in blobs)
-
-
-def compare_checksums(frame_list: list[dict], layout: StoreLayout, tmp: str, crops: int, crop: int,
-                      repeats: int = 3) -> dict:
-    """Write ``frame_list`` to a schema v1 and a v2 store (interleaved, ``repeats`` times, medians),
-    then time the same random crops and whole frames from both (interleaved, medians)."""
-    paths = {v: os.path.join(tmp, f"ck-v{v}.zarr") for v in (1, 2)}
-    for v, p in paths.items():
-        create.create_store(p, layout, {"bench": True}, schema_version=v)
-    write = _write_interleaved({v: StoreWriter(p) for v, p in paths.items()}, frame_list, repeats)
-    images = [s.path for s in ARRAYS if s.image]
-    crop = min(crop, layout.height, layout.width)
-    ways = _checksum_read_ways(paths, images, crop)
-    rng = np.random.default_rng(1)
-    picks = [(int(rng.integers(len(frame_list))), int(rng.integers(0, layout.height - crop + 1)),
-              int(rng.integers(0, layout.width - crop + 1))) for _ in range(crops)]
-    med = _alternating_median_ms(ways, picks, repeats)
-    crc_s, nbytes = _crc_seconds(paths[2], images)
-    out = {f"write_ms_v{v}": 1e3 * float(np.median(write[v])) for v in (1, 2)}
-    out.update({f"{k}_ms": v for k, v in med.items()})
-    for v, p in paths.items():
-        out[f"bytes_v{v}"] = sum(_dir_bytes(os.path.join(p, *a.split("/"))) for a in images)
-    for k in ("write", "crop", "zarr_crop", "frame"):
-        a, b = out[f"{k}_ms_v1" if k == "write" else f"{k}_v1_ms"], out[f"{k}_ms_v2" if k == "write" else f"{k}_v2_ms"]
-        out[f"{k}_overhead"] = b / a - 1.0
-    out["bytes_overhead"] = out["bytes_v2"] / out["bytes_v1"] - 1.0
-    out.update({"crc_ms_per_frame": 1e3 * crc_s, "crc_gb_per_s": nbytes / crc_s / 1e9, "frame_shard_bytes": nbytes})
-    out.update({"frames": len(frame_list), "crop": crop, "crops": crops})
-    return out
 
 
 def _write_synthetic(store: str, *, frames: int, size: int, spp: int, encoding: str | None) -> tuple[list, float]:
@@ -349,7 +272,9 @@ def run(store=None, *, crops: int = 40, crop: int = 128, spp: int = 8, frames: i
         if compare and frame_list:
             out["codecs"] = compare_codecs(frame_list)
         if checksums and frame_list:
-            out["checksums"] = compare_checksums(frame_list, lay, tmp, crops, crop)
+            crc_s, nbytes = _crc_seconds(store, [sp.path for sp in ARRAYS if sp.image])
+            out["checksums"] = {"crc_ms_per_frame": 1e3 * crc_s, "crc_gb_per_s": nbytes / crc_s / 1e9,
+                                "frame_shard_bytes": nbytes}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if verbose:
@@ -375,19 +300,7 @@ def format_report(r: dict) -> str:
         lines.append(f"  write {r['write_s_per_frame'] * 1e3:.0f} ms per frame")
     ck = r.get("checksums")
     if ck:
-        lines.append(f"  checksums (schema v2 crc32c on every chunk vs v1 none), {ck['frames']} frames, medians:")
-        lines.append(f"    write        v1 {ck['write_ms_v1']:8.1f} ms/frame  v2 {ck['write_ms_v2']:8.1f}  "
-                     f"({100 * ck['write_overhead']:+.1f}%)")
-        lines.append(f"    crop read    v1 {ck['crop_v1_ms']:8.2f} ms  v2 {ck['crop_v2_ms']:8.2f}  "
-                     f"({100 * ck['crop_overhead']:+.1f}%)  ({ck['crop']}x{ck['crop']}, radiance + features, "
-                     f"fast path)")
-        lines.append(f"    crop read    v1 {ck['zarr_crop_v1_ms']:8.2f} ms  v2 {ck['zarr_crop_v2_ms']:8.2f}  "
-                     f"({100 * ck['zarr_crop_overhead']:+.1f}%)  (zarr-python)")
-        lines.append(f"    frame read   v1 {ck['frame_v1_ms']:8.2f} ms  v2 {ck['frame_v2_ms']:8.2f}  "
-                     f"({100 * ck['frame_overhead']:+.1f}%)  (every image array, fast path)")
-        lines.append(f"    stored bytes v1 {ck['bytes_v1']:9d}  v2 {ck['bytes_v2']:9d}  "
-                     f"({100 * ck['bytes_overhead']:+.2f}%)")
-        lines.append(f"    CRC-32C alone over one frame's {ck['frame_shard_bytes'] / 1e6:.1f} MB of image shards: "
+        lines.append(f"  CRC-32C alone over one frame's {ck['frame_shard_bytes'] / 1e6:.1f} MB of image shards: "
                      f"{ck['crc_ms_per_frame']:.2f} ms ({ck['crc_gb_per_s']:.1f} GB/s)")
     for row in r.get("codecs", []):
         lines.append(f"    {row['encoding']:80s} ratio {row['ratio']:.3f}  decode {row['decode_ms_per_frame']:6.1f} ms/frame"

@@ -1,16 +1,15 @@
 """Where the frames' chunk files are: the key and file of a frame's chunk or shard of a per-frame array,
-and which of them are missing (a complete frame of schema v2 or later has every one; a missing file is
-damage). One listing a prefix on an object store, one directory listing a 1-D array on disk."""
+and which of them are missing (a complete frame has every one; a missing file is damage). One listing a prefix on an object store, one directory listing a 1-D array on disk."""
 from __future__ import annotations
 
 import os
 
-from stores.schema import ArraySpec, absent_arrays, arrays, version_of
+from stores.schema import ARRAYS, ArraySpec, absent_arrays
 
 
 def chunk_key(spec: ArraySpec, frame: int) -> str:
     """The key (path below the array) of the chunk or shard holding frame ``frame`` of a per-frame array
-    (v3 metadata: chunk ``frame // META_CHUNK``)."""
+    (metadata: chunk ``frame // META_CHUNK``)."""
     return "/".join(["c", str(int(frame) // spec.frame_chunk)] + ["0"] * (len(spec.dims) - 1))
 
 
@@ -52,18 +51,14 @@ def chunk_keys(root, spec: ArraySpec) -> set[str] | None:
     return {k[cut:] for k in out}
 
 
-def missing_chunks(root, frames, version: int | None = None, *, paths=None) -> dict[int, list[tuple[str, str]]]:
+def missing_chunks(root, frames, *, paths=None) -> dict[int, list[tuple[str, str]]]:
     """frame -> ``[(array, file), ...]`` of the per-frame arrays (all, or those in ``paths``) whose chunk
-    or shard file for that frame does not exist. Meaningful for frames marked complete of schema v2
-    stores (every chunk is written, even all-zero ones), and for a frame's ``status/*`` chunks, which
-    its first write step makes; v1 writers skipped all-zero chunks, so v1 returns ``{}``. On a local
-    store a one-dimensional array's chunks are one directory listing."""
-    version = version_of(root) if version is None else version
-    if version < 2:
-        return {}
-    absent = absent_arrays(root, version)
-    specs = [s for s in arrays(version) if s.per_frame and (paths is None or s.path in paths)
-             and s.path not in absent and not s.clip_first]       # v3 scene JSON: at clip starts only
+    or shard file for that frame does not exist. Meaningful for frames marked complete (every chunk is
+    written, even all-zero ones), and for a frame's ``status/*`` chunks, which its commit makes. On a
+    local store a one-dimensional array's chunks are one directory listing."""
+    absent = absent_arrays(root)
+    specs = [s for s in ARRAYS if s.per_frame and (paths is None or s.path in paths)
+             and s.path not in absent and not s.clip_first]       # the scene JSON: at clip starts only
     frames = [int(i) for i in frames]
     out: dict[int, list[tuple[str, str]]] = {}
     from zarr.storage import LocalStore

@@ -15,7 +15,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--frames", type=int, default=4, help="frames per store for --reencode")
     ap.add_argument("--encoding", default=None, choices=list(ENCODINGS),
                     help=f"encoding of the synthetic store (default: that of new stores, {DEFAULT_ENCODING})")
-    ap.add_argument("--quick", action="store_true", help="crop reads and sizes only (no codec table, no v1/v2 checksums)")
+    ap.add_argument("--quick", action="store_true", help="crop reads and sizes only (no codec table, no checksum timing)")
 
 
 def run(args) -> int:

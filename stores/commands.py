@@ -1,4 +1,4 @@
-"""The commands of ``python -m stores``: validate, export, bench (``python -m pipeline validate|export``
+"""The commands of ``python -m stores``: validate, export, bench, upgrade (``python -m pipeline validate|export``
 run the same functions; its export adds the formats of packages above, such as ``noisebase``), and the
 set-up and error translation every command that reads or writes stores shares (:mod:`core.cli`)."""
 from __future__ import annotations
@@ -9,6 +9,7 @@ COMMANDS = {
     "validate": ("stores.validate", "check a store: schema, completeness, NaN/Inf, value ranges"),
     "export": ("stores.export", "export frames of a store to EXR, OIDN, layerdenoise or an installed format"),
     "bench": ("stores.cli_bench", "crop-read benchmark of a store or synthetic frames (figures printed)"),
+    "upgrade": ("stores.upgrade.migrate", "turn a store of an older schema version into the current one (in place, resumable)"),
 }
 
 

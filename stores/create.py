@@ -10,14 +10,12 @@ import os
 import re
 import subprocess
 
-import numpy as np
-
 from stores import codecs
-from stores.contract import FEATURE_NAMES, NUM_FEATURES
+from stores.contract import FEATURE_NAMES
 from stores.errors import ForeignStoreError, StoreExistsError, StoreLayoutError
 from stores.procinfo import holder_record
-from stores.schema import (CREATION_ATTR, GROUPS, LOCK_NAME, SCHEMA_VERSION, STORE_KIND, ArraySpec, StoreLayout,
-                           _is_local, _zarr_store, arrays, consolidate, coord_values, create_kwargs, store_exists)
+from stores.schema import (ARRAYS, CREATION_ATTR, GROUPS, LOCK_NAME, SCHEMA_VERSION, STORE_KIND, StoreLayout,
+                           _is_local, _zarr_store, consolidate, coord_values, create_kwargs, store_exists)
 
 
 def package_versions() -> dict:
@@ -145,8 +143,7 @@ def _creation_hook() -> None:
     stop a process there and kill it."""
 
 
-def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False,
-                 schema_version: int = SCHEMA_VERSION):
+def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False):
     """Create the group, every array (empty, ``status/complete`` all False) and the root attributes
     (schema version, layout, the full generation ``config``, package versions, git hash).
     Returns the ``zarr.Group``.
@@ -164,14 +161,12 @@ def create_store(path_or_url, layout: StoreLayout, config: dict | None = None, *
     except TypeError as e:
         raise StoreLayoutError(f"config must be JSON-serialisable: {e}") from e
     _make_room(p, overwrite)
-    root = _create_root(p, schema_version)
-    table = arrays(schema_version)            # the version's array table (v1 only for tests and benches)
-    _create_arrays(root, table, layout, schema_version)
-    _describe_lossy_codecs(root, table, layout)
+    root = _create_root(p)
+    _create_arrays(root, layout)
+    _describe_lossy_codecs(root, layout)
     # last: the complete root attributes, without the "creating" mark (one atomic zarr.json write)
-    root.attrs.put(_root_attrs(layout, config, schema_version))
-    if schema_version >= 2:
-        consolidate(p)
+    root.attrs.put(_root_attrs(layout, config))
+    consolidate(p)
     return root
 
 
@@ -194,7 +189,7 @@ def _make_room(p, overwrite: bool) -> None:
                                 "(--overwrite) to delete its contents")
 
 
-def _create_root(p, schema_version: int):
+def _create_root(p):
     """The root group with the ``creating`` mark (:func:`holder_record`), refusing one that appeared meanwhile."""
     import zarr
     if _is_local(p):
@@ -207,35 +202,28 @@ def _create_root(p, schema_version: int):
     # overwrite=False is the same "never replace a node" guarantee on the root.
     try:
         return zarr.create_group(target, overwrite=False, attributes={
-            "kind": STORE_KIND, "schema_version": schema_version, CREATION_ATTR: holder_record()})
+            "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, CREATION_ATTR: holder_record()})
     except (zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError, FileExistsError) as e:
         raise StoreExistsError(f"a store appeared at {p!s} while it was being created: {e}") from e
 
 
-def _create_arrays(root, table: tuple[ArraySpec, ...], layout: StoreLayout, schema_version: int) -> None:
-    """The groups and every array of ``table``, empty except the coordinates (their values written)."""
+def _create_arrays(root, layout: StoreLayout) -> None:
+    """The groups and every array of the schema, empty except the coordinates (their values written)."""
     for g in GROUPS:
         root.require_group(g)
-    for n, spec in enumerate(table):
-        arr = root.create_array(spec.path, **create_kwargs(spec, layout, schema_version))
+    for n, spec in enumerate(ARRAYS):
+        arr = root.create_array(spec.path, **create_kwargs(spec, layout))
         if spec.coord:
             arr.with_config({"write_empty_chunks": True})[:] = coord_values(spec, layout)
-        if n == len(table) // 2:
+        if n == len(ARRAYS) // 2:
             _creation_hook()
-    if schema_version < 2:                   # v1 made its two coordinates outside its table
-        feat = root.create_array("inputs/feature", shape=(NUM_FEATURES,), dtype=str, chunks=(NUM_FEATURES,),
-                                 dimension_names=("feature",))
-        feat[:] = np.array(FEATURE_NAMES)
-        spp = root.create_array("layers/spp", shape=(layout.num_layers,), dtype="int32",
-                                chunks=(layout.num_layers,), dimension_names=("level",))
-        spp[:] = np.array(layout.layer_spp, np.int32)
 
 
-def _describe_lossy_codecs(root, table: tuple[ArraySpec, ...], layout: StoreLayout) -> None:
+def _describe_lossy_codecs(root, layout: StoreLayout) -> None:
     """Array attributes saying what the lossy codecs cost (xarray shows them): the radiance encoding,
     ``max_rel_error`` of bit-rounded arrays (per feature where each has its own bits), log16's decoding."""
     root["inputs/radiance"].attrs["encoding"] = layout.radiance_encoding
-    for spec in table:
+    for spec in ARRAYS:
         ch = spec.chain(layout) if spec.image else None
         if ch is None or ch.keepbits is None:
             continue
@@ -250,11 +238,11 @@ def _describe_lossy_codecs(root, table: tuple[ArraySpec, ...], layout: StoreLayo
             "decode": "0 -> 0; c >= 1 -> 2 ** (min_exp2 + (c - 1) * (max_exp2 - min_exp2) / 65534)"}
 
 
-def _root_attrs(layout: StoreLayout, config: dict | None, schema_version: int) -> dict:
+def _root_attrs(layout: StoreLayout, config: dict | None) -> dict:
     """The finished store's root attributes: what it is, its layout, where it came from."""
     import uuid
     return {
-        "kind": STORE_KIND, "schema_version": schema_version, "layout": layout.to_dict(),
+        "kind": STORE_KIND, "schema_version": SCHEMA_VERSION, "layout": layout.to_dict(),
         "config": config or {}, "config_history": [], "feature_names": list(FEATURE_NAMES),
         "package_versions": package_versions(), "git_hash": git_hash(),
         "store_id": uuid.uuid4().hex,      # this store, not another made at the same path (writers' caches)

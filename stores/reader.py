@@ -69,9 +69,8 @@ class Store:
         self._local = None
         # check=False: the caller has compared the arrays' metadata with the schema already (validate)
         self.root, self.layout = schema.open_group(path, mode="r", check=check)
-        self.version = schema.version_of(self.root)
-        self._specs = {s.path: s for s in schema.arrays(self.version)}
-        self._absent = schema.absent_arrays(self.root, self.version)   # frames/* newer than the store
+        self._specs = dict(schema.ARRAY_BY_PATH)
+        self._absent = schema.absent_arrays(self.root)   # frames/* newer than the store
         self._num_frames = None
         self._init_local()
 
@@ -149,9 +148,9 @@ class Store:
 
     def _require_chunks(self, paths, frames) -> None:
         """Raise MissingShardError (array, frame, file) for the first chunk or shard file of the arrays
-        ``paths`` that is missing for one of ``frames`` (frames marked complete: schema v2 writes every
-        chunk, so a missing one is lost data, not zeros). Nothing to check in v1."""
-        if self.version < 2 or not len(frames):
+        ``paths`` that is missing for one of ``frames`` (frames marked complete: every chunk is written,
+        so a missing one is lost data, not zeros)."""
+        if not len(frames):
             return
         if self._local is None and len(paths) == 1 and len(frames) == 1:      # a store at a URL: one listing
             spec, i = self._specs[paths[0]], int(frames[0])                  # an array, not a request a read
@@ -162,23 +161,22 @@ class Store:
             have = self._listed[spec.path] = chunk_files.chunk_keys(self.root, spec)   # new since? list again
             if have is not None and key in have:
                 return
-        lost = chunk_files.missing_chunks(self.root, frames, self.version, paths=paths)
+        lost = chunk_files.missing_chunks(self.root, frames, paths=paths)
         if lost:
             raise _missing_error(lost)
 
     def _meta_columns(self) -> list[tuple[str, str]]:
-        """``(table key, array path)`` of the columns of the metadata table (v3: with the camera matrices,
-        whose chunks hold many frames, and without the scene JSON, kept once a clip: :meth:`scene_json`)."""
-        keys = [k for k in FRAME_META if not (self.version >= 3 and k == "scene_json")] + ["clip_id"]
-        cols = [(key, schema.meta_path(key, self.version)) for key in keys]
-        if self.version >= 3:
-            cols += [(key, ARRAY_BY_SOURCE[key].path) for key in ("camera_to_world", "world_to_clip")]
+        """``(table key, array path)`` of the columns of the metadata table: with the camera matrices, whose
+        chunks hold many frames, and without the scene JSON, kept once a clip (:meth:`scene_json`)."""
+        keys = [k for k in FRAME_META if k != "scene_json"] + ["clip_id"]
+        cols = [(key, schema.meta_path(key)) for key in keys]
+        cols += [(key, ARRAY_BY_SOURCE[key].path) for key in ("camera_to_world", "world_to_clip")]
         return cols + [("complete", "status/complete"), ("error", "status/error")]
 
     def _meta(self) -> tuple[dict, dict[int, list[StoreCorruptionError]]]:
         """The per-frame metadata table and the damage found building it, frame -> errors: a chunk that
         does not decode (it reads as the fill value here; a damaged completion flag reads False) and,
-        in v2, a missing chunk file of a frame marked complete. Read once, then cached."""
+        a missing chunk file of a frame marked complete. Read once, then cached."""
         if self._meta_cache is None:
             table: dict = {}
             damage: dict[int, list[StoreCorruptionError]] = {}
@@ -194,23 +192,21 @@ class Store:
             table["frame_in_clip"] = table["frame"]
             table["complete"] = np.asarray(table["complete"], bool)
             done = [int(i) for i in np.nonzero(table["complete"])[0]]
-            if self.version >= 2 and done:
+            if done:
                 paths = [p for _, p in self._meta_columns() if p not in self._absent]
-                for i, lost in chunk_files.missing_chunks(self.root, done, self.version, paths=paths).items():
+                for i, lost in chunk_files.missing_chunks(self.root, done, paths=paths).items():
                     damage.setdefault(i, []).extend(_missing_error({i: [x]}) for x in lost)
-            if self.version >= 3 and done:
                 for i, (first, f) in self._lost_scene_json(table, done).items():
                     damage.setdefault(i, []).append(MissingShardError(
                         f"frames/scene_json: frame {i} is marked complete but its clip's SceneSpec JSON (kept at "
                         f"the clip's first frame, {first}) has no chunk file {f} (re-render the clip's frames: "
                         "`python -m pipeline validate --mark-damaged`, then `python -m pipeline dataset`)",
                         array="frames/scene_json", frame=i, path=f))
-            if self.version >= 2:
-                for i, f in self._lost_flags(table["complete"]).items():
-                    damage.setdefault(i, []).append(MissingShardError(
-                        f"status/complete: frame {i} was written (its status/error chunk is there) but its "
-                        f"completion flag's chunk file {f} is missing (re-render the frame: `python -m pipeline "
-                        "dataset` resumes it)", array="status/complete", frame=i, path=f))
+            for i, f in self._lost_flags(table["complete"]).items():
+                damage.setdefault(i, []).append(MissingShardError(
+                    f"status/complete: frame {i} was written (its status/error chunk is there) but its "
+                    f"completion flag's chunk file {f} is missing (re-render the frame: `python -m pipeline "
+                    "dataset` resumes it)", array="status/complete", frame=i, path=f))
             self._meta_cache = (table, {i: damage[i] for i in sorted(damage)})
             self._clip_starts = None
         return self._meta_cache
@@ -218,14 +214,14 @@ class Store:
     def _lost_flags(self, complete: np.ndarray) -> dict[int, str]:
         """Frames read as incomplete whose ``status/complete`` chunk file is missing although their
         ``status/error`` chunk (written in the same first step of every frame) is there: a lost flag, not
-        a frame never started (schema v2), frame -> the missing file."""
+        a frame never started, frame -> the missing file."""
         todo = [int(i) for i in np.nonzero(~np.asarray(complete, bool))[0]]
         if not todo:
             return {}
-        no_flag = chunk_files.missing_chunks(self.root, todo, self.version, paths=["status/complete"])
+        no_flag = chunk_files.missing_chunks(self.root, todo, paths=["status/complete"])
         if not no_flag:
             return {}
-        no_error = chunk_files.missing_chunks(self.root, list(no_flag), self.version, paths=["status/error"])
+        no_error = chunk_files.missing_chunks(self.root, list(no_flag), paths=["status/error"])
         return {i: lost[0][1] for i, lost in no_flag.items() if i not in no_error}
 
     def _read_column_leniently(self, path: str, damage: dict) -> np.ndarray:
@@ -245,7 +241,7 @@ class Store:
         return out.astype(str) if out.dtype == object else out
 
     def _clip_start(self, table: dict, i: int) -> int:
-        """The frame holding frame ``i``'s SceneSpec JSON in a v3 store: its clip's first frame, ``i -
+        """The frame holding frame ``i``'s SceneSpec JSON: its clip's first frame, ``i -
         frame_in_clip`` (a dataset writes a clip's frames one after another, and stores the JSON there
         before any of them), when that frame is of the clip or not committed yet (its ``frames/*`` still
         hold fill values: an interrupted run); else a complete frame of its clip with ``frame_in_clip``
@@ -261,7 +257,7 @@ class Store:
 
     def _lost_scene_json(self, table: dict, done: list[int]) -> dict[int, tuple[int, str]]:
         """Complete frames whose clip's SceneSpec JSON chunk (at the clip's first frame) is missing,
-        frame -> (first frame, file) (schema v3)."""
+        frame -> (first frame, file)."""
         spec = self._specs["frames/scene_json"]
         names = chunk_files.chunk_names_1d(self.root, spec)
         out, seen = {}, {}
@@ -276,12 +272,10 @@ class Store:
         return out
 
     def scene_json(self, i: int) -> str:
-        """The SceneSpec JSON of frame ``i``'s scene ('' where none was stored). Schema v3 keeps it once a
-        clip, at the clip's first frame; v1 and v2 with every frame."""
+        """The SceneSpec JSON of frame ``i``'s scene ('' where none was stored), kept once a clip, at the
+        clip's first frame."""
         i = self._check_index(i)
         t = self._frame_row(i)
-        if self.version < 3:
-            return str(t["scene_json"][i])
         f0 = self._clip_start(t, i)
         text = self._scene_texts.get(f0)
         if text is None:                    # a clip's frames share one JSON: read it once per Store
@@ -289,7 +283,7 @@ class Store:
         return text
 
     def metadata_damage(self) -> dict[int, list[StoreCorruptionError]]:
-        """Frames whose ``frames/*`` or ``status/*`` chunks are damaged or (v2, complete frames) missing,
+        """Frames whose ``frames/*`` or ``status/*`` chunks are damaged or (complete frames) missing,
         frame -> the errors (each names array, frame and file). ``{}`` for a sound store."""
         return {i: list(v) for i, v in self._meta()[1].items()}
 
@@ -311,8 +305,8 @@ class Store:
     def meta_column(self, key: str) -> np.ndarray:
         """One ``frames/*`` column by its ``FRAME_META`` key (or ``clip_id``, ``complete``, ``error``) for
         all frames, from the cache. ``frame`` (= ``frame_in_clip``) is the index in the clip, stored as
-        ``frames/frame`` in v1 and ``frames/frame_in_clip`` in v2. ``scene_json`` of a v3 store, kept once
-        a clip, is read clip by clip (:meth:`scene_json` reads one frame's)."""
+        ``frames/frame_in_clip``. ``scene_json``, kept once a clip, is read clip by clip (:meth:`scene_json`
+        reads one frame's)."""
         t = self._meta_table()
         if key == "scene_json" and key not in t:     # objects: a clip's frames share its one string (a
             out = np.empty(self.num_frames, dtype=object)      # fixed-width str array of a long clip's
@@ -359,7 +353,7 @@ class Store:
         for key, typ in FRAME_META.items():
             if key in t:
                 out[key] = typ(t[key][i]) if typ is not bool else bool(t[key][i])
-            elif scene:                                 # v3's scene JSON: once a clip
+            elif scene:                                 # the scene JSON: once a clip
                 out[key] = self.scene_json(i)
         out["clip_id"] = int(t["clip_id"][i])
         out["complete"] = bool(t["complete"][i])
@@ -369,14 +363,8 @@ class Store:
         return out
 
     def _read_matrix(self, key: str, i: int) -> np.ndarray:
-        """``frames/<key>`` (float64, 44) of frame ``i``; MissingShardError if a complete v2 frame lost it."""
-        t = self._frame_row(i)
-        if key in t:                                    # v3: in the metadata table (checked there)
-            return np.asarray(t[key][i], np.float64)
-        path = ARRAY_BY_SOURCE[key].path
-        if bool(t["complete"][i]):
-            self._require_chunks([path], [i])
-        return self._zarr_read(path, i, i)
+        """``frames/<key>`` (float64, 44) of frame ``i``, from the metadata table (checked there)."""
+        return np.asarray(self._frame_row(i)[key][i], np.float64)
 
     # ---------------------------------------------------------------- images
     def _reader(self, path: str):
@@ -420,8 +408,8 @@ class Store:
             samples = self._check_spp(samples)
         else:
             samples = None
-        # v2 writes every shard, so a complete frame without one lost it; v1 skipped all-zero shards
-        strict = self.version >= 2 and bool(self._frame_row(i)["complete"][i])
+        # every shard is written, so a complete frame without one lost it
+        strict = bool(self._frame_row(i)["complete"][i])
         r = self._reader(path) if spec.image else None
         if r is not None:
             a = r.read(i, y, y + h, x, x + w, samples, self._get_pool(), strict=strict)
@@ -507,10 +495,10 @@ class Store:
 
     def missing_data(self, frames=None) -> dict[int, list[tuple[str, str]]]:
         """Complete frames (of ``frames``, default all) whose chunk files are not all there, frame ->
-        ``[(array, file)]``; always ``{}`` for schema v1 stores (see ``chunk_files.missing_chunks``)."""
+        ``[(array, file)]`` (see ``chunk_files.missing_chunks``)."""
         done = self._meta()[0]["complete"]         # a damaged flag reads False (metadata_damage lists it)
         frames = range(self.num_frames) if frames is None else frames
-        return chunk_files.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]], self.version)
+        return chunk_files.missing_chunks(self.root, [int(i) for i in frames if done[int(i)]])
 
     def frame_problems(self, i: int) -> list[str]:
         """See :func:`frame_problems`."""

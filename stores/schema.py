@@ -1,21 +1,19 @@
-"""The store schema: versioned tables of arrays (v1, v2, v3), the layout, and opening a store
-(``stores.create`` makes one, ``stores.chunks`` finds its chunk files).
+"""The store schema: the table of arrays (schema v3), the layout, and opening a store (``stores.create``
+makes one, ``stores.chunk_files`` finds its chunk files, ``stores.upgrade`` turns an older store into one).
 
-``stores.create.create_store`` writes schema v3 (``TABLES[3]``); ``open_group`` reads v1, v2 and v3 and checks every
-array's ``zarr.json`` against its version's table (``array_problems``). v3 over v2: the per-frame
-metadata, camera matrices and status in chunks of :data:`META_CHUNK` frames committed by one process,
-and the SceneSpec JSON once a clip (:func:`_v3`; ``stores/SCHEMA.md`` has the table). v2 over v1: a ``crc32c``
-checksum on every chunk (the inner chunks of shards too), ``frames/frame`` renamed
-``frames/frame_in_clip``, coordinates for xarray (``G/frame`` 0..F-1 in every group, ``rgb``/``xyz``/
-``uv`` labels, ``layers/level`` with ``layers/spp`` as its non-index coordinate), consolidated
-metadata, and every chunk of a complete frame written (so a missing file is damage, not zeros).
+``open_group`` checks every array's ``zarr.json`` against the table (``array_problems``) and refuses a
+store of an older schema version with a line naming ``python -m stores upgrade``. The per-frame metadata,
+camera matrices and status are in chunks of :data:`META_CHUNK` frames committed by one process, the
+SceneSpec JSON once a clip; every chunk carries a ``crc32c`` checksum (the inner chunks of shards too) and
+every chunk of a complete frame is written (so a missing file is damage, not zeros); coordinates for
+xarray (``G/frame`` 0..F-1 in every group, ``rgb``/``xyz``/``uv`` labels, ``layers/level`` with
+``layers/spp`` as its non-index coordinate) and consolidated metadata. ``stores/SCHEMA.md`` has the table.
 
 One Zarr v3 group per dataset (see ``stores/SCHEMA.md`` for the table with dtypes, chunks and the
 measurements behind them). Images are stored sample-major, the ``(S, C, h, w)`` layout training
 consumes (no transpose on read): ``inputs/radiance (float32, F·sample·rgb·y·x)``, sharded one shard per frame and per array with
 ``tile x tile`` inner chunks, so a training crop of one frame with all samples reads a few inner
-chunks of one file, and each writer task owns whole shards (no locks). Per-frame scalars have one
-chunk per frame. Every array carries ``dimension_names`` so ``xarray.open_zarr(store, group=...)``
+chunks of one file, and each writer task owns whole shards (no locks). Every array carries ``dimension_names`` so ``xarray.open_zarr(store, group=...)``
 reads each group with named dims.
 
 The renderer's per-frame dict (``stores.contract.FRAME_ARRAYS``, channel-last) maps to the arrays
@@ -33,13 +31,12 @@ import numpy as np
 from core.checks import need, need_int
 from stores import codecs
 from stores.contract import FEATURE_NAMES, FRAME_META, LAYER_SPP, NUM_FEATURES
-from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError, SchemaVersionError,
+from stores.errors import (ArrayMetadataError, ForeignStoreError, IncompleteStoreError,
                            StoreLayoutError, StoreNotFoundError, raise_if_unreachable)
 
-SCHEMA_VERSION = 3                 # what create_store writes
-READABLE_VERSIONS = (1, 2, 3)      # what open_group reads (and appends to, in its own layout)
-COORD_CHUNK = 1024                 # chunk length of the v2 ``frame`` coordinates (they grow with the store)
-META_CHUNK = 1024                  # v3: frames a chunk of the per-frame metadata and status arrays hold
+SCHEMA_VERSION = 3                 # what create_store writes and every reader and writer takes
+COORD_CHUNK = 1024                 # chunk length of the ``frame`` coordinates (they grow with the store)
+META_CHUNK = 1024                  # frames a chunk of the per-frame metadata and status arrays hold
 STORE_KIND = "denoise-datagen.sample-store"
 RADIANCE_ENCODINGS = ("float32", "log16")
 FEATURE_DTYPES = ("float16", "float32")
@@ -176,11 +173,11 @@ class ArraySpec:
     squeeze: bool = False
     image: bool = True
     fill: Any = 0
-    coord: str = ""             # "" per-frame data; else a v2 coordinate written at creation (see coord_values)
+    coord: str = ""             # "" per-frame data; else a coordinate written at creation (see coord_values)
     labels: tuple[str, ...] = ()    # the values of a ``labels`` coordinate
-    xr_coords: str = ""         # v2: names of non-index coordinates (xarray's ``coordinates`` attribute)
-    frame_chunk: int = 1        # frames a chunk holds (v3 metadata: META_CHUNK, written by one process)
-    clip_first: bool = False    # v3 ``frames/scene_json``: written only at each clip's first frame
+    xr_coords: str = ""         # names of non-index coordinates (xarray's ``coordinates`` attribute)
+    frame_chunk: int = 1        # frames a chunk holds (metadata: META_CHUNK, written by one process)
+    clip_first: bool = False    # ``frames/scene_json``: written only at each clip's first frame
 
     @property
     def per_frame(self) -> bool:
@@ -303,16 +300,16 @@ _STATUS_SPECS = (
               "True once every array of the frame is written; written last", image=False, fill=False),
 )
 GROUPS = ("inputs", "layers", "reference", "guides", "frames", "status")
-# The FRAME_META keys every v1/v2 store has had since the start. A ``frames/*`` array of a key added
-# since (``stores.contract.FRAME_META`` grows, e.g. ``case``) is missing from stores made before it:
-# not damage (:func:`absent_arrays`); readers give its fill value, ``open_or_create`` adds it.
+# The FRAME_META keys every store has had since the start. A ``frames/*`` array of a key added since
+# (``stores.contract.FRAME_META`` grows, e.g. ``case``) is missing from stores made before it: not
+# damage (:func:`absent_arrays`); readers give its fill value, ``open_or_create`` adds it.
 BASE_META_KEYS = ("scene_json", "scene_seed", "frame", "num_frames", "has_motion", "has_defocus",
                   "nonfinite_inputs", "nonfinite_layers", "nonfinite_reference", "reference_spp",
                   "reference_rel_stderr", "render_seconds")
-ARRAYS_V1: tuple[ArraySpec, ...] = _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS + _STATUS_SPECS
 
 
-def _v2_coords() -> tuple[ArraySpec, ...]:
+def _coords() -> tuple[ArraySpec, ...]:
+    """The coordinates xarray reads: ``G/frame`` 0..F-1 in every group, channel labels, levels."""
     out = [ArraySpec(f"{g}/frame", ("frame",), "int64", "", "frame index 0..F-1 (the frame coordinate)",
                      image=False, coord="frame") for g in GROUPS]
     for g, dim, labels in (("inputs", "rgb", "rgb"), ("layers", "rgb", "rgb"), ("reference", "rgb", "rgb"),
@@ -327,22 +324,16 @@ def _v2_coords() -> tuple[ArraySpec, ...]:
     return tuple(out)
 
 
-def _v2(spec: ArraySpec) -> ArraySpec:
-    if spec.path == "frames/frame":         # v1's name collides with the frame dimension in xarray
-        return replace(spec, path="frames/frame_in_clip", doc="index of the frame in its clip")
+def _current(spec: ArraySpec) -> ArraySpec:
+    """A spec as this schema stores it: the per-frame metadata, camera matrices and status in chunks of
+    :data:`META_CHUNK` frames, written by one process (the dataset run's client,
+    ``stores.writer.StoreWriter.commit``); the SceneSpec JSON once a clip, at its first frame
+    (``clip_first``), written by the scene's own task; the index in the clip as ``frames/frame_in_clip``
+    (``frames/frame`` would collide with the frame dimension in xarray)."""
+    if spec.path == "frames/frame":
+        spec = replace(spec, path="frames/frame_in_clip", doc="index of the frame in its clip")
     if spec.path == "layers/radiance":
         return replace(spec, xr_coords="spp")
-    return spec
-
-
-# v2: every chunk carries a crc32c checksum; frames/frame -> frames/frame_in_clip; coordinates
-ARRAYS_V2: tuple[ArraySpec, ...] = tuple(_v2(s) for s in ARRAYS_V1) + _v2_coords()
-
-
-def _v3(spec: ArraySpec) -> ArraySpec:
-    """v3: the per-frame metadata, camera matrices and status in chunks of :data:`META_CHUNK` frames,
-    written by one process (the dataset run's client, ``stores.writer.StoreWriter.commit``); the SceneSpec
-    JSON once a clip, at its first frame (``clip_first``), written by the scene's own task."""
     if spec.path == "frames/scene_json":
         return replace(spec, clip_first=True, doc="SceneSpec JSON of the clip, at its first frame only "
                                                   "(frame_in_clip 0; '' elsewhere)")
@@ -351,42 +342,31 @@ def _v3(spec: ArraySpec) -> ArraySpec:
     return spec
 
 
-# v3: per-frame metadata and status in chunks of META_CHUNK frames; scene JSON once a clip
-ARRAYS_V3: tuple[ArraySpec, ...] = tuple(_v3(s) for s in ARRAYS_V2)
-TABLES = {1: ARRAYS_V1, 2: ARRAYS_V2, 3: ARRAYS_V3}
-ARRAYS = TABLES[SCHEMA_VERSION]
-ARRAY_BY_PATH = {s.path: s for s in ARRAYS}    # image specs (paths, chains) are the same in every version
-ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}     # the same in v1 and v2
+ARRAYS: tuple[ArraySpec, ...] = tuple(_current(s) for s in _IMAGE_SPECS + _MATRIX_SPECS + _META_SPECS
+                                      + _STATUS_SPECS) + _coords()
+ARRAY_BY_PATH = {s.path: s for s in ARRAYS}
+ARRAY_BY_SOURCE = {s.source: s for s in _IMAGE_SPECS + _MATRIX_SPECS}
 
 
-def arrays(version: int = SCHEMA_VERSION) -> tuple[ArraySpec, ...]:
-    """The array table of schema ``version`` (SchemaVersionError for others)."""
-    try:
-        return TABLES[int(version)]
-    except (KeyError, TypeError, ValueError):
-        raise SchemaVersionError(f"schema version {version!r} is not one of {READABLE_VERSIONS}") from None
-
-
-def meta_path(key: str, version: int = SCHEMA_VERSION) -> str:
-    """Path of the ``frames/*`` array holding ``FRAME_META`` key (or ``clip_id``) in schema ``version``
-    (``frame`` -> ``frames/frame`` in v1, ``frames/frame_in_clip`` in v2)."""
-    for spec in arrays(version):
+def meta_path(key: str) -> str:
+    """Path of the ``frames/*`` array holding ``FRAME_META`` key (or ``clip_id``): ``frame`` ->
+    ``frames/frame_in_clip``."""
+    for spec in ARRAYS:
         if spec.path.startswith("frames/") and spec.source == key and spec.per_frame:
             return spec.path
     raise KeyError(key)
 
 
-def later_meta_paths(version: int = SCHEMA_VERSION) -> tuple[str, ...]:
+def later_meta_paths() -> tuple[str, ...]:
     """Paths of the ``frames/*`` arrays of FRAME_META keys added after :data:`BASE_META_KEYS`."""
-    return tuple(meta_path(k, version) for k in FRAME_META if k not in BASE_META_KEYS)
+    return tuple(meta_path(k) for k in FRAME_META if k not in BASE_META_KEYS)
 
 
-def absent_arrays(root, version: int | None = None) -> frozenset[str]:
+def absent_arrays(root) -> frozenset[str]:
     """The arrays of :func:`later_meta_paths` that the store at ``root`` lacks (it was made before
     their key existed). Every other array must be there (:func:`array_problems`)."""
-    version = version_of(root) if version is None else version
     out = []
-    for path in later_meta_paths(version):
+    for path in later_meta_paths():
         try:
             root[path]
         except KeyError:
@@ -394,12 +374,8 @@ def absent_arrays(root, version: int | None = None) -> frozenset[str]:
     return frozenset(out)
 
 
-def version_of(root) -> int:
-    return int(dict(root.attrs)["schema_version"])
-
-
 def coord_values(spec: ArraySpec, layout: StoreLayout) -> np.ndarray:
-    """The values of a v2 coordinate array."""
+    """The values of a coordinate array."""
     if spec.coord == "frame":
         return np.arange(layout.num_frames, dtype=np.int64)
     if spec.coord == "level":
@@ -411,14 +387,14 @@ def coord_values(spec: ArraySpec, layout: StoreLayout) -> np.ndarray:
     raise ValueError(f"{spec.path} is not a coordinate")
 
 
-def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VERSION) -> dict:
-    """``zarr.Group.create_array`` keyword arguments of ``spec`` in schema ``version``: image arrays
-    sharded with Blosc inner chunks, v3 metadata chunks (many frames each) Blosc zstd, other scalars
-    uncompressed; v2 appends the ``crc32c`` codec to every (inner) chunk."""
+def create_kwargs(spec: ArraySpec, layout: StoreLayout) -> dict:
+    """``zarr.Group.create_array`` keyword arguments of ``spec``: image arrays sharded with Blosc inner
+    chunks, metadata chunks (many frames each) Blosc zstd, other scalars uncompressed; the ``crc32c``
+    codec last on every (inner) chunk."""
     dtype = spec.storage_dtype(layout)
-    crc = [codecs.checksum()] if version >= 2 else []
+    crc = [codecs.checksum()]
     attrs = {"doc": spec.doc, "source": spec.source}
-    if version >= 2 and spec.xr_coords:
+    if spec.xr_coords:
         attrs["coordinates"] = spec.xr_coords
     kw = dict(shape=spec.shape(layout), dtype=str if dtype == "str" else dtype, chunks=spec.chunks(layout),
               dimension_names=spec.dims, fill_value=spec.fill, attributes=attrs)
@@ -426,19 +402,19 @@ def create_kwargs(spec: ArraySpec, layout: StoreLayout, version: int = SCHEMA_VE
         ch = spec.chain(layout)
         kw.update(shards=spec.shards(layout), filters=codecs.zarr_filters(ch, spec.dims) or None,
                   compressors=[codecs.compressor(ch.cname, ch.clevel, ch.shuffle)] + crc)
-    elif spec.frame_chunk > 1:         # v3 metadata: a chunk of 1024 frames, mostly fill in a small store
+    elif spec.frame_chunk > 1:         # metadata: a chunk of 1024 frames, mostly fill in a small store
         kw.update(compressors=[codecs.compressor(*META_BLOSC)] + crc)
     else:
-        kw.update(compressors=crc or None)
+        kw.update(compressors=crc)
     return kw
 
 
-META_BLOSC = ("zstd", 3, "shuffle")    # v3 metadata chunks: a 4-frame store's 1024-frame camera matrices 1.2 KB, not 128
+META_BLOSC = ("zstd", 3, "shuffle")    # metadata chunks: a 4-frame store's 1024-frame camera matrices 1.2 KB, not 128
 
 
-def expected_codecs(spec: ArraySpec, layout: StoreLayout, version: int) -> tuple:
+def expected_codecs(spec: ArraySpec, layout: StoreLayout) -> tuple:
     """The codec chain the schema gives ``spec``, in :func:`codec_signature`'s form."""
-    crc = (("crc32c",),) if version >= 2 else ()
+    crc = (("crc32c",),)
     ser = ("vlen-utf8",) if spec.storage_dtype(layout) == "str" else ("bytes", "little")
     if spec.image:
         ch = spec.chain(layout)
@@ -473,14 +449,14 @@ def codec_signature(chain) -> tuple:
 _DATA_TYPES = {"str": "string"}
 
 
-def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: bool = True) -> list[str]:
-    """Every way the arrays' metadata (``zarr.json``) differs from schema ``version``'s table: a
+def array_problems(root, layout: StoreLayout, *, frames_exact: bool = True) -> list[str]:
+    """Every way the arrays' metadata (``zarr.json``) differs from the schema's table: a
     missing array, data type, shape, chunk/shard shape, chunk key encoding, codecs, fill value,
     dimension names. ``frames_exact=False`` accepts a frame axis longer than ``layout.num_frames``
     (a writer re-opening a store whose growth was cut short; ``grow`` finishes it)."""
     out = []
-    later = set(later_meta_paths(version))
-    for spec in arrays(version):
+    later = set(later_meta_paths())
+    for spec in ARRAYS:
         try:
             arr = root[spec.path]
             meta = arr.metadata.to_dict()
@@ -514,7 +490,7 @@ def array_problems(root, layout: StoreLayout, version: int, *, frames_exact: boo
         key = meta.get("chunk_key_encoding", {})
         if key.get("name") != "default" or (key.get("configuration") or {}).get("separator", "/") != "/":
             out.append(f"{name}: chunk key encoding {key}, the schema says default with '/'")
-        got_c, want_c = codec_signature(meta.get("codecs")), expected_codecs(spec, layout, version)
+        got_c, want_c = codec_signature(meta.get("codecs")), expected_codecs(spec, layout)
         if got_c != want_c:
             out.append(f"{name}: codecs {got_c}, the schema says {want_c}")
         fill = meta.get("fill_value")
@@ -567,11 +543,11 @@ def store_exists(path_or_url) -> bool:
 
 
 def open_group(path_or_url, mode: str = "r", *, check: bool = True):
-    """Open an existing store's root group after checking it is ours and of a readable schema version
-    (``READABLE_VERSIONS``), and (``check``) that every array's metadata matches that version's table
-    (:func:`array_problems`). Returns ``(group, layout)``; :func:`version_of` gives the version.
-    Raises StoreNotFoundError, ForeignStoreError, IncompleteStoreError (creation was cut short),
-    SchemaVersionError, ArrayMetadataError (an edited or damaged ``zarr.json``). Consolidated
+    """Open an existing store's root group after checking it is ours and of this schema version (an older
+    one is refused by ``stores.upgrade.require_current`` with a line naming ``python -m stores upgrade``),
+    and (``check``) that every array's metadata matches the table (:func:`array_problems`). Returns
+    ``(group, layout)``. Raises StoreNotFoundError, ForeignStoreError, IncompleteStoreError (creation was
+    cut short), SchemaVersionError, ArrayMetadataError (an edited or damaged ``zarr.json``). Consolidated
     metadata is never used here (it may be stale)."""
     import zarr
     if not store_exists(path_or_url):
@@ -593,16 +569,13 @@ def open_group(path_or_url, mode: str = "r", *, check: bool = True):
             f"{path_or_url!s} was never finished: its creation by pid {c.get('pid')} on {c.get('host')} "
             f"(started {c.get('started')}) was cut short; run `python -m pipeline dataset` again to make it",
             creator=c)
-    version = attrs.get("schema_version")
-    if version not in READABLE_VERSIONS or isinstance(version, bool):
-        raise SchemaVersionError(f"{path_or_url!s} has schema version {version!r}; this code reads versions "
-                                 f"{', '.join(map(str, READABLE_VERSIONS))} and writes {SCHEMA_VERSION} "
-                                 f"(re-create the store or use a matching release)")
+    from stores.upgrade import require_current
+    require_current(path_or_url, attrs, SCHEMA_VERSION)
     layout = StoreLayout.of_store(attrs["layout"])
     if check:
-        bad = array_problems(root, layout, version, frames_exact=(mode == "r"))
+        bad = array_problems(root, layout, frames_exact=(mode == "r"))
         if bad:
-            raise ArrayMetadataError(f"{path_or_url!s}: array metadata disagrees with schema v{version} "
+            raise ArrayMetadataError(f"{path_or_url!s}: array metadata disagrees with schema v{SCHEMA_VERSION} "
                                      f"({len(bad)} problem(s)): " + "; ".join(bad),
                                      array=bad[0].split(":")[0])
     return root, layout
@@ -613,10 +586,9 @@ def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
     process (the graph's driver) before tasks write the new frames."""
     if num_frames <= layout.num_frames:
         return layout
-    version = version_of(root)
     new = layout.with_frames(num_frames)
-    absent = absent_arrays(root, version)
-    for spec in arrays(version):
+    absent = absent_arrays(root)
+    for spec in ARRAYS:
         if spec.dims[0] != "frame" or spec.path in absent:
             continue
         arr = root[spec.path]
@@ -624,28 +596,25 @@ def grow(root, layout: StoreLayout, num_frames: int) -> StoreLayout:
         if spec.coord == "frame":
             arr.with_config({"write_empty_chunks": True})[:] = coord_values(spec, new)
     root.attrs["layout"] = new.to_dict()
-    if version >= 2:
-        consolidate(root.store)
+    consolidate(root.store)
     return new
 
 
 def add_absent_arrays(root, layout: StoreLayout) -> list[str]:
     """Create the :func:`absent_arrays` of an existing store (opened ``r+``; one process, before
     tasks write), every existing frame's chunk written with the fill value, so complete frames keep
-    one file per array (schema v2: a missing file is damage). Returns the paths created."""
-    version = version_of(root)
+    one file per array (a missing file is damage). Returns the paths created."""
     made = []
-    for path in sorted(absent_arrays(root, version)):
-        spec = next(s for s in arrays(version) if s.path == path)
-        arr = root.create_array(path, **create_kwargs(spec, layout, version))
-        if version >= 2 and arr.shape[0]:
-            arr.with_config({"write_empty_chunks": True})[:] = spec.fill
+    for path in sorted(absent_arrays(root)):
+        arr = root.create_array(path, **create_kwargs(ARRAY_BY_PATH[path], layout))
+        if arr.shape[0]:
+            arr.with_config({"write_empty_chunks": True})[:] = ARRAY_BY_PATH[path].fill
         made.append(path)
-    if made and version >= 2:
+    if made:
         consolidate(root.store)
     return made
 
 
-__all__ = ["SCHEMA_VERSION", "READABLE_VERSIONS", "STORE_KIND", "arrays", "meta_path", "version_of",
-           "array_problems", "create_kwargs", "consolidate", "TABLES", "StoreLayout", "ArraySpec", "ARRAYS",
+__all__ = ["SCHEMA_VERSION", "STORE_KIND", "meta_path",
+           "array_problems", "create_kwargs", "consolidate", "StoreLayout", "ArraySpec", "ARRAYS",
            "ARRAY_BY_PATH", "ARRAY_BY_SOURCE", "GROUPS", "open_group", "grow", "FLOAT16_MAX"]

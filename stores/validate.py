@@ -32,7 +32,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from stores import chunk_files, create, schema
+from stores import create, schema
 from core.cli import DAMAGED, OK, PROBLEMS
 from stores.errors import MissingShardError, StoreCorruptionError, StoreError
 from stores.fitness import FRAME_KEYS, check_values, renderer_findings
@@ -180,15 +180,15 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     ``read_values=False`` checks the array metadata, completeness, files and the renderer's counts
     but reads no image (a dataset run's summary: its write tasks checked the values they wrote)."""
     root, lay = schema.open_group(path, mode="r", check=False)
-    version = schema.version_of(root)
-    rep = StoreReport(path=str(path), schema_version=version, layout=lay.to_dict(), num_frames=lay.num_frames)
-    bad = schema.array_problems(root, lay, version)
+    rep = StoreReport(path=str(path), schema_version=schema.SCHEMA_VERSION, layout=lay.to_dict(),
+                      num_frames=lay.num_frames)
+    bad = schema.array_problems(root, lay)
     for p in bad:
         _damage(rep, f"array metadata: {p}")
     if bad:
         rep.problems.append("frames not checked: their arrays' metadata disagrees with the schema")
         return rep
-    stale = _consolidation_note(path, root, version)
+    stale = _consolidation_note(path, root)
     if stale:
         rep.notes.append(stale)
     leftover = create.partial_files(path)
@@ -201,8 +201,6 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
     indices = range(store.num_frames) if frames is None else frames
     rep.damaged_meta_frames = sorted(set(meta_damage) & {int(i) for i in indices})
     lost = store.missing_data(indices)
-    if version < 2:
-        rep.notes.extend(_v1_skipped_shards(store, root, version, indices))
     for i in indices:
         fr_rep = FrameReport(index=i, complete=False)
         rep.frames.append(fr_rep)
@@ -213,19 +211,6 @@ def validate_store(path, frames=None, *, read_values: bool = True) -> StoreRepor
 def _damage(where, msg: str) -> None:
     where.problems.append(msg)
     where.damage.append(msg)
-
-
-def _v1_skipped_shards(store, root, version: int, indices) -> list[str]:
-    """Notes on complete v1 frames without a shard file (v1 skipped all-zero shards: read as zeros)."""
-    specs = [s for s in schema.arrays(version) if s.image]
-    skipped, done = {}, store.complete_flags()
-    for i in indices:
-        if done[i]:
-            for spec in specs:
-                if not chunk_files.chunk_file(root, spec, i)[0]:
-                    skipped.setdefault(spec.path, []).append(int(i))
-    return [f"{a}: no shard file for {len(fs)} complete frame(s) {fs[:10]}{' ...' if len(fs) > 10 else ''} "
-            "(schema v1 skipped all-zero shards: read as zeros)" for a, fs in skipped.items()]
 
 
 def _check_frame(store, i: int, fr_rep: FrameReport, meta_errors: list, lost: list, read_values: bool) -> None:
@@ -266,10 +251,10 @@ def _check_frame(store, i: int, fr_rep: FrameReport, meta_errors: list, lost: li
         check_frame_values(data, fr_rep, store.layout)
 
 
-def _consolidation_note(path, root, version: int) -> str | None:
-    """A note when a v2 store's consolidated metadata (for xarray) is missing or out of date."""
+def _consolidation_note(path, root) -> str | None:
+    """A note when a store's consolidated metadata (for xarray) is missing or out of date."""
     import os
-    if version < 2 or not isinstance(path, (str, os.PathLike)) or "://" in os.fspath(path):
+    if not isinstance(path, (str, os.PathLike)) or "://" in os.fspath(path):
         return None
     try:
         with open(os.path.join(os.fspath(path), "zarr.json")) as f:

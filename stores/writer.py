@@ -1,6 +1,6 @@
 """Resumable, lock-free frame writer.
 
-Schema v3 (written since issue 22): a frame is written in two parts.
+A frame is written in two parts.
 
 1. Its **data** (``write_frame_data``, by the task that rendered it, any process): every image array's
    shard of frame ``i`` (whole shards: tasks never share a file, so no locks; a re-run overwrites cleanly),
@@ -16,12 +16,8 @@ A crash before a frame's commit leaves it incomplete, never half-valid (its shar
 the re-run); readers refuse incomplete frames (``IncompleteFrameError``) and ``incomplete_frames()``
 lists them. ``write_frame`` does both parts at once (one process writing a store, as tests and
 scripts do). Every chunk is written, all-zero ones included, so a complete frame's files are all
-there: a missing one is damage (``frames_with_missing_data``).
-
-Schema v2 stores (written before issue 22) keep their protocol when resumed: each frame's task writes
-``status/complete[i] = False``, its shards, its ``frames/*`` chunks (one file each), then
-``status/complete[i] = True``; ``write_frame_data`` does all of it there and ``commit`` has nothing
-left to do.
+there: a missing one is damage (``frames_with_missing_data``). A store of an older schema is refused
+on open, naming ``python -m stores upgrade`` (``stores.upgrade``).
 """
 from __future__ import annotations
 
@@ -84,15 +80,14 @@ class StoreWriter:
     def __init__(self, path):
         self.path = path
         self.root, self.layout = schema.open_group(path, mode="r+")
-        self.version = schema.version_of(self.root)
         # frames/* arrays of FRAME_META keys newer than the store: open_or_create adds them (one
         # process); a writer opened without it skips them, and readers give their fill value
-        self.absent = schema.absent_arrays(self.root, self.version)
+        self.absent = schema.absent_arrays(self.root)
         self._handles: dict = {}
 
     def _array(self, path: str):
         """``path`` for writing: every chunk is written, all-zero ones too (zarr skips chunks equal to
-        the fill value by default, and a missing file must mean damage, not zeros; SCHEMA.md v2)."""
+        the fill value by default, and a missing file must mean damage, not zeros; SCHEMA.md)."""
         a = self._handles.get(path)
         if a is None:           # opened once per writer: each lookup reads the array's zarr.json again
             a = self._handles[path] = self.root[path].with_config({"write_empty_chunks": True})
@@ -111,7 +106,7 @@ class StoreWriter:
         """Write frame ``index`` from the renderer's dict (``FRAME_ARRAYS`` + ``meta``), its data and then
         its commit (completion flag last). ``on_progress(path)`` is called after each array is written
         (logging, tests). For one process writing a store; a dataset run splits the two parts."""
-        if self.version >= 3 and bool(complete_flags(self.root, [self._check_index(index)])[0]):
+        if bool(complete_flags(self.root, [self._check_index(index)])[0]):
             # rewriting a complete frame: invalidate it first, so a crash mid-way leaves it incomplete
             self.commit({}, {index: "being rewritten"})
         record = self.write_frame_data(index, arrays, on_progress=on_progress)
@@ -122,17 +117,12 @@ class StoreWriter:
     def write_frame_data(self, index: int, arrays: dict, *,
                          on_progress: Callable[[str], None] | None = None) -> dict:
         """Write frame ``index``'s image shards (and, at a clip's first frame, its SceneSpec JSON); return
-        its record for :meth:`commit` (plain data: picklable, small). In a schema v2 store this writes
-        the whole frame, completion flag included (the v2 protocol)."""
+        its record for :meth:`commit` (plain data: picklable, small)."""
         index = self._check_index(index)
         check_frame(arrays, self.layout)
         arr = self._array
-        v2 = self.version < 3
-        if v2:
-            arr("status/complete")[index] = False
-            arr("status/error")[index] = ""
         writes = [(spec.path, spec.to_store(arrays[source], self.layout)) for source, spec in ARRAY_BY_SOURCE.items()
-                  if spec.image or v2]      # v3: camera matrices are in the record (metadata chunks)
+                  if spec.image]            # camera matrices are in the record (metadata chunks)
         if on_progress:                      # one array at a time, in order (tests stop a writer between them)
             for path, a in writes:
                 arr(path)[index] = a
@@ -140,19 +130,13 @@ class StoreWriter:
         else:                                # every shard at once: zarr's event loop writes them together
             _write_all([(arr(path), index, a) for path, a in writes])
         record = frame_record(arrays)
-        if v2:
-            self._write_meta_v2(index, record)
-            if on_progress:
-                on_progress("frames")
-            arr("status/complete")[index] = True
-        else:
-            scene_json = record["meta"].pop("scene_json")    # kept once a clip, never in the record: a
-            if int(record["meta"]["frame"]) == 0:             # long clip's JSON is as long as the clip
-                self.write_scene_json(index, scene_json)
+        scene_json = record["meta"].pop("scene_json")    # kept once a clip, never in the record: a
+        if int(record["meta"]["frame"]) == 0:             # long clip's JSON is as long as the clip
+            self.write_scene_json(index, scene_json)
         return record
 
     def write_scene_json(self, first: int, scene_json: str) -> None:
-        """Store a clip's SceneSpec JSON at its first frame ``first`` (schema v3; one file a clip), unless
+        """Store a clip's SceneSpec JSON at its first frame ``first`` (one file a clip), unless
         it is there already: a resume (the same config gives the same bytes) reads it and writes nothing,
         so a complete frame's file is never rewritten and a store at a URL pays a read, not a write. A
         missing or damaged chunk is written."""
@@ -164,26 +148,13 @@ class StoreWriter:
             raise_if_unreachable(e, self.path, "reading frames/scene_json")
         arr[first] = str(scene_json)
 
-    def _write_meta_v2(self, index: int, record: dict) -> None:
-        meta = record["meta"]
-        for key in list(FRAME_META) + ["clip_id"]:
-            path = schema.meta_path(key, self.version)
-            if path in self.absent:
-                continue
-            self._array(path)[index] = str(meta[key]) if FRAME_META.get(key) is str else meta[key]
-
     def commit(self, records: dict[int, dict], failures: dict[int, str] | None = None) -> None:
-        """Make frames complete (schema v3): each record of ``records`` (frame -> :meth:`write_frame_data`'s
+        """Make frames complete: each record of ``records`` (frame -> :meth:`write_frame_data`'s
         record) goes into the ``frames/*`` arrays, ``status/error`` is cleared, and ``status/complete`` is
         set last; ``failures`` (frame -> error text) are recorded as failed at the same time. One process
         at a time (the chunks are shared by :data:`stores.schema.META_CHUNK` frames): a dataset run's
-        client, or :meth:`write_frame`. Nothing to do in a v2 store, whose frame tasks commit themselves,
-        but failures."""
+        client, or :meth:`write_frame`."""
         failures = dict(failures or {})
-        if self.version < 3:
-            for i, text in failures.items():
-                self.mark_failed(i, text)
-            return
         if not records and not failures:
             return
         idx = sorted(int(i) for i in records)
@@ -191,9 +162,9 @@ class StoreWriter:
             self._check_index(i)
         columns = {}
         for key in [k for k in FRAME_META if k != "scene_json"] + ["clip_id"]:
-            if schema.meta_path(key, self.version) in self.absent:
+            if schema.meta_path(key) in self.absent:
                 continue                    # a key newer than the store: open_or_create adds its array
-            columns[schema.meta_path(key, self.version)] = [
+            columns[schema.meta_path(key)] = [
                 (i, str(records[i]["meta"][key]) if FRAME_META.get(key) is str else records[i]["meta"][key])
                 for i in idx]
         for key in ("camera_to_world", "world_to_clip"):
@@ -207,8 +178,7 @@ class StoreWriter:
         # The first commit into a chunk of META_CHUNK frames makes its flag chunk (all False) before
         # status/error: a status/error chunk without its flag chunk then only ever means a lost flag
         # (damage), and an interruption inside this commit leaves its frames incomplete, never damaged.
-        fresh = chunk_files.missing_chunks(self.root, idx + [int(i) for i in failures], self.version,
-                                      paths=["status/complete"])
+        fresh = chunk_files.missing_chunks(self.root, idx + [int(i) for i in failures], paths=["status/complete"])
         _set_many(self._array("status/complete"), [(i, False) for i in sorted(fresh)])
         lost = _set_many(self._array("status/error"), [(i, "") for i in idx] +
                          [(int(i), text or "failed") for i, text in failures.items()])
@@ -221,20 +191,16 @@ class StoreWriter:
         (an exception becomes ``'TypeName: message'``)."""
         index = self._check_index(index)
         text = f"{type(error).__name__}: {error}" if isinstance(error, BaseException) else str(error)
-        if self.version >= 3:
-            self.commit({}, {index: text})
-            return
-        self._array("status/complete")[index] = False
-        self._array("status/error")[index] = text or "failed"
+        self.commit({}, {index: text})
 
     def frame_complete(self, index: int) -> bool:
-        """Marked complete and (schema v2) every chunk file of the frame is there."""
+        """Marked complete and every chunk file of the frame is there."""
         index = self._check_index(index)
         return bool(complete_flags(self.root, [index])[0]) and not chunk_files.missing_chunks(self.root, [index])
 
     def incomplete_frames(self) -> list[int]:
         """Frames to (re-)render: not marked complete (or with an unreadable completion flag), or
-        marked complete but missing chunk files (schema v2; :func:`frames_with_missing_data`)."""
+        marked complete but missing chunk files (:func:`frames_with_missing_data`)."""
         done = complete_flags(self.root)
         lost = chunk_files.missing_chunks(self.root, [int(i) for i in np.nonzero(done)[0]])
         return sorted([int(i) for i in np.nonzero(~done)[0]] + list(lost))
@@ -328,7 +294,7 @@ def complete_flags(root, frames=None) -> np.ndarray:
 
 def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
     """Frames of the store at ``path`` marked complete but missing chunk or shard files, frame ->
-    ``[(array, file), ...]`` (schema v2; ``{}`` for v1, whose writers skipped all-zero chunks).
+    ``[(array, file), ...]``.
     ``StoreWriter.incomplete_frames`` includes them, so a resume re-renders them."""
     root, _ = schema.open_group(path, mode="r", check=False)
     done = complete_flags(root)
@@ -337,7 +303,7 @@ def frames_with_missing_data(path) -> dict[int, list[tuple[str, str]]]:
 
 def open_or_create(path, layout: StoreLayout, config: dict | None = None, *, overwrite: bool = False) -> StoreWriter:
     """Open the store at ``path`` for writing, creating it if missing. An existing store must have the
-    same frame layout (resolution, spp, layers, tile, encodings) and schema version; if ``layout``
+    same frame layout (resolution, spp, layers, tile, encodings) and the current schema version; if ``layout``
     has more frames, every array grows (append). A different ``config`` replaces the recorded one and
     the previous one goes to ``config_history``. Call from one process before tasks start writing
     (``pipeline dataset`` holds the store's ``stores.lock.StoreLock`` around it).

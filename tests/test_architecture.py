@@ -332,3 +332,38 @@ def test_no_module_is_over_700_lines():
     long = [f"{p.relative_to(ROOT)} ({n} lines)" for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
             if (n := len(p.read_text().splitlines())) > 700]
     assert not long, "modules over 700 lines:\n" + "\n".join(long)
+
+
+def _version_operands(node: ast.Compare) -> list[str]:
+    """The names in a comparison's operands that name a store's schema version (``version``,
+    ``self.version``, ``version_of(root)``, ``attrs["schema_version"]``, ``attrs.get("schema_version")``;
+    not TLS or package versions)."""
+    out = []
+    for op in [node.left, *node.comparators]:
+        for n in ast.walk(op):
+            if isinstance(n, ast.Name):
+                out.append(n.id)
+            elif isinstance(n, ast.Attribute):
+                out.append(n.attr)
+            elif isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant):
+                out.append(str(n.slice.value))
+            elif isinstance(n, ast.Call) and n.args and isinstance(n.args[0], ast.Constant):
+                out.append(str(n.args[0].value))
+    return [s for s in out if s in ("version", "version_of") or "schema_version" in s.lower()]
+
+
+def test_only_the_upgrade_module_branches_on_a_schema_version():
+    """Older stores come through one door (``stores.upgrade``): no module of stores, pipeline or
+    training outside it compares a schema version."""
+    found = []
+    for pkg in ("stores", "pipeline", "training"):
+        for p in (ROOT / pkg).rglob("*.py"):
+            if p.relative_to(ROOT).as_posix().startswith("stores/upgrade/"):
+                continue
+            for node in ast.walk(ast.parse(p.read_text())):
+                if isinstance(node, ast.Compare) and (names := _version_operands(node)):
+                    found.append(f"{p.relative_to(ROOT)}:{node.lineno} {', '.join(names)}")
+    assert not found, "comparisons of a version outside stores/upgrade/:\n" + "\n".join(found)
+    # the test sees such a branch: the upgrade package's own
+    text = (ROOT / "stores" / "upgrade" / "__init__.py").read_text()
+    assert any(isinstance(n, ast.Compare) and _version_operands(n) for n in ast.walk(ast.parse(text)))

@@ -137,17 +137,6 @@ def test_store_written_before_the_encoding_field_reads_validates_and_resumes(tmp
             open_or_create(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": enc}))
 
 
-def test_schema_v1_lz4_store_still_reads(tmp_path):
-    path = tmp_path / "v1.zarr"
-    create.create_store(path, StoreLayout(**{**LAYOUT.to_dict(), "encoding": "lz4"}), schema_version=1)
-    fr = synthetic_frame(3, H, W, S)
-    StoreWriter(path).write_frame(0, fr)
-    _strip_encoding(path)
-    out = open_store(path).read_frame(0)
-    np.testing.assert_array_equal(out["radiance"], fr["radiance"])
-    np.testing.assert_array_equal(out["layers"], fr["layers"])
-
-
 def test_layout_encoding_field_and_config_keys():
     from pipeline.config import STORE_KEYS
     assert "encoding" in STORE_KEYS

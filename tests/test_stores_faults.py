@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline.__main__ import main as pipeline_main
-from stores import chunk_files, create, schema
+from stores import chunk_files, schema
 from stores.errors import (ArrayMetadataError, CorruptChunkError, MissingShardError, StoreCorruptionError,
                            StoreLayoutError)
 from stores.reader import frame_problems, open_store
@@ -28,12 +28,8 @@ S = 2
 LAYOUT = StoreLayout(num_frames=3, height=H, width=W, spp=S, tile=8)     # 2x2 inner chunks per shard
 
 
-def _write(path, layout=LAYOUT, version=schema.SCHEMA_VERSION, frames=None):
-    if version != schema.SCHEMA_VERSION:
-        create.create_store(path, layout, {}, schema_version=version)
-        w = StoreWriter(path)
-    else:
-        w = open_or_create(path, layout, {})
+def _write(path, layout=LAYOUT, frames=None):
+    w = open_or_create(path, layout, {})
     frames = frames or [synthetic_frame(i, H, W, S, motion=False) for i in range(layout.num_frames)]
     for i, fr in enumerate(frames):
         w.write_frame(i, fr)
@@ -47,20 +43,9 @@ def store(tmp_path):
     return path
 
 
-@pytest.fixture()
-def store_v2(tmp_path):
-    """A schema v2 store (one chunk file a frame for every ``frames/*`` and ``status/*`` value; stores
-    written before issue 22 stay readable and resumable): the tests of per-frame metadata chunks."""
-    path = tmp_path / "v2.zarr"
-    _write(path, version=2)
-    return path
-
-
 def _shard(path, array, frame):
-    """The file holding ``array``'s chunk or shard of ``frame`` in the store at ``path`` (its version's)."""
-    import zarr
-    version = int(zarr.open_group(str(path), mode="r").attrs["schema_version"])
-    spec = next(s for s in schema.arrays(version) if s.path == array)
+    """The file holding ``array``'s chunk or shard of ``frame`` in the store at ``path``."""
+    spec = schema.ARRAY_BY_PATH[array]
     return os.path.join(path, *array.split("/"), *chunk_files.chunk_key(spec, frame).split("/"))
 
 
@@ -203,39 +188,6 @@ def test_mark_damaged_refuses_while_a_dataset_run_holds_the_store(store, capsys)
     capsys.readouterr()
 
 
-def test_damaged_completion_flag_means_rerender(store_v2):
-    f = _shard(store_v2, "status/complete", 1)
-    data = bytearray(open(f, "rb").read())
-    data[0] ^= 0x01
-    open(f, "wb").write(bytes(data))
-    assert StoreWriter(store_v2).incomplete_frames() == [1]
-
-
-def test_a_lost_completion_flag_is_damage_not_an_incomplete_frame(store_v2, capsys):
-    """Frame 1's status/complete chunk file is deleted: validate says damage (exit 3, naming the file),
-    not "incomplete" (exit 1); the resume re-renders the frame. A frame never started (no status chunk
-    at all) stays merely incomplete."""
-    f = _shard(store_v2, "status/complete", 1)
-    os.unlink(f)
-    code, text = _validate(store_v2, capsys)
-    assert code == EXIT_DAMAGED and "status/complete: frame 1" in text and str(f) in text, text
-    assert StoreWriter(store_v2).incomplete_frames() == [1]
-    os.unlink(_shard(store_v2, "status/error", 1))                 # as a frame whose first step never ran
-    code, text = _validate(store_v2, capsys)
-    assert code == EXIT_PROBLEMS and "incomplete" in text and "DAMAGE" not in text, text
-
-
-def test_flipped_byte_in_a_frame_scalar_is_detected(store_v2, capsys):
-    f = _shard(store_v2, "frames/scene_seed", 1)
-    data = bytearray(open(f, "rb").read())
-    data[0] ^= 0x04
-    open(f, "wb").write(bytes(data))
-    code, text = _validate(store_v2, capsys)
-    assert code == EXIT_DAMAGED and "frames/scene_seed: frame 1" in text, text
-    with pytest.raises(CorruptChunkError, match="frames/scene_seed: frame 1"):
-        open_store(store_v2).complete_frames()
-
-
 # ----------------------------------------------------------------------------- 3. edited metadata
 @pytest.mark.parametrize("edit,expect", [
     (lambda m: m.update(data_type="int32"), "data_type 'int32', the schema says 'float32'"),
@@ -329,33 +281,8 @@ def test_black_frame_is_not_flagged(tmp_path):
     assert frame_problems(open_store(path), 0) == [] and validate_store(path).ok
 
 
-# ----------------------------------------------------------------------------- v1 stays readable
-def test_schema_v1_store_stays_readable_and_appendable(tmp_path, capsys):
-    path = tmp_path / "v1.zarr"
-    frames = _write(path, version=1)
-    st = open_store(path)
-    assert st.version == 1 and st.schema_version == 1
-    for fast in (True, False):
-        out = open_store(path, fast=fast).read_frame(2)
-        np.testing.assert_array_equal(out["reference"], frames[2]["reference"])
-    assert list(st.meta_column("frame")) == [0, 0, 0]
-    assert "frames/frame" in st.root and "frames/frame_in_clip" not in st.root
-    # v1 writers skipped all-zero shards (zarr's default): such a store reads them as zeros and
-    # validate only notes them (today's writer writes them, so remove one as the old writer left it)
-    os.remove(_shard(path, "guides/motion", 0))
-    assert not open_store(path).read_array("guides/motion", 0).any()
-    code, text = _validate(path, capsys)
-    assert code == EXIT_OK and "note: guides/motion: no shard file" in text, text
-    # an edited v1 zarr.json is refused as well
-    f = os.path.join(path, "reference", "radiance", "zarr.json")
-    meta = json.load(open(f))
-    meta["data_type"] = "int32"
-    json.dump(meta, open(f, "w"))
-    with pytest.raises(ArrayMetadataError, match="reference/radiance: data_type 'int32'"):
-        open_store(path)
-
-
-def test_v2_xarray_coordinates_and_consolidated_metadata(store):
+# ----------------------------------------------------------------------------- xarray
+def test_xarray_coordinates_and_consolidated_metadata(store):
     xr = pytest.importorskip("xarray")
     import warnings
     with warnings.catch_warnings():
@@ -432,89 +359,45 @@ def test_every_entry_point_exits_3_on_a_damaged_store(store, tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- 2. missing metadata chunks
 @pytest.mark.parametrize("fast", [True, False])
-def test_missing_camera_matrix_chunk_is_not_a_zero_matrix(store_v2, capsys, fast):
-    f = _shard(store_v2, "frames/camera_to_world", 1)
-    assert f.endswith(os.path.join("c", "1", "0", "0"))
+def test_missing_camera_matrix_chunk_is_not_a_zero_matrix(store, capsys, fast):
+    f = _shard(store, "frames/camera_to_world", 1)
+    assert f.endswith(os.path.join("c", "0", "0", "0"))       # one chunk holds every frame's matrix
     os.remove(f)
-    st = open_store(store_v2, fast=fast)
+    st = open_store(store, fast=fast)
     for read in (lambda: st.frames_meta(1), lambda: st.read_frame(1), lambda: st.read_frame(1, ["camera_to_world"])):
         with pytest.raises(MissingShardError, match="frames/camera_to_world: frame 1 is marked complete") as e:
             read()
         assert (e.value.array, e.value.frame, e.value.path) == ("frames/camera_to_world", 1, f)
-    assert st.frames_meta(0)["camera_to_world"].any() and st.complete_frames() == [0, 1, 2]
-    code, text = _validate(store_v2, capsys)
+    assert list(st.complete_flags()) == [True] * 3 and list(st.metadata_damage()) == [0, 1, 2]
+    code, text = _validate(store, capsys)
     assert code == EXIT_DAMAGED, text
     assert f"frames/camera_to_world: frame 1 is complete but its chunk file {f} is missing" in text, text
     assert text.count("frames/camera_to_world: frame 1") == 1, text
 
 
-def test_missing_clip_id_chunk_is_not_clip_0(store_v2, capsys):
+def test_missing_clip_id_chunk_is_not_clip_0(store, capsys):
     """A lost frames/clip_id chunk would read as clip 0 and could move the frame to another split."""
-    f = _shard(store_v2, "frames/clip_id", 1)
+    f = _shard(store, "frames/clip_id", 1)
     os.remove(f)
-    st = open_store(store_v2)
+    st = open_store(store)
     for read in (lambda: st.frames_in_split("train"), lambda: st.split_of_frame(1), lambda: st.clips(),
                  lambda: st.frames_meta(1), lambda: st.read_frame(1, ["reference"])):
-        with pytest.raises(MissingShardError, match=f"frames/clip_id: frame 1 .*{f} is missing") as e:
-            read()
-        assert (e.value.array, e.value.frame, e.value.path) == ("frames/clip_id", 1, f)
-    st.read_frame(0)                                  # the other frames still read one by one
-    assert list(st.metadata_damage()) == [1]
-    code, text = _validate(store_v2, capsys)
+        with pytest.raises(MissingShardError, match=f"frames/clip_id: frame [01] .*{f} is missing") as e:
+            read()          # whole-store questions name the first frame the chunk held, frame questions frame 1
+        assert (e.value.array, e.value.path) == ("frames/clip_id", f) and e.value.frame in (0, 1)
+    assert list(st.metadata_damage()) == [0, 1, 2]          # the chunk held all three
+    code, text = _validate(store, capsys)
     assert code == EXIT_DAMAGED and f"frames/clip_id: frame 1 is complete but its chunk file {f} is missing" in text
     torch = pytest.importorskip("torch")  # noqa: F841
     from training.datasets import SampleFrames
-    with pytest.raises(MissingShardError, match="frames/clip_id: frame 1"):
-        SampleFrames(store_v2, split="train", spp=S, crop=8)
+    with pytest.raises(MissingShardError, match="frames/clip_id: frame 0"):
+        SampleFrames(store, split="train", spp=S, crop=8)
 
 
-def test_missing_metadata_chunk_of_an_incomplete_frame_is_not_damage(tmp_path, capsys):
-    path = tmp_path / "s.zarr"
-    create.create_store(path, LAYOUT, {}, schema_version=2)        # v2: a chunk file a frame
-    w = StoreWriter(path)
-    for i in range(2):
-        w.write_frame(i, synthetic_frame(i, H, W, S))
-    w.mark_failed(1, "render crashed")
-    os.remove(_shard(path, "frames/clip_id", 1))
-    assert open_store(path).complete_frames() == [0]
-    code, text = _validate(path, capsys)
-    assert code == EXIT_PROBLEMS and "DAMAGE" not in text, text
-
-
-# ----------------------------------------------------------------------------- 3. validate lists it all
 def _flip(f, at=0):
     data = bytearray(open(f, "rb").read())
     data[at] ^= 0x04
     open(f, "wb").write(bytes(data))
-
-
-def test_validate_lists_every_damaged_metadata_chunk_and_missing_shard(store_v2, capsys):
-    """A corrupt camera matrix (frame 1), two corrupt frames/* chunks (frames 0 and 2) and a missing
-    shard (frame 2): one report names them all, --json reads, --mark-damaged marks all three frames."""
-    bad = {_shard(store_v2, "frames/world_to_clip", 1): "frames/world_to_clip: frame 1",
-           _shard(store_v2, "frames/scene_seed", 0): "frames/scene_seed: frame 0",
-           _shard(store_v2, "frames/clip_id", 2): "frames/clip_id: frame 2"}
-    for f in bad:
-        _flip(f)
-    gone = _shard(store_v2, "guides/depth", 2)
-    os.remove(gone)
-    code, text = _validate(store_v2, capsys)
-    assert code == EXIT_DAMAGED and "Traceback" not in text, text
-    for f, what in bad.items():
-        assert what in text and f in text, (what, text)
-    assert f"guides/depth: frame 2 is complete but its chunk file {gone} is missing" in text, text
-    assert pipeline_main(["validate", str(store_v2), "--json"]) == EXIT_DAMAGED
-    rep = json.loads(capsys.readouterr().out)
-    assert rep["damaged"] and [f["index"] for f in rep["frames"] if f["damage"]] == [0, 1, 2]
-    assert pipeline_main(["validate", str(store_v2), "--frames", "1", "--mark-damaged"]) == EXIT_DAMAGED
-    assert "marked 1 damaged frame(s) incomplete: [1]" in capsys.readouterr().err
-    assert pipeline_main(["validate", str(store_v2), "--mark-damaged"]) == EXIT_DAMAGED
-    assert "marked 3 damaged frame(s) incomplete: [0, 1, 2]" in capsys.readouterr().err
-    w = StoreWriter(store_v2)
-    assert w.incomplete_frames() == [0, 1, 2] and w.errors()[1].startswith("damaged: frames/world_to_clip: frame 1")
-    for i in range(3):                                  # a resume rewrites them: the store_v2 is sound again
-        w.write_frame(i, synthetic_frame(i, H, W, S, motion=False))
-    assert _validate(store_v2, capsys)[0] == EXIT_OK
 
 
 # ----------------------------------------------------------------------------- 4. completion flag metadata

@@ -128,13 +128,18 @@ def test_seed_reproduces_and_resume_is_exact(store, tmp_path):
     assert not all(torch.equal(wa[k], wd[k]) for k in wa)
 
 
-def test_resume_refuses_other_settings_and_schema(store, tmp_path):
+def test_resume_refuses_other_settings(store, tmp_path):
     train(cfg(steps=1), store, tmp_path / "r", progress=False)
     with pytest.raises(CheckpointError, match="lr"):
         train(cfg(steps=2, lr=0.001), store, tmp_path / "r", progress=False)
+    # the same store upgraded from an older schema version (python -m stores upgrade) is the same store;
+    # another layout is not
+    from training.loop import check_same_store
     ck = ckpt.load(tmp_path / "r" / "checkpoint.pt")
-    with pytest.raises(CheckpointError, match="schema version"):
-        ckpt.check_store(ck, ck["store"]["schema_version"] + 1)
+    old = {**ck, "store": {**ck["store"], "schema_version": 2}}
+    check_same_store(old, ck["store"], "r")
+    with pytest.raises(CheckpointError, match="layout"):
+        check_same_store(old, {**ck["store"], "layout": {**ck["store"]["layout"], "height": 99}}, "r")
 
 
 def test_loss_decreases_on_the_store(store, tmp_path):

@@ -250,13 +250,6 @@ def upgrade(path, out=None) -> Path:
     return out
 
 
-def check_store(ck: dict, schema_version: int, path=None) -> None:
-    have = ck.get("store", {}).get("schema_version")
-    if have != schema_version:
-        raise CheckpointError(f"checkpoint {path or ''} was trained on a store of schema version {have}; "
-                              f"this store has version {schema_version}")
-
-
 def build_model(ck: dict, device="cpu"):
     """The checkpoint's model with its weights, in eval mode. A setting the checkpoint does not record (it
     was written before the setting existed, such as ``outliers``, training.models.robust) takes the value the

@@ -19,7 +19,7 @@ class UnknownModelError(TrainingError, KeyError):
 
 
 class CheckpointError(TrainingError, RuntimeError):
-    """A checkpoint cannot be read or does not match (model, config or the store's schema version)."""
+    """A checkpoint cannot be read or does not match (model, config or store)."""
 
 
 class DataError(TrainingError, RuntimeError):

@@ -162,7 +162,6 @@ def load_method(method, st, spp: int | None, device: str, compile: bool, baselin
                            input_kind=baseline_input))
     if isinstance(method, (str, Path)):
         ck = ckpt.load(method, map_location=device)
-        ckpt.check_store(ck, st.schema_version, method)
         model = ckpt.build_model(ck, device)
         spp = int(ck["train_config"].get("spp") or model.input_spec().default_spp) if spp is None else spp
         info = dict(method=ck["model"], checkpoint=str(method), train_steps=ck["step"], train_config=ck["train_config"])

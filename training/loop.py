@@ -5,8 +5,8 @@
 writes ``out/checkpoint.pt`` (every ``checkpoint_every`` steps and at the end) and ``out/metrics.csv``
 (``step, epoch, kind, loss, relmse, smape, psnr, seconds``; kind ``train`` or ``val``). If
 ``out/checkpoint.pt`` exists the run resumes from it and continues exactly as an uninterrupted run
-would (same batches, same optimiser state); a checkpoint from different settings or a store of
-another schema version is refused.
+would (same batches, same optimiser state); a checkpoint from different settings or another store is
+refused (the same store upgraded by ``python -m stores upgrade`` is the same store).
 
 Under ``torchrun --nproc_per_node N -m training train ...`` the same function trains with
 DistributedDataParallel (:mod:`training.distributed`: gloo on CPU, nccl on CUDA). ``batch`` is the
@@ -317,7 +317,8 @@ def check_same_store(ck: dict, now: dict, path) -> None:
             except Exception:  # noqa: BLE001 - an unreadable old layout is simply different
                 return was[k] == now[k]
         return was[k] == now[k]
-    diff = {k: (was[k], now[k]) for k in now if k in was and k != "left_out" and not same(k)}
+    # the schema version may differ: ``python -m stores upgrade`` keeps every value of the store it upgrades
+    diff = {k: (was[k], now[k]) for k in now if k in was and k not in ("left_out", "schema_version") and not same(k)}
     if diff:
         raise CheckpointError(f"{path} was trained on another store (field: (checkpoint, now)): {diff}; "
                               "resume on the same store, or train into a new --out")
@@ -444,7 +445,6 @@ class _Run:
         if prev.identity() != cfg.identity():
             diff = {k: (prev.identity()[k], v) for k, v in cfg.identity().items() if prev.identity()[k] != v}
             raise CheckpointError(f"{path} was trained with other settings (setting: (checkpoint, now)): {diff}")
-        ckpt.check_store(ck, self.store.schema_version, path)
         check_same_store(ck, self.store_info, path)
         trained = {**get(cfg.model).legacy_config, **ck["model_config"]}
         if trained != self.module.config:           # begun before a model setting existed: go on as it began
