@@ -26,7 +26,7 @@ DEFAULT_SUITES = ("render", "reference", "store", "dask")   # `make bench` (then
 # so a benchmark cannot rot unseen); the figures are then meaningless.
 TINY = {
     "render": {"res": 16, "ref_passes": 2, "ref_pass_spp": 8, "repeats": 1, "memory_res": 16, "e2e_res": 8,
-               "e2e_ref_spp": 16, "fph_res": 8, "counts_res": 16, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
+               "e2e_warm": False, "e2e_ref_spp": 16, "fph_res": 8, "counts_res": 16, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
     "reference": {"res": 8, "ref_spp": 64, "scene_gen": {"indoor_objects": 4, "outdoor_objects": 6}},
     "store": {"crops": 4, "crop": 16, "frames": 2, "size": 32},
     "dask": {"frames": 2, "res": 8, "ref_spp": 16, "objects": 3, "noop_tasks": 20},

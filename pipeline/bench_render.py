@@ -15,12 +15,14 @@ the dataset, in the same run), since the machine may be shared:
   Each scene is loaded, timed and freed in turn, alone in the process: drjit traces a virtual call for
   every instance alive, so a scene timed beside another is slower (the Cornell box by a third beside
   one generated scene; figures before this rule flattered the generated scenes);
-- **end-to-end dataset samples/s vs plain mi.render** (the throughput measure): ``python -m pipeline
-  dataset`` on four stills (two indoor, two outdoor, default scene generator) on a LocalCluster of
-  ``e2e_workers`` workers, all samples (inputs, layers, references) over the wall time, start-up and
-  validation included, against plain ``mi.render`` of the same frames and samples (each scene loaded
-  as the renderer loads it, its samples in one call on as many drjit threads; :func:`plain_render`);
-  also per CPU-second, the figure to read when other work shares the machine. The Cornell box at the
+- **end-to-end dataset samples/s vs plain mi.render** (the throughput measure, issue 57): ``python -m
+  pipeline dataset`` on eight frames (two indoor and two outdoor stills, and a 4-frame indoor clip whose
+  camera and objects move; default scene generator) at 128x128 and at 256x256 on a LocalCluster of
+  ``e2e_workers`` workers, caches warm (a first run at 128x128 fills them), all samples (inputs, layers,
+  the references' samples as taken) over the wall time, start-up and validation included, against plain
+  ``mi.render`` of the same frames and samples (each frame's scene loaded as the renderer loads it, its
+  samples in one call on as many drjit threads; :func:`plain_render`); also per CPU-second, the figure to
+  read when other work shares the machine, and the share of the cores' time the run left idle. The Cornell box at the
   same size is printed beside it as content, not a target: a generated sample is dearer (see
   docs/throughput.md);
 - **frames per hour at 256x256** for the default scene mix: ``pipeline.estimate.calibrate`` of the
@@ -208,17 +210,27 @@ def _print_counts(c: dict) -> None:
                   f"kernels, mi.render {b['own_kernels']}", flush=True)
 
 
-def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: str | None = None,
-               render: dict | None = None) -> dict:
-    """Wall time and samples of ``python -m pipeline dataset`` on four stills (a child process);
-    ``render``: settings over the bench's (e.g. ``{"reference": "batch_means"}``, the method before)."""
+# The throughput measure's frames (issue 57): four stills and one 4-frame clip whose camera and objects move
+# (at the bench's seed, 4243, 19 of its 52 objects move).
+E2E_SCENES = ({"kind": "indoor", "count": 2}, {"kind": "outdoor", "count": 2},
+              {"kind": "indoor", "count": 1, "frames": 4})
+E2E_SIZES = (128, 256)             # where users render; at 64x64 the run's fixed costs are most of it
+
+
+def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, render: dict | None = None,
+               scenes=E2E_SCENES, seed: int = 4243) -> dict:
+    """Wall and CPU time of ``python -m pipeline dataset`` on ``scenes`` (a child process, warm caches: run
+    once first where they may be cold) against plain ``mi.render`` of the same frames and samples
+    (:func:`plain_render`: each frame's inputs, layers and the reference samples it took). ``render``:
+    settings over the bench's. Also the share of the cores' time the run left idle."""
     import yaml
+
+    from stores.reader import open_store
     passes = 32 if ref_spp >= 32 * 16 else 8
-    cfg = {"name": "bench-e2e", "seed": 4242, "resolution": [res, res],
-           "scenes": [{"kind": "indoor", "count": 2}, {"kind": "outdoor", "count": 2}],
-           "render": {"spp": 8, "layer_levels": 6, "ref_spp": ref_spp, "ref_passes": passes,
-                      "ref_min_passes": passes // 2, **(render or {})},
-           "scene_gen": scene_gen, "tasks": {"retries": 0},
+    rc = {"spp": 8, "layer_levels": 6, "ref_spp": ref_spp, "ref_passes": passes, "ref_min_passes": passes // 2,
+          **(render or {})}
+    cfg = {"name": "bench-e2e", "seed": seed, "resolution": [res, res], "scenes": [dict(g) for g in scenes],
+           "render": rc, "scene_gen": scene_gen, "tasks": {"retries": 0},
            "cluster": {"kind": "local", "workers": workers, "threads_per_worker": 1, "dashboard_address": None}}
     with tempfile.TemporaryDirectory(prefix="bench-e2e-", dir=scratch_dir()) as tmp:
         path = Path(tmp) / "e2e.yaml"
@@ -235,36 +247,44 @@ def end_to_end(*, res: int, ref_spp: int, workers: int, scene_gen: dict, keep: s
         if r.returncode != 0:
             raise RuntimeError("the end-to-end dataset run failed: "
                                + "\n".join((r.stdout + r.stderr).strip().splitlines()[-8:]))
-        spp = 8 + 63 + ref_spp                      # inputs, layers of 1 ... 32 spp, reference
-        samples = 4 * res * res * spp
+        store = open_store(Path(tmp) / "e2e.zarr")
+        layers = sum(2 ** n for n in range(rc["layer_levels"]))        # 1 + 2 + ... + 32 = 63
+        spp = [int(rc["spp"] + layers + s) for s in store.meta_column("reference_spp")]
+        moving = int(np.sum(store.meta_column("has_motion")))
+        samples = res * res * sum(spp)
         plain = plain_render(Path(tmp) / "e2e.zarr", spp=spp, threads=workers,
                              cfg=dict(res=(res, res), spp=8, layer_levels=6, ref_spp=ref_spp, ref_passes=passes,
                                       ref_min_passes=passes // 2))
-    return {"wall_s": wall, "cpu_s": cpu, "samples": samples, "msamples_per_s": samples / wall / 1e6,
-            "msamples_per_cpu_s": samples / cpu / 1e6, "plain_wall_s": plain["wall_s"],
-            "plain_msamples_per_s": samples / plain["wall_s"] / 1e6,
-            "plain_msamples_per_cpu_s": samples / plain["cpu_s"] / 1e6}
+    return {"res": res, "frames": len(spp), "moving_frames": moving, "wall_s": wall, "cpu_s": cpu,
+            "samples": samples, "msamples_per_s": samples / wall / 1e6, "msamples_per_cpu_s": samples / cpu / 1e6,
+            "idle_core_share": max(0.0, 1.0 - cpu / (wall * workers)), "plain_wall_s": plain["wall_s"],
+            "plain_cpu_s": plain["cpu_s"], "plain_msamples_per_s": samples / plain["wall_s"] / 1e6,
+            "plain_msamples_per_cpu_s": samples / plain["cpu_s"] / 1e6,
+            "ratio": plain["wall_s"] / wall, "ratio_per_cpu_s": plain["cpu_s"] / cpu}
 
 
-def plain_render(store_path, *, spp: int, threads: int, cfg: dict) -> dict:
+def plain_render(store_path, *, spp, threads: int, cfg: dict) -> dict:
     """The same frames and samples with plain ``mi.render``, the measure of the pipeline's throughput:
-    each frame of the store at ``spp`` (all its inputs, layers and reference samples) in one call on
-    ``threads`` drjit threads, its scene loaded as the renderer loads it (scene loading and kernel
-    compilation timed, as the dataset run's are), one scene alive at a time. Wall and CPU seconds."""
+    each frame of the store (its own frame of its clip) at its ``spp`` (a list, a frame each: all its
+    inputs, layers and reference samples; or one count for all) in one call on ``threads`` drjit threads,
+    its scene loaded as the renderer loads it (scene loading and kernel compilation timed, as the dataset
+    run's are), one scene alive at a time. Wall and CPU seconds."""
     from pipeline import render as R
     from scene_gen.spec import SceneSpec
     from stores.reader import open_store
     store = open_store(store_path)
-    specs = [SceneSpec.from_json(store.scene_json(i)) for i in range(store.num_frames)]
+    frames = store.meta_column("frame")
+    jobs = [(SceneSpec.from_json(store.scene_json(i)), int(frames[i]),
+             int(spp[i]) if hasattr(spp, "__len__") else int(spp)) for i in range(store.num_frames)]
     rc = R.RenderConfig(**cfg)
     import drjit as dr                  # the process's renderer is loaded (run() timed it first)
     before = int(dr.thread_count())
     dr.set_thread_count(threads)
     try:
         t, c = time.perf_counter(), time.process_time()
-        for spec in specs:
-            fs = R.FrameScene(spec, 0, rc)
-            np.asarray(fs.mi.render(fs.scene, spp=spp, seed=1))
+        for spec, frame, n in jobs:
+            fs = R.FrameScene(spec, frame, rc)
+            np.asarray(fs.mi.render(fs.scene, spp=n, seed=1))
             del fs
             _collect()
         return {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c}
@@ -419,25 +439,35 @@ def _cornell_rates(mi, dr, *, res: int, max_depth: int, workers: int, threads: i
     return cb_rate, cb_cpu_rate
 
 
-def _dataset_section(mi, dr, *, res: int, ref_spp: int, workers: int, threads: int, scene_gen: dict,
-                     max_depth: int) -> dict:
-    """The end-to-end dataset run (:func:`end_to_end`) against plain ``mi.render`` of its frames and against
-    the Cornell box at its size, with as many threads as its workers: figures, printed."""
-    e2e = end_to_end(res=res, ref_spp=ref_spp, workers=workers, scene_gen=scene_gen)
-    cb_rate, cb_cpu_rate = _cornell_rates(mi, dr, res=res, max_depth=max_depth, workers=workers, threads=threads)
-    out = {"dataset_msamples_per_s": e2e["msamples_per_s"], "dataset_wall_s": e2e["wall_s"],
-           "dataset_cpu_s": e2e["cpu_s"], "dataset_samples": e2e["samples"],
-           "dataset_cornell_msamples_per_s": cb_rate, "dataset_vs_cornell": e2e["msamples_per_s"] / cb_rate,
-           "dataset_vs_cornell_per_cpu_s": e2e["msamples_per_cpu_s"] / cb_cpu_rate}
-    out.update({"dataset_plain_msamples_per_s": e2e["plain_msamples_per_s"],
-                "dataset_vs_mi_render": e2e["msamples_per_s"] / e2e["plain_msamples_per_s"],
-                "dataset_vs_mi_render_per_cpu_s": e2e["msamples_per_cpu_s"] / e2e["plain_msamples_per_cpu_s"]})
-    print(f"  dataset     {e2e['msamples_per_s']:.2f} Msamples/s end to end ({e2e['samples'] / 1e6:.1f} M samples, "
-          f"4 stills {res}x{res}, {ref_spp}-spp references, {workers} workers, {e2e['wall_s']:.0f} s) "
-          f"vs plain mi.render of the same frames and samples {e2e['plain_msamples_per_s']:.2f} "
-          f"({e2e['plain_wall_s']:.0f} s): ratio {out['dataset_vs_mi_render']:.2f}, per CPU-second "
-          f"{out['dataset_vs_mi_render_per_cpu_s']:.2f} (the throughput measure); vs the Cornell box "
-          f"{cb_rate:.2f}: {out['dataset_vs_cornell']:.2f} (content, not the pipeline)", flush=True)
+def _dataset_section(mi, dr, *, sizes, ref_spp: int, workers: int, threads: int, scene_gen: dict,
+                     max_depth: int, warm: bool = True) -> dict:
+    """The throughput measure at each of ``sizes``: the end-to-end dataset run (:func:`end_to_end`, after a
+    run of the same frames with 64-spp references so that caches are warm: some kernels depend on the
+    film's size) against plain ``mi.render`` of its frames, and against the Cornell box at the first
+    size, with as many threads as its workers: figures, printed."""
+    out, runs = {}, {}
+    for res in sizes:
+        if warm:        # the same scenes at this size: their kernels in drjit's disk cache, meshes cached
+            end_to_end(res=res, ref_spp=min(ref_spp, 64), workers=workers, scene_gen=scene_gen)
+        e2e = runs[res] = end_to_end(res=res, ref_spp=ref_spp, workers=workers, scene_gen=scene_gen)
+        out.update({f"dataset_vs_mi_render_{res}": e2e["ratio"],
+                    f"dataset_vs_mi_render_per_cpu_s_{res}": e2e["ratio_per_cpu_s"],
+                    f"dataset_idle_core_share_{res}": e2e["idle_core_share"]})
+        print(f"  dataset {res}x{res}: {e2e['frames']} frames ({e2e['frames'] - 4} of a clip, {e2e['moving_frames']} "
+              f"with motion in the shutter), {e2e['samples'] / 1e6:.1f} M samples, {ref_spp}-spp references, {workers} "
+              f"workers: {e2e['wall_s']:.0f} s ({e2e['cpu_s']:.0f} CPU-s) vs plain mi.render of the same frames "
+              f"and samples {e2e['plain_wall_s']:.0f} s ({e2e['plain_cpu_s']:.0f} CPU-s): ratio {e2e['ratio']:.2f}, "
+              f"per CPU-second {e2e['ratio_per_cpu_s']:.2f}, cores idle {100 * e2e['idle_core_share']:.0f}% "
+              "(the throughput measure)", flush=True)
+    first = runs[sizes[0]]
+    cb_rate, cb_cpu_rate = _cornell_rates(mi, dr, res=sizes[0], max_depth=max_depth, workers=workers,
+                                          threads=threads)
+    out.update({"dataset_e2e": runs, "dataset_msamples_per_s": first["msamples_per_s"],
+                "dataset_vs_mi_render": first["ratio"], "dataset_vs_mi_render_per_cpu_s": first["ratio_per_cpu_s"],
+                "dataset_cornell_msamples_per_s": cb_rate, "dataset_vs_cornell": first["msamples_per_s"] / cb_rate,
+                "dataset_vs_cornell_per_cpu_s": first["msamples_per_cpu_s"] / cb_cpu_rate})
+    print(f"  dataset {sizes[0]}x{sizes[0]} vs the Cornell box at its size {cb_rate:.2f} Msamples/s: "
+          f"{out['dataset_vs_cornell']:.2f} (content, not the pipeline)", flush=True)
     return out
 
 
@@ -470,11 +500,11 @@ def _memory_section(*, seed: int, kind: str, res: int) -> dict:
 
 def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, ref_passes: int = 4,
         ref_pass_spp: int = 128, repeats: int = 3, memory: bool = True, memory_res: int = 256,
-        e2e_res: int = 64, e2e_ref_spp: int = 1024, e2e_workers: int | None = None, fph_res: int = 256,
+        e2e_res=E2E_SIZES, e2e_ref_spp: int = 1024, e2e_warm: bool = True, e2e_workers: int | None = None, fph_res: int = 256,
         counts_res: int = 64, scene_gen: dict | None = None) -> dict:
     """Print and return the renderer's figures (dict of floats). ``memory_res``: the edge of the frame
     whose peak memory is measured in a child process (256 for the target; the tests use a tiny one);
-    ``e2e_*``: the end-to-end dataset run; ``fph_res``: the frames-per-hour resolution (0: skip);
+    ``e2e_*``: the end-to-end dataset runs (``e2e_res``: their sizes; empty: skip); ``fph_res``: the frames-per-hour resolution (0: skip);
     ``counts_res``: the frame of :func:`kernel_counts` (8 spp; 0: skip);
     ``scene_gen``: overrides of the default config's scene generator (the tiny run's few objects)."""
     from pipeline.config import load_config
@@ -497,8 +527,10 @@ def run(*, seed: int = 0, kind: str = "indoor", res: int = 128, spp: int = 8, re
     if counts_res:
         out["launches"] = _launches_section(seed=seed, kind=kind, res=counts_res, scene_gen=scene_gen)
     if e2e_res:
-        out.update(_dataset_section(mi, dr, res=e2e_res, ref_spp=e2e_ref_spp, workers=workers,
-                                    threads=t["threads"], scene_gen=scene_gen, max_depth=spec.max_depth))
+        sizes = (e2e_res,) if isinstance(e2e_res, int) else tuple(e2e_res)
+        out.update(_dataset_section(mi, dr, sizes=sizes, ref_spp=e2e_ref_spp, workers=workers,
+                                    threads=t["threads"], scene_gen=scene_gen, max_depth=spec.max_depth,
+                                    warm=e2e_warm))
     if fph_res:
         out.update(_frames_per_hour_section(res=fph_res, workers=workers, scene_gen=overrides))
     if memory:
