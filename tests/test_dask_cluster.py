@@ -167,17 +167,18 @@ def test_a_gpu_machine_gets_one_worker_per_gpu_each_seeing_its_own(monkeypatch):
         assert sorted(seen.values()) == ["0", "1"]
         assert conn.client.submit(_gpu_env, resources={"GPU": 1}, pure=False).result() in ("0", "1")
         assert conn.cluster.gpus == ["0", "1"]
-        gone = next(a for a, g in seen.items() if g == "1")
-        name = next(n for n, spec in conn.cluster.worker_spec.items()
-                    if spec["options"]["env"]["CUDA_VISIBLE_DEVICES"] == "1")
-        del conn.cluster.worker_spec[name]
+        # a worker that goes (scaled down: its spec and process) is replaced by one on the GPU it held
+        import time
+        conn.cluster.scale(1)
+        t0 = time.monotonic()
+        while len(conn.client.scheduler_info(n_workers=-1)["workers"]) > 1 and time.monotonic() - t0 < 60:
+            time.sleep(0.1)
+        left = list(conn.client.run(_gpu_env).values())
+        assert len(left) == 1
         conn.cluster.scale(2)
         conn.client.wait_for_workers(2, timeout=60)
-        import time
-        t0 = time.monotonic()
-        while gone in conn.client.scheduler_info(n_workers=-1)["workers"] and time.monotonic() - t0 < 60:
-            time.sleep(0.2)
-        assert sorted(conn.client.run(_gpu_env).values()) == ["0", "1"]
+        now = conn.client.run(_gpu_env)
+        assert sorted(now.values()) == ["0", "1"] and not set(now) & set(seen) - {a for a, g in seen.items() if g in left}
         conn.cluster.scale(3)                                  # more workers than GPUs: still one a GPU
         assert len(conn.cluster.worker_spec) == 2
         with pytest.raises(cl.ClusterError, match="one worker a GPU"):
