@@ -10,7 +10,8 @@ in ..." after that line, or cut the clean-up short (a LocalCluster left to close
 semaphores leaked). Ignoring, unlike a handler written in Python, also outlives the interpreter's
 finalisation (a press there ended the process by SIGINT, exit -2, not 130). A command that does more
 with Ctrl-C (``train`` finishes the step under way) installs its own handler for that while and calls
-:func:`stopping` when it stops.
+:func:`stopping` when it stops. A first press whose handler runs where Python would swallow its
+KeyboardInterrupt (a garbage collector's callback, a ``__del__``) is delivered again just after.
 
 :func:`held_back` starts processes with Ctrl-C held back, so that they begin with SIGINT blocked: a press
 that reached a child before its own set-up ignored SIGINT printed the child's traceback.
@@ -30,8 +31,33 @@ def install() -> None:
 
 
 def _first_press(signum, frame) -> None:
+    if _swallowed(frame):
+        # Python prints "Exception ignored in ..." for an exception raised here and goes on: the press would
+        # be lost (a dataset run pressed five times ran to its end). Deliver it again once this is over.
+        _redeliver(signum)
+        return
     stopping()
     raise KeyboardInterrupt
+
+
+def _swallowed(frame) -> bool:
+    """Whether an exception raised at ``frame`` would be swallowed: it runs inside a garbage collector's
+    callback (``gc.callbacks``: distributed registers one) or a ``__del__``."""
+    import gc
+    codes = {getattr(getattr(cb, "__func__", cb), "__code__", None) for cb in list(gc.callbacks)}
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _redeliver(signum: int, delay: float = 0.02) -> None:
+    """The press again in ``delay`` seconds, from a thread (the handler then runs outside what swallowed it)."""
+    import os
+    t = threading.Timer(delay, os.kill, (os.getpid(), signum))
+    t.daemon = True
+    t.start()
 
 
 def stopping() -> None:
