@@ -95,11 +95,11 @@ def _records(table: dict, frames: list[int]) -> dict[int, dict]:
     """What :meth:`stores.writer.StoreWriter.commit` takes for ``frames``, from the old values."""
     from stores.contract import FRAME_META
     from stores.schema import ARRAY_BY_PATH, meta_path
+    columns = [(key, meta_path(key)) for key in FRAME_META if key != "scene_json"] + [("clip_id", meta_path("clip_id"))]
     out = {}
     for i in frames:
         meta = {}
-        for key in [k for k in FRAME_META if k != "scene_json"] + ["clip_id"]:
-            path = meta_path(key)
+        for key, path in columns:
             v = table[path][i] if path in table else ARRAY_BY_PATH[path].fill
             meta[key] = str(v) if FRAME_META.get(key) is str else v.item() if hasattr(v, "item") else v
         out[i] = {"meta": meta, **{k: np.asarray(table[f"frames/{k}"][i], np.float64).tolist()
@@ -111,13 +111,14 @@ def _copy_images(src_root, dst_root, frames: list[int]) -> dict[int, str]:
     """Copy every image array's stored values of ``frames``; frame -> why, for those that do not decode."""
     from stores.schema import ARRAYS
     specs = [s for s in ARRAYS if s.image]
+    src = {s.path: src_root[s.path] for s in specs}          # each array's zarr.json read once
     dst = {s.path: dst_root[s.path].with_config({"write_empty_chunks": True}) for s in specs}
     bad = {}
     for i in frames:
         values = {}
         for s in specs:
             try:
-                values[s.path] = src_root[s.path][i]
+                values[s.path] = src[s.path][i]
             except Exception as e:  # noqa: BLE001 - a damaged chunk: the frame is rendered again
                 bad[i] = f"{s.path}: {type(e).__name__}: {e}"
                 break
@@ -160,6 +161,7 @@ def copy(src, dst, *, progress: bool = False, say=None) -> dict:
     out = {"frames": n, "copied": 0, "kept": int((done_old & done_new).sum()), "incomplete": int((~done_old).sum()),
            "damaged": {}, "from_version": version}
     bar = _bar(n, progress)
+    firsts: set[int] = set()
     for lo in range(0, n, BATCH):
         batch = [i for i in range(lo, min(lo + BATCH, n)) if not done_new[i]]
         todo = [i for i in batch if done_old[i] and i not in bad_meta]
@@ -168,7 +170,8 @@ def copy(src, dst, *, progress: bool = False, say=None) -> dict:
         good = [i for i in todo if i not in damaged]
         for i in good:
             first = i - int(table["frames/frame_in_clip"][i])
-            if 0 <= first < n:
+            if 0 <= first < n and first not in firsts:      # once a clip: its frames share the JSON
+                firsts.add(first)
                 writer.write_scene_json(first, str(table["frames/scene_json"][i]))
         failures = {i: str(table["status/error"][i]) for i in batch if not done_old[i] and str(table["status/error"][i])}
         failures.update({i: f"damaged in the schema v{version} store ({why}); `python -m pipeline dataset` renders "
