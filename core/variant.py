@@ -102,6 +102,10 @@ def mitsuba(variant: str | None = None, threads: int | None = None):
     Raises :class:`VariantError` with a precise message when the variant cannot start (instead of an
     LLVM crash dump): a missing libLLVM names the Debian package and ``DRJIT_LIBLLVM_PATH``.
     """
+    if variant is None and not os.environ.get("MI_VARIANT") and "variant" in _state:
+        # The variant this process started: asking for the GPUs again would run nvidia-smi on every call
+        # (scene_gen.to_mitsuba calls this on every set_time, 16 times a moving reference).
+        variant = _state["variant"]
     variant = choose_variant(variant)
     if _state.get("variant") == variant:
         mi = _state["mi"]

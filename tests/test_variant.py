@@ -122,3 +122,25 @@ def test_only_core_variant_runs_nvidia_smi():
                    for p in (root / pkg).rglob("*.py")
                    if any(isinstance(n, ast.Constant) and n.value == "nvidia-smi" for n in ast.walk(ast.parse(p.read_text()))))
     assert found == ["core/variant.py"]
+
+
+def test_a_started_variant_is_returned_without_asking_for_the_gpus_again(mi, monkeypatch):
+    """After the first call, ``mitsuba()`` runs no subprocess: scene_gen.to_mitsuba asks for the module on every
+    ``set_time`` (16 a moving reference), and each ``nvidia-smi -L`` costs a GPU machine tens of milliseconds."""
+    import subprocess
+
+    import core.variant
+    import pipeline.render as R
+    from scene_gen import sampling
+
+    def no_subprocess(*a, **k):
+        raise AssertionError(f"mitsuba() ran a subprocess after the variant was started: {a}")
+    monkeypatch.delenv("MI_VARIANT", raising=False)
+    monkeypatch.setattr(subprocess, "run", no_subprocess)
+    assert core.variant.mitsuba() is mi and core.variant.mitsuba(threads=0) is mi
+    spec = sampling.sample_scene(0, "outdoor", num_frames=1, res=16)
+    assert spec.has_motion                  # a moving scene: every set_time asks for the module
+    fs = R.FrameScene(spec, 0, R.RenderConfig(res=(16, 16), spp=1, layer_levels=1, ref_spp=8, ref_passes=2,
+                                              ref_min_passes=2))
+    fs.set_time(0.5)
+    fs.set_time(0.0)
