@@ -88,6 +88,7 @@ class SharedSettings:
     material_palette: int = field(default=0, metadata=NEWER)   # > 0: content objects draw from K materials
     pymeshlab: bool = field(default=True, metadata=NEWER)      # false: no blob or boolean meshes (above)
     p_caustics: float = field(default=0.0, metadata={**PROBABILITY, **NEWER})   # scene_gen.phenomena
+    p_natural_textures: float = field(default=0.0, metadata={**PROBABILITY, **NEWER})   # scene_gen.phenomena
 
     def __post_init__(self):
         for n, s in self._families.items():

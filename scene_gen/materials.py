@@ -28,7 +28,7 @@ import colorsys
 import numpy as np
 
 from scene_gen.errors import SpecError
-from scene_gen.spec import MATERIAL_KINDS, TEXTURE_KINDS, MaterialSpec, TextureSpec
+from scene_gen.spec import MATERIAL_KINDS, PROCEDURAL_TEXTURE_KINDS, MaterialSpec, TextureSpec
 
 # Relative frequency of each kind (sums need not be 1). Diffuse-ish surfaces dominate real scenes.
 KIND_WEIGHTS = {
@@ -58,8 +58,9 @@ def random_color(rng: np.random.Generator, *, v_range=(0.05, 0.85), s_max: float
 
 
 def random_texture(rng: np.random.Generator, base: tuple | None = None, kind: str | None = None) -> TextureSpec:
-    """A procedural texture (one of ``TEXTURE_KINDS``) mixing two colours, UV scale log-uniform in [0.5, 16]."""
-    kind = kind or TEXTURE_KINDS[int(rng.integers(len(TEXTURE_KINDS)))]
+    """A procedural texture (one of ``PROCEDURAL_TEXTURE_KINDS``) mixing two colours, UV scale log-uniform in
+    [0.5, 16]."""
+    kind = kind or PROCEDURAL_TEXTURE_KINDS[int(rng.integers(len(PROCEDURAL_TEXTURE_KINDS)))]
     c0 = base if base is not None else random_color(rng)
     c1 = random_color(rng) if rng.uniform() < 0.6 else tuple(_f(c * rng.uniform(0.2, 0.6)) for c in c0)
     return TextureSpec(kind=kind, color0=c0, color1=c1, uv_scale=_f(np.exp(rng.uniform(np.log(0.5), np.log(16.0)))),

@@ -24,7 +24,10 @@ MESH_KINDS = ("sphere", "box", "cylinder", "capsule", "cone", "torus", "revolve"
               "boolean", "plane", "room", "file")
 MATERIAL_KINDS = ("diffuse", "conductor", "roughconductor", "dielectric", "roughdielectric",
                   "thindielectric", "plastic", "roughplastic", "principled", "blend")
-TEXTURE_KINDS = ("checker", "noise", "stripes", "cells")
+PROCEDURAL_TEXTURE_KINDS = ("checker", "noise", "stripes", "cells")     # what random materials draw from
+# "natural": 1/f noise with the statistics of photographed surfaces (scene_gen.textures), given by the
+# p_natural_textures phenomenon (scene_gen.phenomena), never drawn by random_texture (its draws stay as they were)
+TEXTURE_KINDS = PROCEDURAL_TEXTURE_KINDS + ("natural",)
 LIGHT_KINDS = ("area", "point", "envmap", "sunsky", "constant")
 
 Vec3 = tuple[float, float, float]

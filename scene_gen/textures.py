@@ -1,4 +1,5 @@
-"""Procedural textures (numpy only): two colours mixed by a pattern, tileable in UV.
+"""Procedural textures (numpy only): two colours mixed by a pattern, tileable in UV. The patterns: checker,
+stripes, value noise, Worley cells, and ``natural`` (1/f noise, :func:`natural`).
 
 ``make_texture(spec, size)`` returns float32 (H, W, 3) linear reflectance in [0, 1]; the UV scale is
 applied by the renderer (``to_uv``), so the bitmap itself tiles seamlessly over [0, 1]^2.
@@ -35,6 +36,25 @@ def fbm(rng: np.random.Generator, size: int, octaves: int = 5) -> np.ndarray:
     return out / total
 
 
+def natural(rng: np.random.Generator, size: int) -> np.ndarray:
+    """A pattern with the statistics of photographed surfaces, in [0, 1], (size, size), tileable: white noise
+    shaped in frequency to a power spectrum 1/f^a, a in [1.6, 2.6] (natural images: about 2; value noise
+    (``fbm``) falls off faster and has its octaves' grid), stretched along one axis by 1-6x (grain, fibres),
+    through a random contrast curve. numpy's FFT: the torus it works on is what makes the bitmap tile."""
+    a = rng.uniform(1.6, 2.6)
+    stretch = np.exp(rng.uniform(0.0, np.log(6.0)))
+    along_x = rng.uniform() < 0.5
+    fy = np.fft.fftfreq(size)[:, None] * (stretch if along_x else 1.0)
+    fx = np.fft.fftfreq(size)[None, :] * (1.0 if along_x else stretch)
+    f = np.hypot(fx, fy)
+    f[0, 0] = np.inf                                    # no mean term: the pattern is normalised below
+    spectrum = np.fft.fft2(rng.standard_normal((size, size))) * f ** (-a / 2)
+    v = np.fft.ifft2(spectrum).real
+    lo, hi = np.percentile(v, [1, 99])
+    v = np.clip((v - lo) / max(hi - lo, 1e-12), 0, 1)
+    return v ** np.exp(rng.uniform(-0.7, 0.7))
+
+
 def _pattern(spec: TextureSpec, size: int) -> np.ndarray:
     rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 0x7E47]))
     y, x = np.mgrid[0:size, 0:size] / size
@@ -62,6 +82,8 @@ def _pattern(spec: TextureSpec, size: int) -> np.ndarray:
             d = np.minimum(d, np.sqrt(dx * dx + dy * dy))
         d = d / d.max()
         return np.clip(d * rng.uniform(1.0, 2.0), 0, 1)
+    if spec.kind == "natural":
+        return natural(rng, size)
     raise ValueError(f"unknown texture kind {spec.kind!r}")  # spec validation makes this unreachable
 
 

@@ -46,8 +46,8 @@ def test_families_are_registered_in_seed_order():
     assert dataclasses.replace(sample_scene(3, "indoor"), kind="underwater").kind == "underwater"
     assert get_family("indoor").layout is indoor.layout_indoor and get_family("indoor").seed_index == 0
     assert get_family("outdoor").layout is outdoor.layout_outdoor and get_family("outdoor").seed_index == 1
-    assert list(families.family_settings()) == ["indoor_objects", "p_lamps", "outdoor_objects", "p_sunsky",
-                                                "p_sun_in_view"]
+    assert list(families.family_settings()) == ["indoor_objects", "p_lamps", "p_panels_in_view", "outdoor_objects",
+                                                "p_sunsky", "p_sun_in_view"]
     with pytest.raises(ConfigError, match=r"scene kind must be one of \('indoor', 'outdoor'\), got 'underwater'"):
         get_family("underwater")
 

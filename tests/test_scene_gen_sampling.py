@@ -20,7 +20,7 @@ from scene_gen.config import ConfigError, SceneGenConfig
 from scene_gen.errors import SpecError
 from scene_gen.materials import random_material
 from scene_gen.sampling import sample_scene
-from scene_gen.spec import MATERIAL_KINDS, TEXTURE_KINDS, MeshSpec, SceneSpec
+from scene_gen.spec import MATERIAL_KINDS, PROCEDURAL_TEXTURE_KINDS, MeshSpec, SceneSpec
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -227,7 +227,7 @@ def test_materials_cover_every_kind_and_texture():
     mats = [random_material(rng) for _ in range(400)]
     assert {m.kind for m in mats} == set(MATERIAL_KINDS)
     tex = [m.texture for m in mats if m.texture is not None] + [c.texture for m in mats for c in m.children if c.texture]
-    assert {t.kind for t in tex} == set(TEXTURE_KINDS)
+    assert {t.kind for t in tex} == set(PROCEDURAL_TEXTURE_KINDS)
     assert len({t.uv_scale for t in tex}) > 20 and min(t.uv_scale for t in tex) < 1 < max(t.uv_scale for t in tex)
     for m in mats:
         if m.kind in ("dielectric", "thindielectric", "conductor", "plastic"):
