@@ -38,6 +38,7 @@ from .scaling_fit import LOWER_IS_BETTER
 
 SUBSET_SALT = 0x5CA1E
 FAMILY_MIX = "both"
+REALISM_NONE = "none"         # the realism axis' level without any property: the training config's own frames
 
 
 TARGET_RANGES = {"relmse": "a relMSE > 0", "smape": "a SMAPE in (0, 1)", "flip": "a FLIP in (0, 1)",
@@ -73,7 +74,17 @@ class ScalingConfig:
     shares: [0, 0.1, 0.25]}``: each model trains on N training frames of which each share are hard-case
     frames (``frames/case`` set; the rest ordinary), at the same steps; every such run and every baseline
     is evaluated on the held-out ordinary frames and on the suite (:func:`hard_subsets`,
-    :mod:`studies.hard_share`). ``subsets`` may be empty when another axis is given."""
+    :mod:`studies.hard_share`).
+
+    The realism axis: ``realism: {models: [labels], seeds: [...], suite: DATASET YAML, filters: [box,
+    gaussian], levels: {NAME: {scene_gen: {...}, render: {...}}}}``: each level is a property of real scenes
+    the generator may lack, given as settings over ``train_data``'s (e.g. ``p_natural_textures: 1``); the
+    training store is rendered once a level, from the same seeds (so the same scenes, with and without the
+    property: ``scene_gen.phenomena`` draws each from its own stream), and each model trains on every level's
+    training frames and on ``train_data``'s own (level ``none``) at the same steps. Every such run and every
+    baseline is evaluated on the held-out ordinary frames and on the held-out real-scene suite ``suite``
+    (``configs/real-scenes.yaml``) rendered with each pixel filter (:mod:`studies.realism`).
+    ``subsets`` may be empty when another axis is given."""
 
     train_data: dict | str
     heldout_data: dict | str
@@ -86,6 +97,7 @@ class ScalingConfig:
     variety: dict | None = None
     hard_data: dict | str | None = None
     hard_share: dict | None = None
+    realism: dict | None = None
     metrics: tuple = ("relmse", "psnr")
     targets: dict = field(default_factory=dict)
     parallel: int = 0
@@ -98,9 +110,9 @@ class ScalingConfig:
         for k in ("models", "subsets", "seeds", "metrics"):
             object.__setattr__(self, k, tuple(getattr(self, k) or ()))
         s = self.subsets
-        need((len(s) >= 1 or self.variety or self.hard_share) and all(is_number(v, finite=True) and 0 < v <= 1 for v in s) and len(set(s)) == len(s),
+        need((len(s) >= 1 or self.variety or self.hard_share or self.realism) and all(is_number(v, finite=True) and 0 < v <= 1 for v in s) and len(set(s)) == len(s),
              "scaling.subsets", "a list of distinct shares of the training frames in (0, 1] (empty only beside another "
-             "axis: variety or hard_share)", list(s), ConfigError)
+             "axis: variety, hard_share or realism)", list(s), ConfigError)
         object.__setattr__(self, "subsets", tuple(sorted(float(v) for v in s)))
         need(len(self.seeds) >= 1 and all(is_int(v) and v >= 0 for v in self.seeds) and
              len(set(self.seeds)) == len(self.seeds), "scaling.seeds", "a list of distinct integers >= 0",
@@ -119,6 +131,7 @@ class ScalingConfig:
         self.model_plans()
         self.variety_plan()
         self.hard_share_plan()
+        self.realism_plan()
 
     def model_plans(self) -> list[tuple[str, TrainConfig]]:
         """``(label, TrainConfig)`` of each model (seed 0, every clip: the template of its runs)."""
@@ -184,6 +197,78 @@ class ScalingConfig:
              "configs/hard-cases.yaml) when hard_share is set", self.hard_data, ConfigError)
         return {"models": models, "seeds": seeds, "frames": int(v["frames"]), "shares": sorted(float(x) for x in shares)}
 
+    def realism_plan(self) -> dict | None:
+        """``{"models", "seeds", "suite", "filters", "levels": {name: {"scene_gen", "render"}}}`` of the realism
+        axis, or None without one (``levels`` without ``none``, the training config's own frames)."""
+        if not self.realism:
+            return None
+        v = known_keys(self.realism, ("models", "seeds", "suite", "filters", "levels"), "scaling.realism", ConfigError)
+        labels = [lab for lab, _ in self.model_plans()]
+        models = list(v.get("models") or labels)
+        need(all(m in labels for m in models), "scaling.realism.models", f"labels of scaling.models {labels}",
+             models, ConfigError)
+        seeds = list(v.get("seeds") or self.seeds)
+        need(all(is_int(x) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds), "scaling.realism.seeds",
+             "distinct integers >= 0", seeds, ConfigError)
+        need(isinstance(v.get("suite"), (str, dict)), "scaling.realism.suite", "the held-out real-scene suite's "
+             "dataset config (e.g. configs/real-scenes.yaml)", v.get("suite"), ConfigError)
+        filters = list(v.get("filters") or ["box"])
+        need(all(f in ("box", "gaussian") for f in filters) and len(set(filters)) == len(filters),
+             "scaling.realism.filters", "distinct pixel filters among box, gaussian", filters, ConfigError)
+        levels = v.get("levels")
+        need(isinstance(levels, dict) and levels and all(isinstance(k, str) and k and k != REALISM_NONE and "/" not in k
+                                                         for k in levels), "scaling.realism.levels",
+             f"a mapping of level names (not {REALISM_NONE!r}, without '/') to {{scene_gen: {{...}}, render: {{...}}}}",
+             levels, ConfigError)
+        out = {}
+        for name, lv in levels.items():
+            lv = known_keys(lv or {}, ("scene_gen", "render"), f"scaling.realism.levels.{name}", ConfigError)
+            need(all(isinstance(lv.get(k, {}), dict) for k in ("scene_gen", "render")) and (lv.get("scene_gen") or
+                 lv.get("render")), f"scaling.realism.levels.{name}", "settings over the training config's "
+                 "(scene_gen: {...} and/or render: {...})", lv, ConfigError)
+            out[name] = {"scene_gen": dict(lv.get("scene_gen") or {}), "render": dict(lv.get("render") or {})}
+        return {"models": models, "seeds": seeds, "suite": v["suite"], "filters": filters, "levels": out}
+
+    def level_configs(self) -> dict:
+        """``{level: DatasetConfig}`` of the realism axis: ``none`` (``train_data`` itself) and each level's
+        (``train_data`` with the level's settings over its own, named ``<name>-<level>``); ConfigError naming
+        the level where its settings are not valid."""
+        r = self.realism_plan()
+        base = self._dataset("train_data")
+        out = {REALISM_NONE: base}
+        from pipeline.config import DatasetConfig
+        from pipeline.errors import ConfigError as PipelineConfigError
+        for name, lv in (r["levels"] if r else {}).items():
+            d = {**base.to_dict(), "name": f"{base.name}-{name}", "out": None,
+                 "scene_gen": {**base.scene_gen, **lv["scene_gen"]}, "render": {**base.render, **lv["render"]}}
+            try:
+                out[name] = DatasetConfig.from_dict(d)
+            except PipelineConfigError as e:
+                raise ConfigError(f"scaling.realism.levels.{name}: {e}") from e
+        return out
+
+    def suite_configs(self) -> dict:
+        """``{filter: DatasetConfig}`` of the realism axis' real-scene suite (held out), one per pixel filter:
+        the box-filtered store keeps the suite's name, another is ``<name>-<filter>`` (as ``make real-scenes``
+        names them, so both share the stores)."""
+        r = self.realism_plan()
+        if not r:
+            return {}
+        from pipeline.config import DatasetConfig, load_config
+        from pipeline.errors import ConfigError as PipelineConfigError
+        try:
+            base = load_config(r["suite"]) if isinstance(r["suite"], str) else DatasetConfig.from_dict(r["suite"])
+            need(base.held_out, "scaling.realism.suite", "a held-out dataset (held_out: true), whose scenes no "
+                 "training config draws", base.name, ConfigError)
+            out = {}
+            for f in r["filters"]:
+                own = base.render.get("filter", "box") == f
+                out[f] = base if own else DatasetConfig.from_dict(
+                    {**base.to_dict(), "name": f"{base.name}-{f}", "render": {**base.render, "filter": f}})
+            return out
+        except PipelineConfigError as e:
+            raise ConfigError(f"scaling.realism.suite: {e}") from e
+
     def hard_config(self):
         """The held-out hard-case suite's ``pipeline.config.DatasetConfig``, or None; ConfigError unless it
         is held out (``held_out: true``: seeds no training config draws)."""
@@ -230,11 +315,38 @@ def load_scaling_config(path) -> ScalingConfig:
         scfg = ScalingConfig.from_dict(yaml.safe_load(p.read_text()))
         scfg.dataset_configs()
         scfg.hard_config()
+        scfg.level_configs()
+        write_suite_files(scfg)
+        scfg.suite_configs()
         return scfg
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
     except (ConfigError, TypeError) as e:
         raise ConfigError(f"{p}: {e}") from e
+
+
+def write_suite_files(scfg: ScalingConfig, log=None) -> None:
+    """The realism axis' suite names the held-out real-scene suite's files (a folder ``real-scenes``, as
+    ``configs/real-scenes.yaml`` does): where that folder holds no scene file yet, write them
+    (``python -m scene_gen real-scenes``: the same bytes each time), as ``make real-scenes`` does first."""
+    r = scfg.realism_plan()
+    if not r:
+        return
+    import yaml
+
+    from pipeline.groups import expand_path
+    suite = r["suite"]
+    if isinstance(suite, str):
+        p = Path(suite)
+        if not p.is_file():
+            raise ConfigError(f"scaling.realism.suite {suite!r} is not a file")
+        suite = yaml.safe_load(p.read_text())
+    for g in (suite or {}).get("scenes") or []:
+        folder = Path(expand_path(g["file"])) if isinstance(g, dict) and isinstance(g.get("file"), str) else None
+        if folder is not None and folder.name == "real-scenes" and not any(folder.glob("*.xml")):
+            from scene_gen.real_scenes import write_suite
+            (log or print)(f"scaling: writing the real-scene suite's scene files to {folder}")
+            write_suite(folder)
 
 
 # --------------------------------------------------------------------------------------------
@@ -335,10 +447,10 @@ def clip_table(store, split: str) -> dict[int, dict]:
 
 @dataclass(frozen=True)
 class Job:
-    """One training run (``kind`` ``subset``, ``variety`` or ``hard``) or one baseline evaluation
+    """One training run (``kind`` ``subset``, ``variety``, ``hard`` or ``realism``) or one baseline evaluation
     (``baseline``): its folder under ``OUT/runs`` (``name``), model ``label``, seed, training frames and
-    clips, the subset's ``share`` (of the training frames; for ``hard``, of hard-case frames) or the variety
-    ``family``, and its TrainConfig as a dict (a baseline: ``method`` and ``spp``, ``baseline_input``)."""
+    clips, the subset's ``share`` (of the training frames; for ``hard``, of hard-case frames), the variety
+    ``family`` or the realism ``level`` (whose store it trains on), and its TrainConfig as a dict (a baseline: ``method`` and ``spp``, ``baseline_input``)."""
     name: str
     label: str
     kind: str
@@ -351,12 +463,15 @@ class Job:
     method: str | None = None
     spp: int | None = None
     baseline_input: str | None = None
+    level: str | None = None
 
     def config(self) -> TrainConfig:
         return TrainConfig.from_dict(self.train_config)
 
     def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        """Plain data; ``level`` only where set (a record written before the realism axis still matches)."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()
+                if not (k == "level" and v is None)}
 
 
 def _train_job(label: str, cfg: TrainConfig, kind: str, seed: int, sub: dict, name: str, **kw) -> Job:
@@ -388,6 +503,28 @@ def hard_share_jobs(scfg: ScalingConfig, frames: dict, cases: dict, record: dict
     return jobs
 
 
+def realism_jobs(scfg: ScalingConfig, level_tables: dict, record: dict) -> list[Job]:
+    """The runs of the realism axis (``kind`` ``realism``): each model and seed on every training clip of each
+    level's store (``level_tables``: level -> :func:`clip_table` of its training split), model by model (a
+    study stopped early has whole models), level ``none`` first; DataError when the levels' stores hold other clips or frames (they are the same scenes)."""
+    r = scfg.realism_plan()
+    if not r:
+        return []
+    frames = {lv: {c: len(v["frames"]) for c, v in t.items()} for lv, t in level_tables.items()}
+    ref = frames[REALISM_NONE]
+    for lv, f in frames.items():
+        if f != ref:
+            raise DataError(f"scaling.realism: level {lv!r}'s training store holds {sum(f.values())} frames in "
+                            f"{len(f)} clips, level {REALISM_NONE!r}'s {sum(ref.values())} in {len(ref)}: the "
+                            "levels must render the same scenes (change only scene_gen and render settings)")
+    sub = {"frames": sum(ref.values()), "clips": sorted(ref)}
+    record["realism"] = {"levels": list(level_tables), "frames": sub["frames"], "clips": len(sub["clips"])}
+    by_label = dict(scfg.model_plans())
+    return [_train_job(label, by_label[label], "realism", seed, sub, f"realism-{lv}-n{sub['frames']:05d}-s{seed}",
+                       level=lv)
+            for label in r["models"] for seed in r["seeds"] for lv in level_tables]
+
+
 def baseline_jobs(plans) -> list[Job]:
     """The noisy input and OIDN at each (spp, baseline input) of the models (``training.evaluate``)."""
     from training.inputs import KINDS
@@ -397,9 +534,10 @@ def baseline_jobs(plans) -> list[Job]:
                 baseline_input=b) for spp, b in seen for m in ("input", "oidn")]
 
 
-def plan(scfg: ScalingConfig, table: dict) -> tuple[list[Job], dict]:
+def plan(scfg: ScalingConfig, table: dict, level_tables: dict | None = None) -> tuple[list[Job], dict]:
     """Every job of the study over the training clips ``table`` (:func:`clip_table`), and the record of the
-    subsets drawn (``{"subsets": {seed: [...]}, "variety": {seed: {...}}}``). Jobs run seed by seed, each
+    subsets drawn (``{"subsets": {seed: [...]}, "variety": {seed: {...}}}``); ``level_tables`` (level ->
+    :func:`clip_table` of its store's training split) for the realism axis. Jobs run seed by seed, each
     seed's sizes smallest first, so an early stop leaves whole curves of the first seeds."""
     frames = {c: len(v["frames"]) for c, v in table.items()}
     family = {c: v["family"] for c, v in table.items()}
@@ -427,4 +565,5 @@ def plan(scfg: ScalingConfig, table: dict) -> tuple[list[Job], dict]:
             for fam, sub in fs.items():
                 jobs.append(_train_job(label, by_label[label], "variety", seed, sub,
                                        f"variety-{fam}-n{sub['frames']:05d}-s{seed}", family=fam))
+    jobs += realism_jobs(scfg, level_tables or {}, record)
     return jobs + baseline_jobs(plans), record

@@ -20,6 +20,7 @@ from training.errors import DataError, TargetBelowFloorError
 from training.jsonio import write as write_json
 from training.report import difference_cell
 from .hard_share import analyse_shares, share_markdown
+from .realism import analyse_realism, realism_markdown
 from .scaling_fit import (bootstrap_fit, by_size, frames_for_target, limit_name, paired, power_law, sign_of,
                           size_table, support)
 
@@ -174,9 +175,11 @@ def baselines(jobs, records: dict, metrics) -> list[dict]:
 
 
 def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None,
-            suite_cases: dict | None = None) -> dict:
+            suite_cases: dict | None = None, real_scenes: dict | None = None) -> dict:
     """The study's numbers from its jobs and their records (module docstring); ``suite_cases`` (frame index
-    -> case tag of the hard-case suite) for the hard-case share axis (:mod:`studies.hard_share`)."""
+    -> case tag of the hard-case suite) for the hard-case share axis (:mod:`studies.hard_share`);
+    ``real_scenes`` (filter -> each real-scene suite frame's scene) for the realism axis
+    (:mod:`studies.realism`)."""
     held = heldout_frames(records)
     clips = held["clip"]
     labels = [lab for lab, _ in scfg.model_plans()] if scfg.subsets else []
@@ -193,7 +196,8 @@ def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None,
     if costs:
         price(answers, costs)
     runs = [{"name": j.name, "model": j.label, "kind": j.kind, "seed": j.seed, "frames": j.frames,
-             "clips": len(j.clips), "share": j.share, "family": j.family, "seconds": records[j.name].get("seconds"),
+             "clips": len(j.clips), "share": j.share, "family": j.family, "level": j.level,
+             "seconds": records[j.name].get("seconds"),
              "cpu_seconds": records[j.name].get("cpu_seconds"),
              "mean": records[j.name]["evaluation"]["mean"], "ci95": records[j.name]["evaluation"]["ci95"]}
             for j in jobs if j.name in records]
@@ -201,6 +205,7 @@ def analyse(scfg, jobs, records: dict, targets: dict, costs: dict | None = None,
                         "families": {f: held["family"].count(f) for f in sorted(set(held["family"]))}},
             "metrics": metrics, "models": models, "variety": variety, "baselines": baselines(jobs, records, metrics),
             "hard_share": analyse_shares(scfg, jobs, records, suite_cases or {}),
+            "realism": analyse_realism(scfg, jobs, records, real_scenes or {}),
             "targets": answers, "costs": costs, "runs": runs}
 
 
@@ -305,8 +310,14 @@ def intro_markdown(result: dict, scfg) -> list[str]:
             f"{held['clips']} clips ({fams}), rendered from other seeds")
     if result["stores"].get("hard_cases"):
         text += f", and the hard-case suite `{result['stores']['hard_cases']}` (seeds no training config draws)"
-    h = scfg.hard_share_plan()
-    seeds = sorted(set(scfg.seeds if scfg.subsets or scfg.variety else []) | set(h["seeds"] if h else []))
+    if result["stores"].get("real_scenes"):
+        text += (", and the real-scene suite (" + ", ".join(f"`{p}` ({f} filter)" for f, p in
+                                                           result["stores"]["real_scenes"].items()) +
+                 "; scene files no generator wrote). The realism axis' levels train on the same scenes with one "
+                 "property added: " + ", ".join(f"`{lv}` (`{p}`)" for lv, p in result["stores"]["levels"].items()))
+    h, rz = scfg.hard_share_plan(), scfg.realism_plan()
+    seeds = sorted(set(scfg.seeds if scfg.subsets or scfg.variety else []) | set(h["seeds"] if h else [])
+                   | set(rz["seeds"] if rz else []))
     text += (f". Seeds {', '.join(map(str, seeds))}; every run is evaluated on all the held-out frames. A "
              "figure is the mean over its seeds; the 95% interval is a bootstrap over the held-out clips of the "
              "seeds-averaged per-frame values; Δ is a paired per-frame difference (\"better\"/\"worse\" where its "
@@ -350,6 +361,7 @@ def report_markdown(result: dict, scfg) -> str:
                   *[f"| {b['label']} | " + " | ".join(cell(b, m) for m in metrics) + " |" for b in result["baselines"]],
                   ""]
     lines += share_markdown(result.get("hard_share") or [])
+    lines += realism_markdown(result.get("realism") or [])
     if result["variety"]:
         lines += ["## Scene variety: one family against both", "",
                   "The same number of training frames from one scene family, or from both (half each), evaluated "

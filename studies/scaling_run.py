@@ -22,7 +22,7 @@ from pathlib import Path
 from core import interrupts
 from training.errors import DataError
 from training.jsonio import write as write_json
-from .scaling import Job, ScalingConfig, clip_table, plan
+from .scaling import REALISM_NONE, Job, ScalingConfig, clip_table, plan
 
 RECORD = "scaling-run.json"
 
@@ -74,11 +74,12 @@ def _trained(run_dir: Path, steps: int) -> bool:
 
 
 def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threads: int, flip: bool,
-            heldout: dict, hard_store: str | None = None) -> dict:
+            heldout: dict, hard_store: str | None = None, real_stores: dict | None = None) -> dict:
     """Train (or resume) and evaluate one job in this process (a worker of :func:`run_jobs`); writes its
     record and returns ``{"name", "mean", "seconds"}``. Training's output goes to ``run_dir/run.log``.
     With ``hard_store`` (the held-out hard-case suite), a hard-share run and a baseline are evaluated on
-    every frame of it as well (``hard_evaluation`` in the record)."""
+    every frame of it as well (``hard_evaluation`` in the record); with ``real_stores`` (``{filter: store}``
+    of the held-out real-scene suite), a realism run and a baseline on each (``real_evaluation``)."""
     import torch
 
     from training.accel import tune_allocator
@@ -97,10 +98,13 @@ def run_job(job: dict, train_store: str, heldout_store: str, run_dir: str, threa
         res = job_evaluation(job, run_dir, heldout_store, flip)
         hard = job_evaluation(job, run_dir, hard_store, flip, skip_bad_frames=True) \
             if hard_store and uses_suite(job) else None
+        real = {f: job_evaluation(job, run_dir, st, flip, skip_bad_frames=True) for f, st in real_stores.items()} \
+            if real_stores and uses_real(job) else None
     seconds = time.perf_counter() - t0
     write_json(run_dir / RECORD, {"job": job.to_dict(), "heldout": heldout, "seconds": seconds,
                                   "cpu_seconds": time.process_time() - c0, "evaluation": res,
-                                  **({"hard_evaluation": hard} if hard is not None else {})})
+                                  **({"hard_evaluation": hard} if hard is not None else {}),
+                                  **({"real_evaluation": real} if real is not None else {})})
     return {"name": job.name, "mean": res["mean"], "seconds": seconds, "cpu_seconds": time.process_time() - c0}
 
 
@@ -123,10 +127,17 @@ def uses_suite(job: Job) -> bool:
     return job.kind in ("hard", "baseline")
 
 
-def job_heldout(job: Job, heldout: dict, suite: dict | None) -> dict:
+def uses_real(job: Job) -> bool:
+    """Whether a job is evaluated on a study's real-scene suite too: the realism axis' runs and the baselines."""
+    return job.kind in ("realism", "baseline")
+
+
+def job_heldout(job: Job, heldout: dict, suite: dict | None, real: dict | None = None) -> dict:
     """What a job's record must have been evaluated on to count as finished: the held-out store, and the
-    suite for the jobs :func:`uses_suite` (so adding a suite to a study leaves its other runs finished)."""
-    return {**heldout, "hard_cases": suite} if suite is not None and uses_suite(job) else heldout
+    suites for the jobs :func:`uses_suite` and :func:`uses_real` (so adding a suite to a study leaves its
+    other runs finished)."""
+    out = {**heldout, "hard_cases": suite} if suite is not None and uses_suite(job) else heldout
+    return {**out, "real_scenes": real} if real is not None and uses_real(job) else out
 
 
 def _ignore_interrupt() -> None:
@@ -156,20 +167,26 @@ def _next(done, timeout: float = 1.0):
 
 
 def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, parallel: int, threads: int,
-             flip: bool, log=print, hard_store: str | None = None) -> dict[str, dict]:
+             flip: bool, log=print, hard_store: str | None = None, level_stores: dict | None = None,
+             real_stores: dict | None = None) -> dict[str, dict]:
     """Every job's record (``name -> record``): finished ones read back, the others run ``parallel`` at a
     time in fresh worker processes (training and evaluating; one line each as they end). Ctrl-C, or a run
-    that fails, stops every worker: finished runs stay, interrupted ones resume from their checkpoints."""
+    that fails, stops every worker: finished runs stay, interrupted ones resume from their checkpoints.
+    ``level_stores``: the realism axis' training store of each level; ``real_stores``: its suite's store of
+    each pixel filter."""
     import multiprocessing
     import queue
 
     from training.data import open_store
     heldout = json.loads(json.dumps(heldout_identity(open_store(heldout_store))))
     suite = json.loads(json.dumps(heldout_identity(open_store(hard_store)))) if hard_store else None
+    real = json.loads(json.dumps({f: heldout_identity(open_store(p)) for f, p in real_stores.items()})) \
+        if real_stores else None
+    level_stores = level_stores or {}
     runs = out / "runs"
     records, todo = {}, []
     for job in jobs:
-        rec = finished(job, runs / job.name, job_heldout(job, heldout, suite))
+        rec = finished(job, runs / job.name, job_heldout(job, heldout, suite, real))
         if rec is None:
             todo.append(job)
         else:
@@ -183,8 +200,8 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
         with interrupts.held_back():     # the workers begin with Ctrl-C blocked (before _ignore_interrupt runs)
             pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
         for j in todo:
-            args = (j.to_dict(), train_store, heldout_store, str(runs / j.name), threads, flip,
-                    job_heldout(j, heldout, suite), hard_store)
+            args = (j.to_dict(), level_stores.get(j.level, train_store), heldout_store, str(runs / j.name), threads,
+                    flip, job_heldout(j, heldout, suite, real), hard_store, real_stores)
             pool.apply_async(run_job, args, callback=lambda r: done.put((r, None)),
                              error_callback=lambda e, name=j.name: done.put((name, e)))
         for k in range(1, len(todo) + 1):
@@ -233,6 +250,29 @@ def rendering_costs(dcfg, out: Path, workers: int | None, store=None, log=print)
     return costs
 
 
+def flat_stores(stores: dict) -> dict:
+    """``{name: path}`` of every store a study read (a mapping of several, such as the realism levels', as
+    ``<key>-<name>``)."""
+    out = {}
+    for k, v in stores.items():
+        out.update({f"{k}-{n}": p for n, p in v.items()} if isinstance(v, dict) else {k: v})
+    return out
+
+
+def realism_stores(scfg: ScalingConfig, out: Path, train_path: str, workers: int | None,
+                   progress: bool) -> tuple[dict, dict]:
+    """The realism axis' stores, rendered or resumed: ``{level: training store}`` (``none``: the study's own
+    training store) and ``{filter: real-scene suite store}`` (where ``make real-scenes`` puts them); two empty
+    mappings without the axis."""
+    if not scfg.realism_plan():
+        return {}, {}
+    levels = {REALISM_NONE: train_path}
+    for name, dcfg in scfg.level_configs().items():
+        if name != REALISM_NONE:
+            levels[name] = ensure_store(dcfg, out, workers, progress)
+    return levels, {f: ensure_store(c, out, workers, progress, shared=True) for f, c in scfg.suite_configs().items()}
+
+
 def run_study(scfg: ScalingConfig, out=None, *, targets: dict | None = None, workers: int | None = None,
               progress: bool = True, log=print) -> dict:
     """The whole study (``studies.scaling``): the stores, every run, the analysis and the three files in
@@ -250,6 +290,7 @@ def _run_study(scfg: ScalingConfig, out: Path, targets: dict | None, workers: in
                log) -> dict:
     from training.data import open_store
     from training.report import provenance
+    from training.realscenes import frame_scenes
     from .scaling_report import analyse, price, write_report
     t0 = time.perf_counter()
     workers = workers or scfg.workers
@@ -259,21 +300,26 @@ def _run_study(scfg: ScalingConfig, out: Path, targets: dict | None, workers: in
     hard_cfg = scfg.hard_config()
     hard_path = ensure_store(hard_cfg, out, workers, progress, shared=True) if hard_cfg is not None else None
     train_store = open_store(train_path)
-    jobs, record = plan(scfg, clip_table(train_store, "train"))
+    level_stores, real_stores = realism_stores(scfg, out, train_path, workers, progress)
+    jobs, record = plan(scfg, clip_table(train_store, "train"),
+                        {lv: clip_table(open_store(p), "train") for lv, p in level_stores.items()})
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     parallel = scfg.parallel or max(1, cores // scfg.threads)
-    records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log, hard_path)
+    records = run_jobs(jobs, train_path, held_path, out, parallel, scfg.threads, scfg.flip, log, hard_path,
+                       level_stores, real_stores)
     targets = {k: float(v) for k, v in {**scfg.targets, **(targets or {})}.items() if v is not None}
     suite_cases = ({i: str(c) for i, c in enumerate(open_store(hard_path).meta_column("case"))}
                    if hard_path else None)
-    result = analyse(scfg, jobs, records, targets, suite_cases=suite_cases)
+    result = analyse(scfg, jobs, records, targets, suite_cases=suite_cases,
+                     real_scenes={f: frame_scenes(open_store(p)) for f, p in real_stores.items()})
     if any("frames" in a for a in result["targets"]):           # an answer to price: calibrate (or read the cache)
         result["costs"] = rendering_costs(train_cfg, out, workers, train_store, log)
         price(result["targets"], result["costs"])
-    stores = {"train": train_path, "heldout": held_path, **({"hard_cases": hard_path} if hard_path else {})}
+    stores = {"train": train_path, "heldout": held_path, **({"hard_cases": hard_path} if hard_path else {}),
+              **({"levels": level_stores, "real_scenes": real_stores} if real_stores else {})}
     result.update(config=scfg.to_dict(), stores=stores, plan=record,
                   seconds=time.perf_counter() - t0,
-                  provenance=provenance([], stores, {"out": str(out)}))
+                  provenance=provenance([], flat_stores(stores), {"out": str(out)}))
     write_report(out, result, scfg)
     files = "scaling.md, scaling.png" if result["models"] else "scaling.md"
     log(f"scaling: wrote {out}/{files} and scaling.json in {result['seconds']:.0f} s")

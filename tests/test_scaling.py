@@ -376,3 +376,121 @@ def test_bad_study_settings_are_one_line_and_one_study_holds_a_folder(tmp_path, 
     with StoreLock(str(tmp_path / "study")):           # another study runs in this folder
         with pytest.raises(StoreLockedError, match="dataset.lock"):
             run_study(_config(), tmp_path / "study", progress=False)
+
+
+REALISM = dict(models=["nbg"], seeds=[0, 1], suite={"held_out": True, "scenes": [{"kind": "indoor", "count": 1}]},
+               filters=["box", "gaussian"], levels={"natural-textures": {"scene_gen": {"p_natural_textures": 1.0}},
+                                                    "panels-in-view": {"scene_gen": {"p_panels_in_view": 1.0}}})
+
+
+def test_realism_plan_levels_and_checks():
+    """The realism axis: one run a model, seed and level (model by model, `none` first) on every training clip
+    of the level's store; the levels' stores must hold the same clips; each level's dataset is the training
+    config with its settings over the training config's, and a bad one is one line naming the level."""
+    train = {"name": "tr", "scenes": [{"kind": "indoor", "count": 4}], "split": {"train": 1},
+             "scene_gen": {"p_lamps": 0.1}}
+    scfg = _config(subsets=[], variety=None, realism=REALISM, train_data=train,
+                   models=[{"model": "nbg", "steps": 2}, {"model": "wskpn", "steps": 2}])
+    assert scfg.realism_plan()["models"] == ["nbg"]
+    levels = scfg.level_configs()
+    assert list(levels) == ["none", "natural-textures", "panels-in-view"]
+    assert levels["natural-textures"].name == "tr-natural-textures"
+    assert levels["natural-textures"].scene_gen == {"p_lamps": 0.1, "p_natural_textures": 1.0}
+    assert levels["none"].scenes == levels["panels-in-view"].scenes           # the same scenes, one property more
+    assert {f: c.render.get("filter", "box") for f, c in scfg.suite_configs().items()} == \
+        {"box": "box", "gaussian": "gaussian"}
+    table = {c: {"frames": [c], "family": "indoor", "case": ""} for c in range(4)}
+    jobs, record = plan(scfg, table, {lv: table for lv in levels})
+    runs = [(j.label, j.seed, j.level) for j in jobs if j.kind == "realism"]
+    assert runs == [("nbg", s, lv) for s in (0, 1) for lv in levels]
+    assert all(j.frames == 4 and j.clips == (0, 1, 2, 3) for j in jobs if j.kind == "realism")
+    assert record["realism"]["frames"] == 4 and "level" not in next(j for j in jobs if j.kind == "baseline").to_dict()
+    with pytest.raises(DataError, match="level 'panels-in-view'.s training store holds 3 frames"):
+        plan(scfg, table, {**{lv: table for lv in levels}, "panels-in-view": {c: table[c] for c in range(3)}})
+    for bad, needle in (({"levels": {"none": {"scene_gen": {"p_lamps": 1}}}}, "scaling.realism.levels"),
+                        ({"levels": {"x": {}}}, r"scaling.realism.levels.x"),
+                        ({"filters": ["box", "triangle"]}, "scaling.realism.filters"),
+                        ({"models": ["unet"]}, "scaling.realism.models")):
+        with pytest.raises(ConfigError, match=needle):
+            _config(subsets=[], realism={**REALISM, **bad}, train_data=train)
+    with pytest.raises(ConfigError, match=r"scaling.realism.levels.x: dataset.scene_gen.p_lamps must be a probability"):
+        _config(subsets=[], realism={**REALISM, "levels": {"x": {"scene_gen": {"p_lamps": 2}}}},
+                train_data=train).level_configs()
+    with pytest.raises(ConfigError, match="scaling.realism.suite must be a held-out dataset"):
+        _config(subsets=[], realism={**REALISM, "suite": train}, train_data=train).suite_configs()
+
+
+def test_realism_analysis_on_synthetic_results(tmp_path):
+    """Made-up evaluations: the runs trained with natural textures halve their error on the suite's
+    'interior' (both filters) and change nothing on ordinary frames or on 'box'; the analysis says so, with
+    intervals, against `none`, the input and OIDN, and the report shows it."""
+    from studies.scaling_report import analyse, write_report
+    scfg = _config(subsets=[], variety=None, realism={**REALISM, "levels": {"natural-textures": REALISM["levels"][
+        "natural-textures"]}})
+    table = {c: {"frames": [c], "family": "indoor", "case": ""} for c in range(10)}
+    jobs, record = plan(scfg, table, {"none": table, "natural-textures": table})
+    records = _synthetic_records(jobs)
+    for j in jobs:
+        evs = {}
+        for f in ("box", "gaussian"):      # 8 frames in 4 clips: 'box' 0-3, 'interior' 4-7
+            frames = []
+            for i in range(8):
+                rel = {"input": 1.0, "oidn": 0.2}.get(j.method) if j.kind == "baseline" else \
+                    (0.4 if i < 4 or j.level == "none" else 0.2)
+                noise = np.random.default_rng([i, len(f)]).normal(0, 0.02, 2)   # the same frame, the same noise
+                frames.append({"index": i, "clip": i // 2, "relmse": rel * (1 + noise[0]),
+                               "psnr": 30 - 10 * rel + noise[1]})
+            evs[f] = {"frames": frames}
+        records[j.name]["real_evaluation"] = evs
+    scenes = ["box"] * 4 + ["interior"] * 4
+    res = analyse(scfg, jobs, records, {}, real_scenes={"box": scenes, "gaussian": scenes})
+    (nbg,) = res["realism"]
+    for f in ("box", "gaussian"):
+        t = nbg["suite"][f]
+        assert t["interior"]["natural-textures"]["vs_none"]["verdict"] == "better"
+        assert t["interior"]["natural-textures"]["vs_none"]["relmse"]["mean"] == pytest.approx(-0.2, abs=0.02)
+        assert t["box"]["natural-textures"]["vs_none"]["verdict"] == "not shown"
+        assert t["interior"]["none"]["vs_input"]["verdict"] == "beats"
+        assert t["interior"]["natural-textures"]["vs_oidn"]["relmse_ratio"] == pytest.approx(1.0, abs=0.05)
+        assert t["(all)"]["input"]["relmse"] == pytest.approx(1.0, abs=0.02)
+    assert not nbg["ordinary"]["natural-textures"]["psnr"]["vs_none"]["shown"]
+    (line,) = nbg["verdicts"]
+    # half the suite's clips unchanged: over all of it the interval reaches 0; on the interior it does not
+    assert line.startswith("nbg, natural-textures against none: box filter: not shown on the whole suite, relMSE "
+                           "-0.0") and "(-25%); better on interior; gaussian filter" in line, line
+    res.update(config=scfg.to_dict(), stores={"train": "t.zarr", "heldout": "h.zarr",
+                                              "levels": {"none": "t.zarr", "natural-textures": "n.zarr"},
+                                              "real_scenes": {"box": "r.zarr", "gaussian": "g.zarr"}},
+               plan=record, seconds=1.0)
+    write_report(tmp_path, res, scfg)
+    md = (tmp_path / "scaling.md").read_text()
+    for text in ("## Properties of real scenes in the training data", "| nbg | natural-textures |",
+                 "### nbg on the real-scene suite, gaussian filter", "| interior |", "x OIDN", ": better",
+                 "`natural-textures` (`n.zarr`)"):
+        assert text in md, text
+
+
+def test_the_shipped_realism_study_reuses_the_held_out_stills_and_writes_the_suite_where_missing(tmp_path, monkeypatch):
+    """configs/scaling-cpu-realism.yaml: its held-out stills are configs/scaling-cpu.yaml's (one store for
+    both), its levels the same scenes with one property each, its suite the held-out real-scene suite with
+    both filters, named as `make real-scenes` names them; loading it writes the suite's files where none are
+    (a fresh clone) and reads them where they are."""
+    monkeypatch.setenv("DENOISE_DATA", str(tmp_path))
+    lines = []
+    import studies.scaling as sc
+    monkeypatch.setattr(sc, "print", lines.append, raising=False)
+    scfg = load_scaling_config(ROOT / "configs" / "scaling-cpu-realism.yaml")
+    assert (tmp_path / "real-scenes" / "cornell-box.xml").is_file()
+    assert lines and "writing the real-scene suite's scene files" in lines[0]
+    base = load_scaling_config(ROOT / "configs" / "scaling-cpu.yaml")
+    held, base_held = scfg.dataset_configs()[1], base.dataset_configs()[1]
+    assert held.store_path(held.out) == base_held.store_path(f"{Path(base.out) / 'stores'}/")
+    assert dataclasses.replace(held, out=None) == dataclasses.replace(base_held, out=None)
+    levels = scfg.level_configs()
+    assert set(levels) == {"none", "natural-textures", "panels-in-view"}
+    assert {lv: c.scene_gen.get("p_natural_textures", 0) + c.scene_gen.get("p_panels_in_view", 0)
+            for lv, c in levels.items()} == {"none": 0, "natural-textures": 1.0, "panels-in-view": 1.0}
+    assert len({c.frames()[5].seed for c in levels.values()}) == 1                 # the same scenes
+    suites = scfg.suite_configs()
+    assert {f: c.name for f, c in suites.items()} == {"box": "real-scenes", "gaussian": "real-scenes-gaussian"}
+    assert all(c.held_out for c in suites.values()) and scfg.realism_plan()["models"] == ["nbg", "wskpn", "layer", "nppd"]
