@@ -23,8 +23,8 @@ default) leaves every scene exactly as before:
 - ``p_natural_textures`` (every family): the scene's diffuse, plastic and principled surfaces textured
   with 1/f noise, as photographed surfaces are (the procedural textures are flat colours, checks, stripes,
   cells and value noise);
-- ``p_panels_in_view`` (indoor): an emissive panel on the ceiling in view, against the ceiling it lights
-  only indirectly (the family's panels are mostly out of view: its cameras look at the objects).
+- ``p_panels_in_view`` (indoor): an emissive panel on a wall or the ceiling in view, against the surface it
+  lights only indirectly (the family's panels are mostly out of view: its cameras look at the objects).
 
 The last two draw from streams of their own (``Phenomenon.own_stream``).
 
@@ -45,6 +45,7 @@ from scene_gen.cases import GLASS, WHITE, sphere_object, view_of
 from scene_gen.families import get_family
 from scene_gen.layout import light_color
 from scene_gen.materials import TEXTURED_KINDS
+from scene_gen.rooms import room_walls
 from scene_gen.spec import MaterialSpec, MeshSpec, ObjectSpec, SceneSpec, TextureSpec, Transform
 
 PHENOMENA = 0xF4E7          # the phenomena's stream: SeedSequence([seed, family.seed_index, PHENOMENA])
@@ -229,8 +230,9 @@ def panel_in_view(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneS
     """An emissive panel in view on the room's wall or ceiling, seen against the surface it lights only
     indirectly (a Cornell box's light): half extents 8-35 cm, radiance x area 1.5-6, where the first camera's
     ray through a random point of the upper two thirds of the image first leaves the room (its plan's union
-    of rectangles, floor to ceiling), at least 0.5 m away, the panel whole on that wall or ceiling (the
-    ceiling looked for first in half the scenes, a wall in the others). The
+    of rectangles, floor to ceiling), at least 0.5 m away, the panel whole on that wall or ceiling and clear
+    of its windows, doors and skylights (the ceiling looked for first in half the scenes, a wall in the
+    others). The
     camera stays as it is (an object may hide part of the panel, as in a real room). Nothing changes in a
     room without a ceiling or where no such point is found."""
     ceiling = next((o for o in spec.objects if o.name == "room_ceiling" and o.mesh.kind == "room"), None)
@@ -253,17 +255,12 @@ def panel_in_view(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneS
         if np.linalg.norm(p - v.o) < 0.5:
             continue
         if normal[1] < 0:                                   # the ceiling: the panel faces down
-            ok = all(_in_plan(rects, p + np.array([sx * (max(hx, hz) + 0.05), 0.0, sz * (max(hx, hz) + 0.05)]))
-                     for sx in (-1, 1) for sz in (-1, 1))
+            ok = _fits_ceiling(ceiling.mesh.params, p, math.hypot(hx, hz) + 0.05)
             rotate = (180.0, round(float(rng.uniform(0, 90)), 4), 0.0)
-            scale = (hx, 1.0, hz)
         else:                                               # a wall: the panel faces into the room
-            t = np.array([normal[2], 0.0, -normal[0]])      # along the wall
-            inward = p + 0.02 * normal
-            ok = (0.3 + hz <= p[1] <= H - 0.05 - hz and
-                  all(_in_plan(rects, inward + s * (hx + 0.05) * t) for s in (-1, 1)))
+            ok = 0.3 + hz <= p[1] and _fits_wall(ceiling.mesh.params, p, normal, hx + 0.05, hz + 0.05)
             rotate = (90.0, round(math.degrees(math.atan2(normal[0], normal[2])), 4), 0.0)
-            scale = (hx, 1.0, hz)
+        scale = (hx, 1.0, hz)
         if ok:
             break
     else:
@@ -274,6 +271,38 @@ def panel_in_view(spec: SceneSpec, rng: np.random.Generator, res: int) -> SceneS
                        Transform(tuple(round(float(c), 4) for c in p), rotate, tuple(round(float(c), 4) for c in scale)),
                        emitter_radiance=tuple(round(float(c), 4) for c in radiance))
     return dataclasses.replace(spec, objects=spec.objects + (panel,))
+
+
+def _fits_ceiling(room: dict, p: np.ndarray, reach: float) -> bool:
+    """Whether a ceiling panel at ``p`` turned any way (``reach``: its half diagonal and a margin) lies whole
+    inside the plan and clear of every skylight."""
+    rects = np.asarray(room["rects"], float)
+    if not all(_in_plan(rects, p + np.array([sx * reach, 0.0, sz * reach])) for sx in (-1, 1) for sz in (-1, 1)):
+        return False
+    return not any(x0 - reach < p[0] < x1 + reach and z0 - reach < p[2] < z1 + reach
+                   for x0, z0, x1, z1 in room.get("skylights") or ())
+
+
+def _fits_wall(room: dict, p: np.ndarray, normal: np.ndarray, half_u: float, half_v: float) -> bool:
+    """Whether a wall panel at ``p`` (half extents with margins ``half_u`` along the wall, ``half_v`` up) lies
+    whole on one wall of the room (``scene_gen.rooms.room_walls``: a corner ends it), between floor and
+    ceiling, and clear of that wall's openings (windows, doors)."""
+    H = float(room["height"])
+    if not half_v <= p[1] <= H - half_v:
+        return False
+    q = np.array([p[0], p[2]])
+    for w, (a, b, nin) in enumerate(room_walls(room["rects"])):
+        a, b, nin = (np.asarray(x, float) for x in (a, b, nin))
+        L = float(np.linalg.norm(b - a))
+        t = (b - a) / L
+        if np.dot(nin, normal[[0, 2]]) < 0.99 or abs(np.dot(q - a, nin)) > 1e-3:
+            continue
+        u = float(np.dot(q - a, t))
+        if not half_u <= u <= L - half_u:
+            continue
+        return not any(int(o[0]) == w and o[1] < u + half_u and u - half_u < o[2] and o[3] < p[1] + half_v
+                       and p[1] - half_v < o[4] for o in room.get("openings") or ())
+    return False
 
 
 def _in_plan(rects: np.ndarray, q) -> bool:

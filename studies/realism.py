@@ -125,7 +125,8 @@ def level_verdicts(res: dict) -> list[str]:
         d = res["ordinary"].get(lv, {}).get("psnr", {}).get("vs_none")
         if d:
             parts.append(f"ordinary frames' PSNR {_diff(d, '+.2f')} dB")
-        lines.append(f"{res['model']}, {lv} against {REALISM_NONE}: " + "; ".join(parts) + ".")
+        lines.append(f"{res['model']}, {lv} against {REALISM_NONE}: " +
+                     ("; ".join(parts) if parts else f"no `{REALISM_NONE}` runs to compare with") + ".")
     return lines
 
 

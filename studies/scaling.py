@@ -565,5 +565,5 @@ def plan(scfg: ScalingConfig, table: dict, level_tables: dict | None = None) -> 
             for fam, sub in fs.items():
                 jobs.append(_train_job(label, by_label[label], "variety", seed, sub,
                                        f"variety-{fam}-n{sub['frames']:05d}-s{seed}", family=fam))
-    jobs += realism_jobs(scfg, level_tables or {}, record)
+    jobs += realism_jobs(scfg, level_tables or {REALISM_NONE: table}, record)
     return jobs + baseline_jobs(plans), record

@@ -132,12 +132,15 @@ def uses_real(job: Job) -> bool:
     return job.kind in ("realism", "baseline")
 
 
-def job_heldout(job: Job, heldout: dict, suite: dict | None, real: dict | None = None) -> dict:
+def job_heldout(job: Job, heldout: dict, suite: dict | None, real: dict | None = None,
+                trained_on: dict | None = None) -> dict:
     """What a job's record must have been evaluated on to count as finished: the held-out store, and the
     suites for the jobs :func:`uses_suite` and :func:`uses_real` (so adding a suite to a study leaves its
-    other runs finished)."""
+    other runs finished); for a realism run, the identity of the level's store it trained on
+    (``trained_on``: a level whose settings changed is a new store, and its runs are run again)."""
     out = {**heldout, "hard_cases": suite} if suite is not None and uses_suite(job) else heldout
-    return {**out, "real_scenes": real} if real is not None and uses_real(job) else out
+    out = {**out, "real_scenes": real} if real is not None and uses_real(job) else out
+    return {**out, "trained_on": trained_on} if trained_on is not None and job.kind == "realism" else out
 
 
 def _ignore_interrupt() -> None:
@@ -183,10 +186,11 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
     real = json.loads(json.dumps({f: heldout_identity(open_store(p)) for f, p in real_stores.items()})) \
         if real_stores else None
     level_stores = level_stores or {}
+    trained_on = json.loads(json.dumps({lv: heldout_identity(open_store(p)) for lv, p in level_stores.items()}))
     runs = out / "runs"
     records, todo = {}, []
     for job in jobs:
-        rec = finished(job, runs / job.name, job_heldout(job, heldout, suite, real))
+        rec = finished(job, runs / job.name, job_heldout(job, heldout, suite, real, trained_on.get(job.level)))
         if rec is None:
             todo.append(job)
         else:
@@ -201,7 +205,7 @@ def run_jobs(jobs: list[Job], train_store: str, heldout_store: str, out: Path, p
             pool = multiprocessing.get_context("spawn").Pool(parallel, initializer=_ignore_interrupt)
         for j in todo:
             args = (j.to_dict(), level_stores.get(j.level, train_store), heldout_store, str(runs / j.name), threads,
-                    flip, job_heldout(j, heldout, suite, real), hard_store, real_stores)
+                    flip, job_heldout(j, heldout, suite, real, trained_on.get(j.level)), hard_store, real_stores)
             pool.apply_async(run_job, args, callback=lambda r: done.put((r, None)),
                              error_callback=lambda e, name=j.name: done.put((name, e)))
         for k in range(1, len(todo) + 1):

@@ -36,7 +36,7 @@ INDOOR_SUN = 8.0              # probe sun irradiance: sunlit patches through win
 SETTINGS = {"indoor_objects": Setting(50, "int", 0, 10000, "meshes placed in a room (furniture included)"),
             "p_lamps": Setting(0.0, "probability", doc="one to three small, very bright lamps in view "
                                                         "(scene_gen.phenomena)", newer=True),
-            "p_panels_in_view": Setting(0.0, "probability", doc="an emissive ceiling panel in view "
+            "p_panels_in_view": Setting(0.0, "probability", doc="an emissive panel on a wall or the ceiling in view "
                                                                 "(scene_gen.phenomena)", newer=True)}
 
 
