@@ -112,8 +112,9 @@ compare-nppd: setup ## nppd beside layer, temporal (if trained) and OIDN at 2, 4
 	done
 
 SCALING_CONFIG ?= configs/scaling-cpu.yaml
-scaling: setup   ## what the data buys: quality against training frames and scene variety, with fits (configs/scaling-cpu.yaml: about 2.5 hours on 2 cores; resumes; TARGET_RELMSE=X TARGET_PSNR=Y)
+scaling: setup   ## what the data buys: quality against training frames and scene variety, with fits (configs/scaling-cpu.yaml: about 2.5 hours on 2 cores; resumes; TARGET_RELMSE=X TARGET_PSNR=Y; STUDY_MODELS=nbg,wskpn: only those models' runs)
 	$(PY) -m studies scaling --config $(SCALING_CONFIG) $(if $(OUT),--out $(OUT)) $(if $(WORKERS),--workers $(WORKERS)) \
+	  $(if $(STUDY_MODELS),--models $(STUDY_MODELS)) \
 	  $(if $(TARGET_RELMSE),--target-relmse $(TARGET_RELMSE)) $(if $(TARGET_PSNR),--target-psnr $(TARGET_PSNR))
 
 HARD_RUNS ?= $(wildcard data/runs/*/checkpoint.pt data/runs-temporal/*/checkpoint.pt)

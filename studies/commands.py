@@ -20,6 +20,9 @@ def scaling_options(s: argparse.ArgumentParser) -> None:
     s.add_argument("--target-psnr", type=float, default=None, help="the same for a PSNR (dB); refused above the "
                                                                    "fitted ceiling")
     s.add_argument("--workers", type=int, default=None, help="render workers (default: the config's, else one a core)")
+    s.add_argument("--models", default=None, help="only these models' runs (labels, comma-separated; the "
+                                                   "others are left as they are): a study stopped early reports "
+                                                   "the models it has finished")
     s.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -48,7 +51,10 @@ def _scaling(a) -> int:
     from .scaling_run import run_study
     targets = {k: v for k, v in (("relmse", a.target_relmse), ("psnr", a.target_psnr)) if v is not None}
     check_targets(targets, "--target", flags=True)
-    run_study(load_scaling_config(a.config), a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
+    scfg = load_scaling_config(a.config)
+    if a.models is not None:
+        scfg = scfg.only_models([m.strip() for m in a.models.split(",") if m.strip()])
+    run_study(scfg, a.out, targets=targets, workers=a.workers, progress=not a.no_progress)
     return 0
 
 

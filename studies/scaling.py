@@ -24,6 +24,8 @@ metric (:mod:`studies.scaling_fit`) and writes ``scaling.png``, ``scaling.md`` a
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -157,6 +159,27 @@ class ScalingConfig:
         labels = [lab for lab, _ in out]
         need(len(set(labels)) == len(labels) and all("/" not in lab for lab in labels), "scaling.models",
              "models with distinct labels (set `label`) without '/'", labels, ConfigError)
+        return out
+
+    def only_models(self, labels) -> "ScalingConfig":
+        """The study with only the models ``labels`` (``--models``): their runs and the baselines at their spp,
+        every axis' model list narrowed to them (runs already finished are read back, so a study stopped
+        before its last models reports those it has); ConfigError naming a label the study lacks."""
+        have = [lab for lab, _ in self.model_plans()]
+        labels = list(dict.fromkeys(labels))
+        bad = [lab for lab in labels if lab not in have]
+        if bad or not labels:
+            raise ConfigError(f"--models must name models of the study {have}, got {labels}")
+        models = [m for m, (lab, _) in zip(self.models, self.model_plans()) if lab in labels]
+        axes = {}
+        for k in ("variety", "hard_share", "realism"):
+            v = getattr(self, k)
+            if v and v.get("models"):
+                kept = [m for m in v["models"] if m in labels]
+                axes[k] = {**v, "models": kept} if kept else None
+        out = dataclasses.replace(self, models=tuple(models), **axes)
+        need(bool(out.subsets or out.variety or out.hard_share or out.realism), "--models",
+             "models of at least one axis of the study", labels, ConfigError)
         return out
 
     def variety_plan(self) -> dict | None:

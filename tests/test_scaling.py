@@ -494,3 +494,24 @@ def test_the_shipped_realism_study_reuses_the_held_out_stills_and_writes_the_sui
     suites = scfg.suite_configs()
     assert {f: c.name for f, c in suites.items()} == {"box": "real-scenes", "gaussian": "real-scenes-gaussian"}
     assert all(c.held_out for c in suites.values()) and scfg.realism_plan()["models"] == ["nbg", "wskpn", "layer", "nppd"]
+
+
+def test_models_narrow_a_study_to_the_runs_of_those_models(capsys):
+    """``--models nbg``: only nbg's runs and its baselines, every axis narrowed; the same jobs, by name and
+    settings, as the whole study's for nbg (so its finished runs are read back); an unknown label is one
+    line."""
+    from studies.__main__ import main
+    train = {"name": "tr", "scenes": [{"kind": "indoor", "count": 4}], "split": {"train": 1}}
+    scfg = _config(subsets=[], variety=None, train_data=train, realism={**REALISM, "models": ["nbg", "wskpn"]},
+                   models=[{"model": "nbg", "steps": 2}, {"model": "wskpn", "steps": 2}])
+    table = {c: {"frames": [c], "family": "indoor", "case": ""} for c in range(4)}
+    tables = {lv: table for lv in scfg.level_configs()}
+    whole = {j.name: j for j in plan(scfg, table, tables)[0]}
+    narrow = plan(scfg.only_models(["nbg"]), table, tables)[0]
+    assert {j.label for j in narrow if j.kind == "realism"} == {"nbg"} and len(narrow) == 6 + 2
+    assert all(whole[j.name] == j for j in narrow)                      # the whole study's jobs, unchanged
+    with pytest.raises(ConfigError, match=r"--models must name models of the study \['nbg', 'wskpn'\], got \['unet'\]"):
+        scfg.only_models(["unet"])
+    assert main(["scaling", "--config", str(ROOT / "configs" / "scaling-smoke.yaml"), "--models", "layer",
+                 "--out", "/nonexistent/x"]) == 2
+    assert capsys.readouterr().err.startswith("error: --models must name models of the study ['nbg'], got ['layer']")
