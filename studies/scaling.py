@@ -198,18 +198,24 @@ class ScalingConfig:
              frames, ConfigError)
         return {"models": models, "seeds": seeds, "frames": frames}
 
+    def _axis_runs(self, v: dict, axis: str) -> tuple[list, list]:
+        """An axis' ``models`` (labels of ``models``; default all) and ``seeds`` (distinct integers >= 0;
+        default the study's), checked."""
+        labels = [lab for lab, _ in self.model_plans()]
+        models = list(v.get("models") or labels)
+        need(all(m in labels for m in models), f"scaling.{axis}.models", f"labels of scaling.models {labels}",
+             models, ConfigError)
+        seeds = list(v.get("seeds") or self.seeds)
+        need(all(is_int(x) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds), f"scaling.{axis}.seeds",
+             "distinct integers >= 0", seeds, ConfigError)
+        return models, seeds
+
     def hard_share_plan(self) -> dict | None:
         """``{"models", "seeds", "frames", "shares"}`` of the hard-case share axis, or None without one."""
         if not self.hard_share:
             return None
         v = known_keys(self.hard_share, ("models", "seeds", "frames", "shares"), "scaling.hard_share", ConfigError)
-        labels = [lab for lab, _ in self.model_plans()]
-        models = list(v.get("models") or labels)
-        need(all(m in labels for m in models), "scaling.hard_share.models", f"labels of scaling.models {labels}",
-             models, ConfigError)
-        seeds = list(v.get("seeds") or self.seeds)
-        need(all(is_int(x) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds), "scaling.hard_share.seeds",
-             "distinct integers >= 0", seeds, ConfigError)
+        models, seeds = self._axis_runs(v, "hard_share")
         need_int("scaling.hard_share.frames", v.get("frames"), 1, 10_000_000, ConfigError)
         shares = v.get("shares") or [0.0, 0.1, 0.25]
         need(isinstance(shares, list) and all(is_number(x, finite=True) and 0 <= x <= 1 for x in shares)
@@ -226,13 +232,7 @@ class ScalingConfig:
         if not self.realism:
             return None
         v = known_keys(self.realism, ("models", "seeds", "suite", "filters", "levels"), "scaling.realism", ConfigError)
-        labels = [lab for lab, _ in self.model_plans()]
-        models = list(v.get("models") or labels)
-        need(all(m in labels for m in models), "scaling.realism.models", f"labels of scaling.models {labels}",
-             models, ConfigError)
-        seeds = list(v.get("seeds") or self.seeds)
-        need(all(is_int(x) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds), "scaling.realism.seeds",
-             "distinct integers >= 0", seeds, ConfigError)
+        models, seeds = self._axis_runs(v, "realism")
         need(isinstance(v.get("suite"), (str, dict)), "scaling.realism.suite", "the held-out real-scene suite's "
              "dataset config (e.g. configs/real-scenes.yaml)", v.get("suite"), ConfigError)
         filters = list(v.get("filters") or ["box"])
